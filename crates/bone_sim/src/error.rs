@@ -1,0 +1,101 @@
+//! The crate's one error type. Every fallible public function returns [`SimError`]; the
+//! Python layer maps it to exception classes in exactly one place (`python/errors.rs`).
+
+use thiserror::Error;
+
+/// Everything that can go wrong in the bone simulation core.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum SimError {
+    /// A value that must be finite was NaN or infinite.
+    #[error("{what} must be finite, got {value}")]
+    NonFinite {
+        /// What was being checked, with its unit (e.g. "burr centre x (m)").
+        what: &'static str,
+        /// The offending value.
+        value: f64,
+    },
+    /// A scalar parameter outside its allowed range.
+    #[error("{name} = {value} is invalid: {reason}")]
+    InvalidParameter {
+        /// Parameter name with its unit.
+        name: &'static str,
+        /// The offending value.
+        value: f64,
+        /// What the allowed range is.
+        reason: &'static str,
+    },
+    /// Array or grid sizes that do not agree.
+    #[error("{what}: expected {expected}, got {got}")]
+    ShapeMismatch {
+        /// What was being checked.
+        what: &'static str,
+        /// The expected size or shape, as text.
+        expected: String,
+        /// The size or shape that was given, as text.
+        got: String,
+    },
+    /// An input that must not be empty was empty.
+    #[error("{what} must not be empty")]
+    Empty {
+        /// What was empty.
+        what: &'static str,
+    },
+    /// A label that is not one of the layer ids.
+    #[error("unknown layer id {id} at voxel {voxel} (valid ids are 0..={max})")]
+    UnknownLayer {
+        /// The offending id.
+        id: u8,
+        /// Linear index of the first voxel carrying it.
+        voxel: usize,
+        /// The largest valid id.
+        max: u8,
+    },
+    /// A string option that is not one of the allowed values.
+    #[error("{name} must be one of {allowed}, got {value:?}")]
+    InvalidOption {
+        /// Option name.
+        name: &'static str,
+        /// The value given.
+        value: String,
+        /// The allowed values, as text.
+        allowed: &'static str,
+    },
+    /// A grid whose geometry is unusable (orientation not a rotation, too many voxels...).
+    #[error("invalid grid: {reason}")]
+    InvalidGrid {
+        /// What is wrong with it.
+        reason: String,
+    },
+}
+
+/// Result alias used throughout the crate.
+pub type SimResult<T> = Result<T, SimError>;
+
+/// Returns `Err(NonFinite)` unless `value` is finite.
+pub(crate) fn finite(what: &'static str, value: f64) -> SimResult<f64> {
+    if value.is_finite() {
+        Ok(value)
+    } else {
+        Err(SimError::NonFinite { what, value })
+    }
+}
+
+/// Returns `Err(InvalidParameter)` unless `value` is finite and strictly positive.
+pub(crate) fn positive(name: &'static str, value: f64) -> SimResult<f64> {
+    finite(name, value)?;
+    if value > 0.0 {
+        Ok(value)
+    } else {
+        Err(SimError::InvalidParameter { name, value, reason: "must be > 0" })
+    }
+}
+
+/// Returns `Err(InvalidParameter)` unless `value` is finite and `>= 0`.
+pub(crate) fn non_negative(name: &'static str, value: f64) -> SimResult<f64> {
+    finite(name, value)?;
+    if value >= 0.0 {
+        Ok(value)
+    } else {
+        Err(SimError::InvalidParameter { name, value, reason: "must be >= 0" })
+    }
+}

@@ -1,0 +1,40 @@
+//! The one place where core errors become Python exceptions.
+//!
+//! The exception classes are defined in Python (`dhg/errors.py`) so they can subclass both
+//! `DhgError` and the matching builtin (`ValueError`); this module looks them up by name.
+
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+use crate::error::SimError;
+
+/// Converts a core error into the matching `dhg.errors` exception.
+pub(crate) fn to_py(err: SimError) -> PyErr {
+    let class = match &err {
+        SimError::ShapeMismatch { .. } | SimError::Empty { .. } => "ShapeError",
+        SimError::NonFinite { .. }
+        | SimError::InvalidParameter { .. }
+        | SimError::UnknownLayer { .. }
+        | SimError::InvalidOption { .. }
+        | SimError::InvalidGrid { .. } => "InvalidInputError",
+    };
+    let message = err.to_string();
+    Python::attach(|py| {
+        match py.import("dhg.errors").and_then(|m| m.getattr(class)) {
+            Ok(cls) => PyErr::from_type(cls.cast_into().map_or_else(|_| py.get_type::<PyValueError>(), |t| t), message),
+            // dhg.errors always ships with the extension; fall back to ValueError rather than fail.
+            Err(_) => PyValueError::new_err(message),
+        }
+    })
+}
+
+/// `Result` → `PyResult` with the mapping above.
+pub(crate) trait IntoPyResult<T> {
+    fn py(self) -> PyResult<T>;
+}
+
+impl<T> IntoPyResult<T> for Result<T, SimError> {
+    fn py(self) -> PyResult<T> {
+        self.map_err(to_py)
+    }
+}

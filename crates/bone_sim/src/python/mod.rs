@@ -1,0 +1,28 @@
+//! The pyo3 binding layer, built only with the `python` feature: converts types, maps errors, and
+//! releases the GIL around long work. No simulation logic lives here.
+
+mod convert;
+mod errors;
+mod volume;
+
+use pyo3::prelude::*;
+
+use crate::removal::MAX_BURR_RADIUS_M;
+use crate::volume::bricks::BRICK_EDGE;
+use crate::volume::layer::Layer;
+use crate::volume::material::{HU_MAX, HU_MIN};
+
+/// `dhg._bone_sim`: the native core of DHG. Use it through the `dhg` package.
+#[pymodule]
+fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<volume::PyVolume>()?;
+    m.add_class::<volume::PyDrilledVolume>()?;
+    let names: Vec<&str> = Layer::ALL.iter().map(|l| l.name()).collect();
+    m.add("LAYER_NAMES", names)?;
+    m.add("HU_MIN", HU_MIN)?;
+    m.add("HU_MAX", HU_MAX)?;
+    m.add("BRICK_EDGE", BRICK_EDGE)?;
+    m.add("MAX_BURR_RADIUS_M", MAX_BURR_RADIUS_M)?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

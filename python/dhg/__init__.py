@@ -1,0 +1,43 @@
+"""DHG — Deep Haptic Guidance: a real-time haptic guidance server for training bone drilling.
+
+Units are SI everywhere (m, kg, s, N; °C for temperature). Frames and array layouts:
+``docs/frames.md``.
+"""
+
+from __future__ import annotations
+
+from dhg import _bone_sim
+from dhg.errors import (
+    CTImportError,
+    DhgError,
+    InvalidInputError,
+    NotBuiltYetError,
+    ShapeError,
+    VolumeFileError,
+)
+from dhg.layers import Layer
+from dhg.phantom import Phantom, default_phantom, femur
+from dhg.task import PlannedPath
+from dhg.volume import DrilledVolume, HuMapping, RemovalReport, Volume, XRayViews
+
+__version__: str = _bone_sim.__version__
+
+__all__ = [
+    "CTImportError",
+    "DhgError",
+    "DrilledVolume",
+    "HuMapping",
+    "InvalidInputError",
+    "Layer",
+    "NotBuiltYetError",
+    "Phantom",
+    "PlannedPath",
+    "RemovalReport",
+    "ShapeError",
+    "Volume",
+    "VolumeFileError",
+    "XRayViews",
+    "__version__",
+    "default_phantom",
+    "femur",
+]

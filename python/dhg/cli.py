@@ -1,0 +1,238 @@
+"""The ``dhg`` command line (one command, subcommands) and ``dhg-serve``.
+
+Exit codes: 0 success; 1 unexpected internal error (a bug: please report it); 2 usage error
+(bad arguments); 3 bad input (unreadable CT or volume file, invalid values); 4 the feature is not
+built yet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from dhg.errors import DhgError, NotBuiltYetError
+
+EXIT_OK = 0
+EXIT_INTERNAL = 1
+EXIT_USAGE = 2
+EXIT_BAD_INPUT = 3
+EXIT_NOT_BUILT = 4
+
+_EPILOG = """\
+exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input, 4 not built yet.
+units: SI throughout (m, s, kg); options ending in -mm take millimetres for convenience.
+"""
+
+
+def _load_volume(ct: str | None, voxel_mm: float):  # -> tuple[Volume, PlannedPath | None]
+    """The phantom (default), a prepared volume file (.npz), or a CT to import."""
+    from dhg import phantom
+    from dhg.task import PlannedPath
+    from dhg.volume import Volume
+
+    if ct is None:
+        p = phantom.default_phantom(0, voxel_mm * 1e-3)
+        return p.volume, p.path
+    path = Path(ct)
+    if path.suffix == ".npz":
+        vol = Volume.load(path)
+    else:
+        from dhg import ct as ct_mod
+
+        vol = ct_mod.prepare(path, voxel_m=voxel_mm * 1e-3)
+    planned = vol.meta.get("planned_path")
+    return vol, (PlannedPath.from_dict(planned) if planned else None)
+
+
+def _mm(point_m) -> str:
+    return "(" + ", ".join(f"{float(v) * 1e3:.1f}" for v in point_m) + ")"
+
+
+def _progress(description: str):
+    """A rich progress bar as a context manager with an ``update(done, total)`` callback."""
+    from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
+
+    prog = Progress(
+        TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(), TimeRemainingColumn(),
+        transient=False, disable=not sys.stderr.isatty(),
+    )
+    task = prog.add_task(description, total=None)
+
+    def update(done: int, total: int) -> None:
+        prog.update(task, completed=done, total=total)
+
+    return prog, update
+
+
+def cmd_xray(args: argparse.Namespace) -> int:
+    from dhg.xray import render_views, write_views
+
+    vol, path = _load_volume(args.ct, args.voxel_mm)
+    images = render_views(vol, vol.xray(), path if not args.no_path else None)
+    for name, p in write_views(images, args.out).items():
+        print(f"{name:5s} {p}")
+    return EXIT_OK
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from dhg.surgeons import straight_line_drill
+    from dhg.xray import auto_windows, render_views, write_views
+
+    t0 = time.perf_counter()
+    vol, path = _load_volume(args.ct, args.voxel_mm)
+    if path is None:
+        print("error: this volume has no planned path; use the phantom or a volume saved with one", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    t_build = time.perf_counter() - t0
+    print(f"volume   {vol}  built in {t_build:.2f} s, {vol.memory_bytes / 1e6:.1f} MB shared")
+    print(f"path     A = {_mm(path.entry_m)} mm  →  B = {_mm(path.target_m)} mm  ({path.length_m * 1e3:.1f} mm)")
+    bone = vol.drill()
+    windows = auto_windows(vol.xray())
+    prog, update = _progress("drilling A→B")
+    t1 = time.perf_counter()
+    with prog:
+        run = straight_line_drill(
+            bone, path, radius_m=args.burr_mm * 1e-3 / 2, feed_m_s=args.feed_mm_s * 1e-3,
+            spindle_rpm=args.rpm, progress=update,
+        )
+    t_drill = time.perf_counter() - t1
+    print(f"drilled  {run.ticks} ticks of 1 ms ({run.duration_s:.1f} s simulated) in {t_drill:.2f} s wall; "
+          f"removed {run.mass_removed_kg * 1e6:.1f} mg, {run.voxels_removed} voxels; "
+          f"session holds {bone.drilled_bricks} bricks, {bone.memory_bytes / 1e3:.0f} kB")
+    print("layers along A→B:")
+    for name, start, end in run.layers:
+        print(f"  {name:10s} {start * 1e3:6.1f} – {end * 1e3:6.1f} mm")
+    out = Path(args.out)
+    images = render_views(vol, bone.xray(), path, tip_m=run.tip_m, windows=windows)
+    for name, p in write_views(images, out).items():
+        print(f"{name:5s} {p}")
+    return EXIT_OK
+
+
+def cmd_ct_import(args: argparse.Namespace) -> int:
+    from dhg import ct
+
+    crop = None
+    if args.crop_mm is not None:
+        vals = [float(v) * 1e-3 for v in args.crop_mm.split(",")]
+        if len(vals) != 6:
+            print("error: --crop-mm takes six numbers: xmin,ymin,zmin,xmax,ymax,zmax", file=sys.stderr)
+            return EXIT_USAGE
+        crop = (vals[:3], vals[3:])
+    vol = ct.prepare(args.src, voxel_m=args.voxel_mm * 1e-3, crop_m=crop)
+    path = vol.save(args.out)
+    print(f"{vol} → {path}")
+    return EXIT_OK
+
+
+def cmd_phantom(args: argparse.Namespace) -> int:
+    from dhg import phantom
+
+    p = phantom.femur(args.seed, args.voxel_mm * 1e-3)
+    print(f"{p.volume} → {p.volume.save(args.out)}")
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``dhg`` argument parser."""
+    parser = argparse.ArgumentParser(
+        prog="dhg",
+        description="DHG — Deep Haptic Guidance for training bone drilling. Builds and drills voxel bone "
+        "from CT (or the built-in phantom femur) and renders X-ray views.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    def add_source(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--ct", metavar="PATH", help="a prepared volume (.npz from 'dhg ct-import' or 'dhg phantom'), "
+                       "a DICOM folder/file or a NIfTI file; default: the built-in phantom femur")
+        p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM",
+                       help="isotropic voxel size used to build the phantom or resample a CT (default 0.5)")
+
+    p = sub.add_parser("xray", help="write the top, front and side X-ray views as PNG",
+                       description="Writes top.png, front.png and side.png: digitally reconstructed radiographs "
+                       "(line integrals of X-ray attenuation) along the volume's z, y and x axes, with the planned "
+                       "path A→B drawn in green when the volume has one.", epilog=_EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for the PNG files (created if needed)")
+    add_source(p)
+    p.add_argument("--no-path", action="store_true", help="do not draw the planned path")
+    p.set_defaults(func=cmd_xray)
+
+    p = sub.add_parser("demo", help="drill the planned path with a scripted straight-line drill and show the X-rays",
+                       description="Builds the phantom femur (or loads --ct), drills the planned path A→B with a "
+                       "scripted straight-line drill at 1 kHz, prints what was removed and the layers crossed, and "
+                       "writes the X-ray views of the drilled bone with the tip and the path drawn in.",
+                       epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default="out/demo", metavar="DIR", help="folder for the PNG files (default out/demo)")
+    add_source(p)
+    p.add_argument("--burr-mm", type=float, default=2.5, metavar="MM", help="drill diameter (default 2.5)")
+    p.add_argument("--feed-mm-s", type=float, default=1.5, metavar="MM_S", help="feed rate (default 1.5 mm/s)")
+    p.add_argument("--rpm", type=float, default=1200.0, help="spindle speed (default 1200 rpm)")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("ct-import", help="prepare a real CT (DICOM or NIfTI) as a volume file",
+                       description="Reads a DICOM series (folder or file) or a NIfTI file, converts to HU, resamples "
+                       "to isotropic voxels in the LPS frame, optionally crops, segments the bone layers and writes a "
+                       "prepared volume (.npz) that --ct accepts everywhere.", epilog=_EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("src", metavar="SRC", help="DICOM folder or file, or .nii/.nii.gz")
+    p.add_argument("--out", required=True, metavar="FILE.npz", help="where to write the prepared volume")
+    p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="isotropic voxel size (default 0.5)")
+    p.add_argument("--crop-mm", metavar="X0,Y0,Z0,X1,Y1,Z1", help="keep only this world box (mm, LPS)")
+    p.set_defaults(func=cmd_ct_import)
+
+    p = sub.add_parser("phantom", help="write the built-in phantom femur as a volume file",
+                       description="Builds the procedural proximal-femur CT (deterministic for a seed) with its "
+                       "default hip-pinning path and writes it as a prepared volume (.npz).", epilog=_EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", required=True, metavar="FILE.npz", help="where to write it")
+    p.add_argument("--seed", type=int, default=0, help="texture and noise seed (default 0)")
+    p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="voxel size (default 0.5)")
+    p.set_defaults(func=cmd_phantom)
+    return parser
+
+
+def _run(func, args: argparse.Namespace) -> int:
+    try:
+        return int(func(args))
+    except NotBuiltYetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NOT_BUILT
+    except (DhgError, ValueError, TypeError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``dhg``."""
+    args = build_parser().parse_args(argv)
+    return _run(args.func, args)
+
+
+def serve_main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``dhg-serve`` (the real-time guidance server, not built yet)."""
+    parser = argparse.ArgumentParser(
+        prog="dhg-serve",
+        description="The real-time haptic guidance server over Zenoh. Not built yet: it is the subject of the "
+        "guidance-server issue. Until then use 'dhg demo'.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.parse_args(argv)
+
+    def fail(_: argparse.Namespace) -> int:
+        raise NotBuiltYetError("dhg-serve is not built yet (the guidance-server issue); use 'dhg demo' for now")
+
+    return _run(fail, argparse.Namespace())
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,41 @@
+"""Exception classes of DHG.
+
+Every error DHG raises on bad input is a :class:`DhgError`. Input errors also subclass the builtin
+a caller would expect (``ValueError``), so ``except ValueError`` keeps working. The native core
+(``dhg._bone_sim``) raises these same classes: its error mapping looks them up here by name.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "CTImportError",
+    "DhgError",
+    "InvalidInputError",
+    "NotBuiltYetError",
+    "ShapeError",
+    "VolumeFileError",
+]
+
+
+class DhgError(Exception):
+    """Base class of every DHG error."""
+
+
+class InvalidInputError(DhgError, ValueError):
+    """A value is out of range, NaN/infinite, or not one of the allowed options."""
+
+
+class ShapeError(InvalidInputError):
+    """Arrays whose shapes or lengths do not fit together."""
+
+
+class CTImportError(DhgError, ValueError):
+    """A file or folder that cannot be read as CT (not DICOM/NIfTI, no pixel data, mixed series)."""
+
+
+class VolumeFileError(DhgError, ValueError):
+    """A prepared volume file that is missing, truncated, corrupt, or of another format/version."""
+
+
+class NotBuiltYetError(DhgError, NotImplementedError):
+    """A feature whose implementation has not landed yet (the message names the issue)."""

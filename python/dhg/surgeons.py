@@ -1,0 +1,92 @@
+"""Operators that drive the drill through the simulator.
+
+For now the scripted straight-line drill: it advances the burr along the planned path at a
+constant feed, one 1 ms tick at a time, with no force feedback (the force model and the virtual
+surgeons with human motor behaviour come with the haptics and demonstrations work).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dhg.errors import InvalidInputError
+from dhg.layers import Layer
+from dhg.task import PlannedPath
+from dhg.volume import DrilledVolume
+
+__all__ = ["DrillRun", "straight_line_drill"]
+
+
+@dataclass
+class DrillRun:
+    """Summary of a scripted drilling run (SI units)."""
+
+    duration_s: float
+    """Simulated time (s)."""
+    ticks: int
+    """1 ms ticks simulated."""
+    mass_removed_kg: float
+    """Bone mass removed (kg)."""
+    voxels_removed: int
+    """Voxels fully removed."""
+    tip_m: np.ndarray
+    """Final burr centre (m)."""
+    layers: list[tuple[str, float, float]] = field(default_factory=list)
+    """Layers crossed: (name, depth where it starts (m), depth where it ends (m)) along the path."""
+
+
+def straight_line_drill(
+    bone: DrilledVolume,
+    path: PlannedPath,
+    radius_m: float = 1.25e-3,
+    feed_m_s: float = 1.5e-3,
+    spindle_rpm: float = 1200.0,
+    tick_s: float = 1e-3,
+    start_before_m: float = 2e-3,
+    chunk_ticks: int = 1000,
+    progress: Callable[[int, int], None] | None = None,
+) -> DrillRun:
+    """Drills ``bone`` from ``start_before_m`` (m) before A to B at a constant feed (m/s).
+
+    Each tick moves the burr centre ``feed_m_s · tick_s`` along the path and erodes for ``tick_s``.
+    ``progress(done_ticks, total_ticks)`` is called after each chunk of ticks.
+    """
+    for name, v in (("radius_m", radius_m), ("feed_m_s", feed_m_s), ("tick_s", tick_s)):
+        if not (np.isfinite(v) and v > 0):
+            raise InvalidInputError(f"{name} must be > 0, got {v}")
+    total_m = path.length_m + start_before_m
+    ticks = int(np.ceil(total_m / (feed_m_s * tick_s)))
+    depths = -start_before_m + np.linspace(feed_m_s * tick_s, total_m, ticks)
+    centers = path.point_at(depths)
+    mass = 0.0
+    removed = 0
+    for start in range(0, ticks, chunk_ticks):
+        r = bone.remove_along(centers[start : start + chunk_ticks], radius_m, spindle_rpm, tick_s)
+        mass += r.mass_removed_kg
+        removed += r.voxels_removed
+        if progress is not None:
+            progress(min(start + chunk_ticks, ticks), ticks)
+    return DrillRun(
+        duration_s=ticks * tick_s,
+        ticks=ticks,
+        mass_removed_kg=mass,
+        voxels_removed=removed,
+        tip_m=centers[-1],
+        layers=layer_runs(bone, path, step_m=0.25e-3),
+    )
+
+
+def layer_runs(bone: DrilledVolume, path: PlannedPath, step_m: float = 0.25e-3) -> list[tuple[str, float, float]]:
+    """The pristine layers along A→B as runs (name, start depth (m), end depth (m))."""
+    depths = np.arange(0.0, path.length_m + step_m / 2, step_m)
+    ids = bone.volume.layer_at(path.point_at(depths))
+    runs: list[tuple[str, float, float]] = []
+    start = 0
+    for i in range(1, len(ids) + 1):
+        if i == len(ids) or ids[i] != ids[start]:
+            runs.append((Layer(int(ids[start])).name.lower(), float(depths[start]), float(depths[i - 1])))
+            start = i
+    return runs

@@ -1,0 +1,77 @@
+"""The command line: help, the xray and demo commands, import, and exit codes."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from pydicom.data import get_testdata_file
+
+BIN = Path(sys.executable).parent
+
+
+def run(*args: str, tool: str = "dhg") -> subprocess.CompletedProcess[str]:
+    exe = shutil.which(tool, path=str(BIN)) or shutil.which(tool)
+    assert exe, f"console script {tool} is not installed"
+    return subprocess.run([exe, *args], capture_output=True, text=True, timeout=300)
+
+
+def test_help_teaches():
+    r = run("--help")
+    assert r.returncode == 0
+    for word in ("xray", "demo", "ct-import", "phantom", "exit codes"):
+        assert word in r.stdout
+    r = run("xray", "--help")
+    assert r.returncode == 0 and "top.png" in r.stdout and "--ct" in r.stdout
+
+
+def test_xray_writes_three_pngs(tmp_path):
+    r = run("xray", "--out", str(tmp_path / "x"), "--voxel-mm", "1.5")
+    assert r.returncode == 0, r.stderr
+    for name in ("top", "front", "side"):
+        png = tmp_path / "x" / f"{name}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert str(png) in r.stdout
+
+
+def test_ct_import_then_xray_from_the_file(tmp_path):
+    out = tmp_path / "ct.npz"
+    r = run("ct-import", get_testdata_file("CT_small.dcm"), "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    r = run("xray", "--ct", str(out), "--out", str(tmp_path / "v"))
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "v" / "front.png").is_file()
+
+
+def test_demo_drills_and_reports(tmp_path):
+    r = run("demo", "--out", str(tmp_path / "demo"), "--voxel-mm", "1.0")
+    assert r.returncode == 0, r.stderr
+    assert "necrosis" in r.stdout and "removed" in r.stdout
+    assert (tmp_path / "demo" / "side.png").is_file()
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "message"),
+    [
+        (["xray", "--out", "{tmp}/o", "--ct", "{tmp}/missing.npz"], 3, "no such volume file"),
+        (["xray", "--out", "{tmp}/o", "--ct", "{tmp}/notes.txt"], 3, "not a DICOM file"),
+        (["xray", "--out", "{tmp}/o", "--voxel-mm", "-1"], 3, "voxel_m"),
+        (["xray"], 2, "--out"),
+        (["frobnicate"], 2, "invalid choice"),
+    ],
+)
+def test_exit_codes_and_messages(tmp_path, args, code, message):
+    (tmp_path / "notes.txt").write_text("hello")
+    r = run(*[a.format(tmp=tmp_path) for a in args])
+    assert r.returncode == code, (r.stdout, r.stderr)
+    assert message in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_serve_says_it_is_not_built_yet():
+    r = run(tool="dhg-serve")
+    assert r.returncode == 4
+    assert "not built yet" in r.stderr
