@@ -66,7 +66,7 @@ def test_cortex_is_thick_on_the_shaft_and_thin_at_the_head(phantom):
 
 
 def test_cancellous_density_rises_towards_the_head(phantom):
-    vol, path = phantom.volume, phantom.path
+    vol = phantom.volume
     labels, hu = vol.labels(), vol.hu()
     ijk = np.argwhere(labels == Layer.CANCELLOUS)[:, ::-1].astype(float)
     world = vol.index_to_world(ijk)

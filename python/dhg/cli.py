@@ -56,8 +56,12 @@ def _progress(description: str):
     from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 
     prog = Progress(
-        TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(), TimeRemainingColumn(),
-        transient=False, disable=not sys.stderr.isatty(),
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TaskProgressColumn(),
+        TimeRemainingColumn(),
+        transient=False,
+        disable=not sys.stderr.isatty(),
     )
     task = prog.add_task(description, total=None)
 
@@ -95,13 +99,19 @@ def cmd_demo(args: argparse.Namespace) -> int:
     t1 = time.perf_counter()
     with prog:
         run = straight_line_drill(
-            bone, path, radius_m=args.burr_mm * 1e-3 / 2, feed_m_s=args.feed_mm_s * 1e-3,
-            spindle_rpm=args.rpm, progress=update,
+            bone,
+            path,
+            radius_m=args.burr_mm * 1e-3 / 2,
+            feed_m_s=args.feed_mm_s * 1e-3,
+            spindle_rpm=args.rpm,
+            progress=update,
         )
     t_drill = time.perf_counter() - t1
-    print(f"drilled  {run.ticks} ticks of 1 ms ({run.duration_s:.1f} s simulated) in {t_drill:.2f} s wall; "
-          f"removed {run.mass_removed_kg * 1e6:.1f} mg, {run.voxels_removed} voxels; "
-          f"session holds {bone.drilled_bricks} bricks, {bone.memory_bytes / 1e3:.0f} kB")
+    print(
+        f"drilled  {run.ticks} ticks of 1 ms ({run.duration_s:.1f} s simulated) in {t_drill:.2f} s wall; "
+        f"removed {run.mass_removed_kg * 1e6:.1f} mg, {run.voxels_removed} voxels; "
+        f"session holds {bone.drilled_bricks} bricks, {bone.memory_bytes / 1e3:.0f} kB"
+    )
     print("layers along A→B:")
     for name, start, end in run.layers:
         print(f"  {name:10s} {start * 1e3:6.1f} – {end * 1e3:6.1f} mm")
@@ -148,26 +158,43 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     def add_source(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--ct", metavar="PATH", help="a prepared volume (.npz from 'dhg ct-import' or 'dhg phantom'), "
-                       "a DICOM folder/file or a NIfTI file; default: the built-in phantom femur")
-        p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM",
-                       help="isotropic voxel size used to build the phantom or resample a CT (default 0.5)")
+        p.add_argument(
+            "--ct",
+            metavar="PATH",
+            help="a prepared volume (.npz from 'dhg ct-import' or 'dhg phantom'), "
+            "a DICOM folder/file or a NIfTI file; default: the built-in phantom femur",
+        )
+        p.add_argument(
+            "--voxel-mm",
+            type=float,
+            default=0.5,
+            metavar="MM",
+            help="isotropic voxel size used to build the phantom or resample a CT (default 0.5)",
+        )
 
-    p = sub.add_parser("xray", help="write the top, front and side X-ray views as PNG",
-                       description="Writes top.png, front.png and side.png: digitally reconstructed radiographs "
-                       "(line integrals of X-ray attenuation) along the volume's z, y and x axes, with the planned "
-                       "path A→B drawn in green when the volume has one.", epilog=_EPILOG,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "xray",
+        help="write the top, front and side X-ray views as PNG",
+        description="Writes top.png, front.png and side.png: digitally reconstructed radiographs "
+        "(line integrals of X-ray attenuation) along the volume's z, y and x axes, with the planned "
+        "path A→B drawn in green when the volume has one.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the PNG files (created if needed)")
     add_source(p)
     p.add_argument("--no-path", action="store_true", help="do not draw the planned path")
     p.set_defaults(func=cmd_xray)
 
-    p = sub.add_parser("demo", help="drill the planned path with a scripted straight-line drill and show the X-rays",
-                       description="Builds the phantom femur (or loads --ct), drills the planned path A→B with a "
-                       "scripted straight-line drill at 1 kHz, prints what was removed and the layers crossed, and "
-                       "writes the X-ray views of the drilled bone with the tip and the path drawn in.",
-                       epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "demo",
+        help="drill the planned path with a scripted straight-line drill and show the X-rays",
+        description="Builds the phantom femur (or loads --ct), drills the planned path A→B with a "
+        "scripted straight-line drill at 1 kHz, prints what was removed and the layers crossed, and "
+        "writes the X-ray views of the drilled bone with the tip and the path drawn in.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--out", default="out/demo", metavar="DIR", help="folder for the PNG files (default out/demo)")
     add_source(p)
     p.add_argument("--burr-mm", type=float, default=2.5, metavar="MM", help="drill diameter (default 2.5)")
@@ -175,21 +202,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rpm", type=float, default=1200.0, help="spindle speed (default 1200 rpm)")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("ct-import", help="prepare a real CT (DICOM or NIfTI) as a volume file",
-                       description="Reads a DICOM series (folder or file) or a NIfTI file, converts to HU, resamples "
-                       "to isotropic voxels in the LPS frame, optionally crops, segments the bone layers and writes a "
-                       "prepared volume (.npz) that --ct accepts everywhere.", epilog=_EPILOG,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "ct-import",
+        help="prepare a real CT (DICOM or NIfTI) as a volume file",
+        description="Reads a DICOM series (folder or file) or a NIfTI file, converts to HU, resamples "
+        "to isotropic voxels in the LPS frame, optionally crops, segments the bone layers and writes a "
+        "prepared volume (.npz) that --ct accepts everywhere.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("src", metavar="SRC", help="DICOM folder or file, or .nii/.nii.gz")
     p.add_argument("--out", required=True, metavar="FILE.npz", help="where to write the prepared volume")
     p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="isotropic voxel size (default 0.5)")
     p.add_argument("--crop-mm", metavar="X0,Y0,Z0,X1,Y1,Z1", help="keep only this world box (mm, LPS)")
     p.set_defaults(func=cmd_ct_import)
 
-    p = sub.add_parser("phantom", help="write the built-in phantom femur as a volume file",
-                       description="Builds the procedural proximal-femur CT (deterministic for a seed) with its "
-                       "default hip-pinning path and writes it as a prepared volume (.npz).", epilog=_EPILOG,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "phantom",
+        help="write the built-in phantom femur as a volume file",
+        description="Builds the procedural proximal-femur CT (deterministic for a seed) with its "
+        "default hip-pinning path and writes it as a prepared volume (.npz).",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--out", required=True, metavar="FILE.npz", help="where to write it")
     p.add_argument("--seed", type=int, default=0, help="texture and noise seed (default 0)")
     p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="voxel size (default 0.5)")

@@ -295,9 +295,7 @@ class Volume:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(
-                    fh, header=np.array(json.dumps(header)), hu=self.hu(), labels=self.labels()
-                )
+                np.savez_compressed(fh, header=np.array(json.dumps(header)), hu=self.hu(), labels=self.labels())
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)

@@ -1,4 +1,4 @@
-//! # bone_sim — the Rust core of DHG (Deep Haptic Guidance)
+//! # `bone_sim` — the Rust core of DHG (Deep Haptic Guidance)
 //!
 //! Voxel bone built from CT, layer lookup, material removal by a spherical burr and X-ray views.
 //! Pure Rust: nothing here knows about Python; the optional `python` feature adds the thin pyo3

@@ -90,7 +90,11 @@ impl Cut {
         non_negative("dt (s)", self.dt_s)?;
         non_negative("contact", self.contact)?;
         if self.contact > 1.0 {
-            return Err(SimError::InvalidParameter { name: "contact", value: self.contact, reason: "must be in 0..=1" });
+            return Err(SimError::InvalidParameter {
+                name: "contact",
+                value: self.contact,
+                reason: "must be in 0..=1",
+            });
         }
         Ok(())
     }

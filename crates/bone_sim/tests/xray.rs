@@ -1,5 +1,8 @@
 //! X-ray views: the incremental views equal a full re-integration, and drilling shows.
 
+// Exact float comparisons are intended: untouched values must be bit-identical.
+#![allow(clippy::float_cmp, clippy::cast_lossless)]
+
 mod common;
 
 use bone_sim::{Burr, Cut, DrilledVolume, Layer, View};

@@ -3,8 +3,8 @@
 use nalgebra::Point3;
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyArray2, PyReadonlyArray2};
-use pyo3::prelude::*;
 use pyo3::marker::Ungil;
+use pyo3::prelude::*;
 
 use crate::error::SimError;
 use crate::volume::sample::Interp;

@@ -9,6 +9,7 @@ use pyo3::prelude::*;
 use crate::error::SimError;
 
 /// Converts a core error into the matching `dhg.errors` exception.
+#[allow(clippy::needless_pass_by_value)] // by value so it fits `map_err`
 pub(crate) fn to_py(err: SimError) -> PyErr {
     let class = match &err {
         SimError::ShapeMismatch { .. } | SimError::Empty { .. } => "ShapeError",
@@ -21,7 +22,7 @@ pub(crate) fn to_py(err: SimError) -> PyErr {
     let message = err.to_string();
     Python::attach(|py| {
         match py.import("dhg.errors").and_then(|m| m.getattr(class)) {
-            Ok(cls) => PyErr::from_type(cls.cast_into().map_or_else(|_| py.get_type::<PyValueError>(), |t| t), message),
+            Ok(cls) => PyErr::from_type(cls.cast_into().unwrap_or_else(|_| py.get_type::<PyValueError>()), message),
             // dhg.errors always ships with the extension; fall back to ValueError rather than fail.
             Err(_) => PyValueError::new_err(message),
         }

@@ -1,6 +1,9 @@
 //! The pyo3 binding layer, built only with the `python` feature: converts types, maps errors, and
 //! releases the GIL around long work. No simulation logic lives here.
 
+// pyo3 extracts arguments such as `PyReadonlyArray2` by value; borrowing them is not an option.
+#![allow(clippy::needless_pass_by_value)]
+
 mod convert;
 mod errors;
 mod volume;

@@ -11,7 +11,7 @@ use super::convert::{detached, image, points};
 use super::errors::IntoPyResult;
 use crate::error::SimError;
 use crate::removal::{Burr, Cut, RemovalReport};
-use crate::volume::drilled::{DrilledVolume, DEFAULT_RESERVED_BRICKS};
+use crate::volume::drilled::DrilledVolume;
 use crate::volume::grid::Grid;
 use crate::volume::material::HuMapping;
 use crate::volume::Volume;
@@ -84,10 +84,10 @@ fn mapping_to_dict<'py>(py: Python<'py>, m: &HuMapping) -> PyResult<Bound<'py, P
     Ok(d)
 }
 
-fn xray_tuple<'py>(
-    py: Python<'py>,
-    p: &Projections,
-) -> (Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>) {
+/// The (top, front, side) images handed to Python.
+type Views<'py> = (Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>);
+
+fn xray_tuple<'py>(py: Python<'py>, p: &Projections) -> Views<'py> {
     let [top, front, side] = View::ALL.map(|v| {
         let (data, shape) = p.view(v);
         image(py, data, shape)
@@ -217,36 +217,51 @@ impl PyVolume {
     }
 
     /// Pristine layer id at each world point (N, 3) in metres.
-    fn layer_at<'py>(&self, py: Python<'py>, points_m: PyReadonlyArray2<'_, f64>) -> PyResult<Bound<'py, PyArray1<u8>>> {
+    fn layer_at<'py>(
+        &self,
+        py: Python<'py>,
+        points_m: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<u8>>> {
         Ok(per_point(&points_m, |p| self.inner.layer_at(p).map(crate::Layer::id))?.into_pyarray(py))
     }
 
     /// HU at each world point (N, 3) in metres.
     #[pyo3(signature = (points_m, interp="linear"))]
-    fn hu_at<'py>(&self, py: Python<'py>, points_m: PyReadonlyArray2<'_, f64>, interp: &str) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    fn hu_at<'py>(
+        &self,
+        py: Python<'py>,
+        points_m: PyReadonlyArray2<'_, f64>,
+        interp: &str,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         let mode = super::convert::interp(interp).py()?;
         Ok(per_point(&points_m, |p| self.inner.hu_at(p, mode))?.into_pyarray(py))
     }
 
     /// Apparent density (kg/m³) at each world point (N, 3) in metres.
     #[pyo3(signature = (points_m, interp="linear"))]
-    fn density_at<'py>(&self, py: Python<'py>, points_m: PyReadonlyArray2<'_, f64>, interp: &str) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    fn density_at<'py>(
+        &self,
+        py: Python<'py>,
+        points_m: PyReadonlyArray2<'_, f64>,
+        interp: &str,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         let mode = super::convert::interp(interp).py()?;
         Ok(per_point(&points_m, |p| self.inner.density_at(p, mode))?.into_pyarray(py))
     }
 
     /// Continuous (x, y, z) array indices of world points (N, 3) in metres.
-    fn world_to_index<'py>(&self, py: Python<'py>, points_m: PyReadonlyArray2<'_, f64>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    fn world_to_index<'py>(
+        &self,
+        py: Python<'py>,
+        points_m: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
         let pts = points(&points_m, "points (m)").py()?;
         let grid = self.inner.grid();
         Ok(Array2::from_shape_fn((pts.len(), 3), |(r, c)| grid.world_to_index(&pts[r])[c]).into_pyarray(py))
     }
 
     /// X-ray line integrals of the undrilled volume: (top, front, side) float32 images.
-    fn xray<'py>(
-        &self,
-        py: Python<'py>,
-    ) -> (Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>) {
+    fn xray<'py>(&self, py: Python<'py>) -> Views<'py> {
         xray_tuple(py, self.inner.pristine_xray())
     }
 }
@@ -262,7 +277,8 @@ pub struct PyDrilledVolume {
 impl PyDrilledVolume {
     /// A fresh, undrilled session view of `volume`.
     #[new]
-    #[pyo3(signature = (volume, reserve_bricks=DEFAULT_RESERVED_BRICKS))]
+    // 512 = DEFAULT_RESERVED_BRICKS, written out so the Python signature shows it.
+    #[pyo3(signature = (volume, reserve_bricks=512))]
     fn new(volume: Bound<'_, PyVolume>, reserve_bricks: usize) -> Self {
         let inner = DrilledVolume::with_reserve(Arc::clone(&volume.get().inner), reserve_bricks.min(1 << 20));
         Self { inner, volume: volume.unbind() }
@@ -315,13 +331,22 @@ impl PyDrilledVolume {
 
     /// Material fraction left (0..1) at each world point (N, 3) in metres.
     #[pyo3(signature = (points_m, interp="nearest"))]
-    fn material_at<'py>(&self, py: Python<'py>, points_m: PyReadonlyArray2<'_, f64>, interp: &str) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    fn material_at<'py>(
+        &self,
+        py: Python<'py>,
+        points_m: PyReadonlyArray2<'_, f64>,
+        interp: &str,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         let mode = super::convert::interp(interp).py()?;
         Ok(per_point(&points_m, |p| self.inner.material_at(p, mode))?.into_pyarray(py))
     }
 
     /// Current layer id at each world point (N, 3) in metres (0 where drilled away).
-    fn layer_at<'py>(&self, py: Python<'py>, points_m: PyReadonlyArray2<'_, f64>) -> PyResult<Bound<'py, PyArray1<u8>>> {
+    fn layer_at<'py>(
+        &self,
+        py: Python<'py>,
+        points_m: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<u8>>> {
         Ok(per_point(&points_m, |p| self.inner.layer_at(p).map(crate::Layer::id))?.into_pyarray(py))
     }
 
@@ -346,10 +371,7 @@ impl PyDrilledVolume {
     }
 
     /// X-ray line integrals of the drilled bone: (top, front, side) float32 images.
-    fn xray<'py>(
-        &self,
-        py: Python<'py>,
-    ) -> (Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>) {
+    fn xray<'py>(&self, py: Python<'py>) -> Views<'py> {
         let inner = &self.inner;
         let p = detached(py, || inner.xray());
         xray_tuple(py, &p)

@@ -141,7 +141,9 @@ impl MaterialOverlay {
     /// Heap bytes this overlay holds (table plus brick slots, by capacity).
     #[must_use]
     pub fn memory_bytes(&self) -> usize {
-        self.table.capacity() * 4 + self.slots.capacity() * std::mem::size_of::<Brick>() + self.slot_brick.capacity() * 4
+        self.table.capacity() * 4
+            + self.slots.capacity() * std::mem::size_of::<Brick>()
+            + self.slot_brick.capacity() * 4
     }
 }
 

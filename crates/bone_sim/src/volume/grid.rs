@@ -28,20 +28,13 @@ impl Grid {
     /// # Errors
     /// Zero dimensions, too many voxels, non-positive or non-finite spacing, a non-finite origin,
     /// or a `direction` that is not a proper rotation.
-    pub fn new(
-        dims: [usize; 3],
-        spacing_m: [f64; 3],
-        origin_m: [f64; 3],
-        direction: Matrix3<f64>,
-    ) -> SimResult<Self> {
+    pub fn new(dims: [usize; 3], spacing_m: [f64; 3], origin_m: [f64; 3], direction: Matrix3<f64>) -> SimResult<Self> {
         if dims.contains(&0) {
             return Err(SimError::InvalidGrid { reason: format!("dimensions {dims:?} contain a zero") });
         }
         let count = dims.iter().try_fold(1usize, |acc, &d| acc.checked_mul(d));
         if count.is_none_or(|c| c > MAX_VOXELS) {
-            return Err(SimError::InvalidGrid {
-                reason: format!("{dims:?} is more than {MAX_VOXELS} voxels"),
-            });
+            return Err(SimError::InvalidGrid { reason: format!("{dims:?} is more than {MAX_VOXELS} voxels") });
         }
         positive("voxel spacing x (m)", spacing_m[0])?;
         positive("voxel spacing y (m)", spacing_m[1])?;
@@ -142,8 +135,7 @@ impl Grid {
         let mut out = [0usize; 3];
         for axis in 0..3 {
             let r = c[axis].round();
-            // `!(r >= 0.0)` also rejects NaN.
-            if !(r >= 0.0) || r >= self.dims[axis] as f64 {
+            if r.is_nan() || r < 0.0 || r >= self.dims[axis] as f64 {
                 return None;
             }
             out[axis] = r as usize;

@@ -20,8 +20,7 @@ pub enum Layer {
 
 impl Layer {
     /// Every layer, in id order.
-    pub const ALL: [Layer; 5] =
-        [Layer::Outside, Layer::Cortical, Layer::Cancellous, Layer::Marrow, Layer::Necrosis];
+    pub const ALL: [Layer; 5] = [Layer::Outside, Layer::Cortical, Layer::Cancellous, Layer::Marrow, Layer::Necrosis];
     /// Number of layers (valid ids are `0..COUNT`).
     pub const COUNT: usize = 5;
 

@@ -18,7 +18,7 @@ const HU_LEVELS: usize = (HU_MAX as i32 - HU_MIN as i32 + 1) as usize;
 /// Defaults:
 /// - Segmentation thresholds: cortical > 700 HU, cancellous 150–700 HU (the ranges commonly used
 ///   for femoral CT segmentation, and the ones this project's issue specifies).
-/// - Apparent density `ρ = a + b·HU` with `a = 0`, `b = 1 kg/m³ per HU` (ρ_app ≈ HU/1000 g/cm³,
+/// - Apparent density `ρ = a + b·HU` with `a = 0`, `b = 1 kg/m³ per HU` (`ρ_app ≈ HU/1000` g/cm³,
 ///   a first approximation; replace with the fit of your scanner's calibration phantom).
 /// - Elastic modulus `E = C·ρ^p` with ρ in g/cm³: `C = 6850 MPa`, `p = 1.49`, the femoral-neck
 ///   law of Morgan, Bayraktar & Keaveny (2003), J. Biomech. 36:897.
@@ -134,9 +134,9 @@ impl HuMapping {
         match layer {
             Layer::Outside => 0.0,
             Layer::Marrow => self.marrow_density_kg_m3,
-            Layer::Cortical | Layer::Cancellous | Layer::Necrosis => (self.density_intercept_kg_m3
-                + self.density_slope_kg_m3_per_hu * hu)
-                .max(self.min_bone_density_kg_m3),
+            Layer::Cortical | Layer::Cancellous | Layer::Necrosis => {
+                (self.density_intercept_kg_m3 + self.density_slope_kg_m3_per_hu * hu).max(self.min_bone_density_kg_m3)
+            }
         }
     }
 
@@ -214,9 +214,8 @@ impl MaterialTable {
                 erosion.push(mapping.erosion_rate_ref_per_s(layer, hu) as f32);
             }
         }
-        let attenuation = (0..HU_LEVELS)
-            .map(|level| mapping.attenuation_per_m(f64::from(HU_MIN) + level as f64) as f32)
-            .collect();
+        let attenuation =
+            (0..HU_LEVELS).map(|level| mapping.attenuation_per_m(f64::from(HU_MIN) + level as f64) as f32).collect();
         Ok(Self { mapping, density_kg_m3: density, erosion_ref_per_s: erosion, attenuation_per_m: attenuation })
     }
 
@@ -255,6 +254,7 @@ impl MaterialTable {
 }
 
 #[cfg(test)]
+#[allow(clippy::float_cmp)] // exact values are intended here
 mod tests {
     use super::*;
 

@@ -61,11 +61,7 @@ impl Volume {
                     });
                 }
                 if let Some(voxel) = labels.iter().position(|&l| Layer::from_id(l).is_none()) {
-                    return Err(SimError::UnknownLayer {
-                        id: labels[voxel],
-                        voxel,
-                        max: (Layer::COUNT - 1) as u8,
-                    });
+                    return Err(SimError::UnknownLayer { id: labels[voxel], voxel, max: (Layer::COUNT - 1) as u8 });
                 }
                 labels.to_vec()
             }
@@ -155,10 +151,7 @@ mod tests {
     fn rejects_mismatched_and_invalid_arrays() {
         let grid = Grid::axis_aligned([2, 2, 2], [1e-3; 3], [0.0; 3]).unwrap();
         let m = HuMapping::default;
-        assert!(matches!(
-            Volume::from_hu(grid.clone(), &[0.0; 7], None, m()),
-            Err(SimError::ShapeMismatch { .. })
-        ));
+        assert!(matches!(Volume::from_hu(grid.clone(), &[0.0; 7], None, m()), Err(SimError::ShapeMismatch { .. })));
         assert!(matches!(
             Volume::from_hu(grid.clone(), &[0.0; 8], Some(&[0; 9]), m()),
             Err(SimError::ShapeMismatch { .. })

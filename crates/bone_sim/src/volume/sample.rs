@@ -108,6 +108,7 @@ impl Volume {
 }
 
 #[cfg(test)]
+#[allow(clippy::float_cmp)] // exact values are intended here
 mod tests {
     use super::*;
     use crate::volume::grid::Grid;

@@ -29,7 +29,11 @@ pub fn volume_from(n: usize, f: impl Fn(usize, usize, usize) -> (Layer, f32)) ->
 pub fn block(n: usize, layer: Layer, hu: f32) -> Arc<Volume> {
     volume_from(n, |i, j, k| {
         let inside = [i, j, k].iter().all(|&c| c >= 2 && c < n - 2);
-        if inside { (layer, hu) } else { (Layer::Outside, -1000.0) }
+        if inside {
+            (layer, hu)
+        } else {
+            (Layer::Outside, -1000.0)
+        }
     })
 }
 

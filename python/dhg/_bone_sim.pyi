@@ -1,0 +1,95 @@
+"""Type stubs for the native core ``dhg._bone_sim`` (written by hand; checked by mypy.stubtest)."""
+
+from typing import Final, Literal, final
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = [
+    "Volume",
+    "DrilledVolume",
+    "LAYER_NAMES",
+    "HU_MIN",
+    "HU_MAX",
+    "BRICK_EDGE",
+    "MAX_BURR_RADIUS_M",
+    "__version__",
+]
+
+LAYER_NAMES: Final[list[str]]
+HU_MIN: Final[int]
+HU_MAX: Final[int]
+BRICK_EDGE: Final[int]
+MAX_BURR_RADIUS_M: Final[float]
+__version__: Final[str]
+
+_Interp = Literal["nearest", "linear"]
+_Image = npt.NDArray[np.float32]
+
+@final
+class Volume:
+    def __new__(
+        cls,
+        hu: npt.NDArray[np.float32],
+        spacing_m: tuple[float, float, float],
+        origin_m: tuple[float, float, float],
+        direction: npt.NDArray[np.float64],
+        labels: npt.NDArray[np.uint8] | None = None,
+        mapping: dict[str, float] | None = None,
+    ) -> Volume: ...
+    @property
+    def shape(self) -> tuple[int, int, int]: ...
+    @property
+    def spacing_m(self) -> list[float]: ...
+    @property
+    def origin_m(self) -> list[float]: ...
+    @property
+    def direction(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def mapping(self) -> dict[str, float]: ...
+    @property
+    def memory_bytes(self) -> int: ...
+    def labels(self) -> npt.NDArray[np.uint8]: ...
+    def hu(self) -> npt.NDArray[np.int16]: ...
+    def layer_at(self, points_m: npt.NDArray[np.float64]) -> npt.NDArray[np.uint8]: ...
+    def hu_at(self, points_m: npt.NDArray[np.float64], interp: _Interp = "linear") -> npt.NDArray[np.float64]: ...
+    def density_at(self, points_m: npt.NDArray[np.float64], interp: _Interp = "linear") -> npt.NDArray[np.float64]: ...
+    def world_to_index(self, points_m: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
+    def xray(self) -> tuple[_Image, _Image, _Image]: ...
+
+@final
+class DrilledVolume:
+    def __new__(cls, volume: Volume, reserve_bricks: int = 512) -> DrilledVolume: ...
+    @property
+    def volume(self) -> Volume: ...
+    def remove(
+        self,
+        center_m: tuple[float, float, float],
+        radius_m: float,
+        spindle_rpm: float,
+        dt_s: float,
+        contact: float = 1.0,
+    ) -> dict[str, float]: ...
+    def remove_along(
+        self,
+        centers_m: npt.NDArray[np.float64],
+        radius_m: float,
+        spindle_rpm: float,
+        dt_s: float,
+        contact: float = 1.0,
+    ) -> dict[str, float]: ...
+    def material_at(
+        self, points_m: npt.NDArray[np.float64], interp: _Interp = "nearest"
+    ) -> npt.NDArray[np.float64]: ...
+    def layer_at(self, points_m: npt.NDArray[np.float64]) -> npt.NDArray[np.uint8]: ...
+    def material_grid(self) -> npt.NDArray[np.float32]: ...
+    def xray(self) -> tuple[_Image, _Image, _Image]: ...
+    def reset(self) -> None: ...
+    @property
+    def removed_mass_kg(self) -> float: ...
+    @property
+    def removed_voxels(self) -> int: ...
+    @property
+    def drilled_bricks(self) -> int: ...
+    @property
+    def memory_bytes(self) -> int: ...
