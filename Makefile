@@ -35,7 +35,7 @@ $(VENV)/.ready-$(LOCK_HASH): $(LOCK)
 venv: $(VENV)/.ready-$(LOCK_HASH) ## create .venv with the pinned dependencies
 
 build: venv ## build the Rust extension into .venv (maturin develop --release)
-	$(VENV)/bin/maturin develop --release -q
+	PIP_QUIET=1 $(VENV)/bin/maturin develop --release -q
 
 demo: build ## run the main job on the embedded phantom
 	$(VENV)/bin/dhg demo --out out/demo

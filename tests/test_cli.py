@@ -75,3 +75,14 @@ def test_serve_says_it_is_not_built_yet():
     r = run(tool="dhg-serve")
     assert r.returncode == 4
     assert "not built yet" in r.stderr
+
+
+def test_phantom_file_round_trip(tmp_path):
+    out = tmp_path / "femur.npz"
+    r = run("phantom", "--out", str(out), "--voxel-mm", "2", "--seed", "5")
+    assert r.returncode == 0, r.stderr
+    import dhg
+
+    vol = dhg.Volume.load(out)
+    assert vol.meta["seed"] == 5 and vol.spacing_m == (2e-3, 2e-3, 2e-3)
+    assert "planned_path" in vol.meta

@@ -104,6 +104,17 @@ fn report_dict<'py>(py: Python<'py>, r: &RemovalReport) -> PyResult<Bound<'py, P
     Ok(d)
 }
 
+/// A k-major voxel array as a numpy array of shape (nz, ny, nx).
+fn grid_array<T: numpy::Element>(
+    py: Python<'_>,
+    shape: (usize, usize, usize),
+    data: Vec<T>,
+) -> PyResult<Bound<'_, PyArray3<T>>> {
+    Array3::from_shape_vec(shape, data)
+        .map(|a| a.into_pyarray(py))
+        .map_err(|e| pyo3::exceptions::PyRuntimeError::new_err(format!("internal: voxel array shape: {e}")))
+}
+
 fn per_point<T: numpy::Element + Copy>(
     pts: &PyReadonlyArray2<'_, f64>,
     f: impl Fn(&nalgebra::Point3<f64>) -> Result<T, SimError>,
@@ -202,18 +213,12 @@ impl PyVolume {
 
     /// Copy of the layer labels, uint8 (nz, ny, nx).
     fn labels<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray3<u8>>> {
-        let (nz, ny, nx) = self.shape();
-        let a = Array3::from_shape_vec((nz, ny, nx), self.inner.labels().to_vec())
-            .map_err(|e| pyo3::exceptions::PyRuntimeError::new_err(e.to_string()))?;
-        Ok(a.into_pyarray(py))
+        grid_array(py, self.shape(), self.inner.labels().to_vec())
     }
 
     /// Copy of the stored HU, int16 (nz, ny, nx).
     fn hu<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray3<i16>>> {
-        let (nz, ny, nx) = self.shape();
-        let a = Array3::from_shape_vec((nz, ny, nx), self.inner.hu().to_vec())
-            .map_err(|e| pyo3::exceptions::PyRuntimeError::new_err(e.to_string()))?;
-        Ok(a.into_pyarray(py))
+        grid_array(py, self.shape(), self.inner.hu().to_vec())
     }
 
     /// Pristine layer id at each world point (N, 3) in metres.
@@ -365,9 +370,7 @@ impl PyDrilledVolume {
             }
             v
         });
-        let a = Array3::from_shape_vec((nz, ny, nx), data)
-            .map_err(|e| pyo3::exceptions::PyRuntimeError::new_err(e.to_string()))?;
-        Ok(a.into_pyarray(py))
+        grid_array(py, (nz, ny, nx), data)
     }
 
     /// X-ray line integrals of the drilled bone: (top, front, side) float32 images.
