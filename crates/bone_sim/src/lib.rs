@@ -7,6 +7,7 @@
 //! Units are SI throughout (m, kg, s, N, Pa; temperature in °C); names carry the unit
 //! (`radius_m`, `dt_s`). Frames and array layouts are documented once in `docs/frames.md`.
 
+pub mod device;
 pub mod error;
 pub mod removal;
 pub mod volume;
@@ -15,6 +16,7 @@ pub mod xray;
 #[cfg(feature = "python")]
 pub mod python;
 
+pub use device::{DeviceProfile, ForceLimiter};
 pub use error::{SimError, SimResult};
 pub use removal::{Burr, Cut, RemovalReport};
 pub use volume::drilled::DrilledVolume;
