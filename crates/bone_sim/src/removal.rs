@@ -108,7 +108,8 @@ impl DrilledVolume {
     pub fn remove(&mut self, burr: &Burr, cut: &Cut) -> SimResult<RemovalReport> {
         burr.validate()?;
         cut.validate()?;
-        let volume = std::sync::Arc::clone(self.volume());
+        // Borrow the shared volume and the overlay as disjoint fields (no Arc clone per call).
+        let volume: &crate::volume::Volume = &self.volume;
         let table = volume.table();
         let scale = table.mapping().speed_factor(cut.spindle_rpm) * cut.contact * cut.dt_s;
         let mut report = RemovalReport::default();
@@ -150,7 +151,7 @@ impl DrilledVolume {
                     let owned = self.overlay.brick(brick_id).is_some();
                     // Copy a brick only if this segment has material to erode.
                     if owned || labels[row + i..=row + seg_end].iter().any(|&l| l != 0) {
-                        let brick = self.overlay.brick_mut(&volume, brick_id);
+                        let brick = self.overlay.brick_mut(volume, brick_id);
                         for ii in i..=seg_end {
                             let slot = &mut brick[MaterialOverlay::local(ii, j, k)];
                             if *slot == 0 {

@@ -17,7 +17,7 @@ pub const DEFAULT_RESERVED_BRICKS: usize = 512;
 /// The bone as one session has drilled it.
 #[derive(Debug, Clone)]
 pub struct DrilledVolume {
-    volume: Arc<Volume>,
+    pub(crate) volume: Arc<Volume>,
     pub(crate) overlay: MaterialOverlay,
     pub(crate) removed_mass_kg: f64,
     pub(crate) removed_voxels: u64,
