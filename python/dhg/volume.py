@@ -45,6 +45,7 @@ class HuMapping:
     density_slope_kg_m3_per_hu: float = 1.0
     min_bone_density_kg_m3: float = 50.0
     marrow_density_kg_m3: float = 930.0
+    marrow_cutting_density_kg_m3: float = 100.0
     modulus_coeff_pa: float = 6850e6
     modulus_exponent: float = 1.49
     erosion_reference_density_kg_m3: float = 1850.0

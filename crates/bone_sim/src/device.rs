@@ -114,6 +114,14 @@ impl ForceLimiter {
         &self.profile
     }
 
+    /// Back to rest: zero force, cold, no pose yet.
+    pub fn reset(&mut self) {
+        self.output_n = Vector3::zeros();
+        self.heat_n2s = 0.0;
+        self.since_pose_s = f64::INFINITY;
+        self.rejected_requests = 0;
+    }
+
     /// Marks that a fresh, valid pose arrived this tick.
     pub fn pose_received(&mut self) {
         self.since_pose_s = 0.0;

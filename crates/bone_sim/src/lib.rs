@@ -7,9 +7,15 @@
 //! Units are SI throughout (m, kg, s, N, Pa; temperature in °C); names carry the unit
 //! (`radius_m`, `dt_s`). Frames and array layouts are documented once in `docs/frames.md`.
 
+pub mod contact;
+pub mod cutting;
 pub mod device;
 pub mod error;
+pub mod path;
+pub mod record;
 pub mod removal;
+pub mod session;
+pub mod thermal;
 pub mod volume;
 pub mod xray;
 
@@ -18,7 +24,10 @@ pub mod python;
 
 pub use device::{DeviceProfile, ForceLimiter};
 pub use error::{SimError, SimResult};
+pub use path::PlannedPath;
+pub use record::{Record, FEATURES, FEATURE_COUNT};
 pub use removal::{Burr, Cut, RemovalReport};
+pub use session::{DrillingSession, Pose, SessionConfig, SessionState, TickOutput};
 pub use volume::drilled::DrilledVolume;
 pub use volume::grid::Grid;
 pub use volume::layer::Layer;

@@ -75,6 +75,51 @@ impl DrilledVolume {
         ))
     }
 
+    /// Material fraction (0..=1) at continuous index coordinates, trilinear; 0 outside the grid.
+    #[inline]
+    #[must_use]
+    pub fn material_at_index(&self, c: &nalgebra::Vector3<f64>) -> f64 {
+        self.material_and_gradient_at_index(c).0
+    }
+
+    /// Material fraction (0..=1) at continuous index coordinates and its gradient with respect to
+    /// the index coordinates (per voxel), trilinear; 0 outside the grid.
+    #[inline]
+    #[must_use]
+    pub fn material_and_gradient_at_index(&self, c: &nalgebra::Vector3<f64>) -> (f64, nalgebra::Vector3<f64>) {
+        let [nx, ny, nz] = self.volume.grid().dims();
+        let (fx, fy, fz) = (c.x.floor(), c.y.floor(), c.z.floor());
+        if !(fx.is_finite() && fy.is_finite() && fz.is_finite()) {
+            return (0.0, nalgebra::Vector3::zeros());
+        }
+        let (tx, ty, tz) = (c.x - fx, c.y - fy, c.z - fz);
+        let (i0, j0, k0) = (fx as i64, fy as i64, fz as i64);
+        let full = f64::from(FULL_MATERIAL);
+        let get = |i: i64, j: i64, k: i64| -> f64 {
+            if i < 0 || j < 0 || k < 0 || i >= nx as i64 || j >= ny as i64 || k >= nz as i64 {
+                0.0
+            } else {
+                f64::from(self.overlay.material(&self.volume, i as usize, j as usize, k as usize)) / full
+            }
+        };
+        // v[dz][dy][dx]
+        let v = [
+            [[get(i0, j0, k0), get(i0 + 1, j0, k0)], [get(i0, j0 + 1, k0), get(i0 + 1, j0 + 1, k0)]],
+            [[get(i0, j0, k0 + 1), get(i0 + 1, j0, k0 + 1)], [get(i0, j0 + 1, k0 + 1), get(i0 + 1, j0 + 1, k0 + 1)]],
+        ];
+        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+        let x = |z: usize, y: usize| lerp(v[z][y][0], v[z][y][1], tx);
+        let dx = |z: usize, y: usize| v[z][y][1] - v[z][y][0];
+        let (x00, x10, x01, x11) = (x(0, 0), x(0, 1), x(1, 0), x(1, 1));
+        let y0 = lerp(x00, x10, ty);
+        let y1 = lerp(x01, x11, ty);
+        let m = lerp(y0, y1, tz);
+        let gx = lerp(lerp(dx(0, 0), dx(0, 1), ty), lerp(dx(1, 0), dx(1, 1), ty), tz);
+        let gy = lerp(x10 - x00, x11 - x01, tz);
+        let gz = y1 - y0;
+        (m, nalgebra::Vector3::new(gx, gy, gz))
+    }
+
     /// The layer at a world point as drilled: `Outside` where all material is gone.
     ///
     /// # Errors

@@ -42,6 +42,9 @@ pub struct HuMapping {
     pub min_bone_density_kg_m3: f64,
     /// Density of marrow (kg/m³).
     pub marrow_density_kg_m3: f64,
+    /// Density marrow presents to the cutting law (kg/m³): it has almost no mineralised
+    /// structure, so it cuts like the sparsest trabecular bone.
+    pub marrow_cutting_density_kg_m3: f64,
     /// Modulus coefficient `C` (Pa, with ρ in g/cm³).
     pub modulus_coeff_pa: f64,
     /// Modulus exponent `p`.
@@ -71,6 +74,7 @@ impl Default for HuMapping {
             density_slope_kg_m3_per_hu: 1.0,
             min_bone_density_kg_m3: 50.0,
             marrow_density_kg_m3: 930.0,
+            marrow_cutting_density_kg_m3: 100.0,
             modulus_coeff_pa: 6850e6,
             modulus_exponent: 1.49,
             erosion_reference_density_kg_m3: 1850.0,
@@ -103,6 +107,7 @@ impl HuMapping {
         finite("density_slope_kg_m3_per_hu", self.density_slope_kg_m3_per_hu)?;
         positive("min_bone_density_kg_m3", self.min_bone_density_kg_m3)?;
         positive("marrow_density_kg_m3", self.marrow_density_kg_m3)?;
+        positive("marrow_cutting_density_kg_m3", self.marrow_cutting_density_kg_m3)?;
         positive("modulus_coeff_pa", self.modulus_coeff_pa)?;
         positive("modulus_exponent", self.modulus_exponent)?;
         positive("erosion_reference_density_kg_m3", self.erosion_reference_density_kg_m3)?;
@@ -137,6 +142,16 @@ impl HuMapping {
             Layer::Cortical | Layer::Cancellous | Layer::Necrosis => {
                 (self.density_intercept_kg_m3 + self.density_slope_kg_m3_per_hu * hu).max(self.min_bone_density_kg_m3)
             }
+        }
+    }
+
+    /// Density the cutting law sees (kg/m³): the apparent density of bone, and
+    /// `marrow_cutting_density_kg_m3` for marrow.
+    #[must_use]
+    pub fn cutting_density_kg_m3(&self, layer: Layer, hu: f64) -> f64 {
+        match layer {
+            Layer::Marrow => self.marrow_cutting_density_kg_m3,
+            _ => self.density_kg_m3(layer, hu),
         }
     }
 
@@ -194,6 +209,7 @@ pub fn clamp_hu(hu: f64) -> i16 {
 pub struct MaterialTable {
     mapping: HuMapping,
     density_kg_m3: Vec<f32>,
+    cutting_density_kg_m3: Vec<f32>,
     erosion_ref_per_s: Vec<f32>,
     attenuation_per_m: Vec<f32>,
 }
@@ -206,17 +222,25 @@ impl MaterialTable {
     pub fn new(mapping: HuMapping) -> SimResult<Self> {
         mapping.validate()?;
         let mut density = Vec::with_capacity(Layer::COUNT * HU_LEVELS);
+        let mut cutting = Vec::with_capacity(Layer::COUNT * HU_LEVELS);
         let mut erosion = Vec::with_capacity(Layer::COUNT * HU_LEVELS);
         for layer in Layer::ALL {
             for level in 0..HU_LEVELS {
                 let hu = f64::from(HU_MIN) + level as f64;
                 density.push(mapping.density_kg_m3(layer, hu) as f32);
+                cutting.push(mapping.cutting_density_kg_m3(layer, hu) as f32);
                 erosion.push(mapping.erosion_rate_ref_per_s(layer, hu) as f32);
             }
         }
         let attenuation =
             (0..HU_LEVELS).map(|level| mapping.attenuation_per_m(f64::from(HU_MIN) + level as f64) as f32).collect();
-        Ok(Self { mapping, density_kg_m3: density, erosion_ref_per_s: erosion, attenuation_per_m: attenuation })
+        Ok(Self {
+            mapping,
+            density_kg_m3: density,
+            cutting_density_kg_m3: cutting,
+            erosion_ref_per_s: erosion,
+            attenuation_per_m: attenuation,
+        })
     }
 
     /// The mapping this table was built from.
@@ -236,6 +260,13 @@ impl MaterialTable {
     #[must_use]
     pub fn density_kg_m3(&self, layer: u8, hu: i16) -> f32 {
         self.density_kg_m3[Self::slot(layer, hu)]
+    }
+
+    /// Density the cutting law sees (kg/m³).
+    #[inline]
+    #[must_use]
+    pub fn cutting_density_kg_m3(&self, layer: u8, hu: i16) -> f32 {
+        self.cutting_density_kg_m3[Self::slot(layer, hu)]
     }
 
     /// Erosion rate at the reference spindle speed (1/s).

@@ -113,6 +113,16 @@ impl Volume {
         }
     }
 
+    /// Linear index of the voxel nearest to continuous index coordinates, if inside the grid.
+    #[inline]
+    #[must_use]
+    pub fn nearest_index(&self, c: &nalgebra::Vector3<f64>) -> Option<usize> {
+        let dims = self.grid.dims();
+        let (i, j, k) = (c.x.round(), c.y.round(), c.z.round());
+        let inside = i >= 0.0 && j >= 0.0 && k >= 0.0 && i < dims[0] as f64 && j < dims[1] as f64 && k < dims[2] as f64;
+        inside.then(|| self.grid.linear(i as usize, j as usize, k as usize))
+    }
+
     /// Bytes held by this volume (shared by all its sessions).
     #[must_use]
     pub fn memory_bytes(&self) -> usize {

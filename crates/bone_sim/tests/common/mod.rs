@@ -50,3 +50,35 @@ pub fn materials(d: &bone_sim::DrilledVolume) -> Vec<f64> {
     }
     out
 }
+
+/// A flat slab for drilling along +z: `nxy × nxy` voxels across, air for the first 4 mm of z,
+/// then `layers` (layer, HU, thickness in m) stacked along +z, then 6 mm of air.
+/// Returns the volume and the z (m) of the slab's first surface.
+pub fn slab(nxy: usize, layers: &[(Layer, f32, f64)]) -> (Arc<Volume>, f64) {
+    let air_before = 4e-3;
+    let total: f64 = air_before + layers.iter().map(|l| l.2).sum::<f64>() + 6e-3;
+    let nz = (total / H).ceil() as usize;
+    let grid = Grid::axis_aligned([nxy, nxy, nz], [H; 3], [0.0; 3]).unwrap();
+    let mut labels = vec![0u8; grid.len()];
+    let mut hu = vec![-1000f32; grid.len()];
+    for k in 0..nz {
+        let z = k as f64 * H;
+        let mut top = air_before;
+        let mut found = None;
+        for &(layer, v, t) in layers {
+            if z >= top && z < top + t {
+                found = Some((layer, v));
+            }
+            top += t;
+        }
+        if let Some((layer, v)) = found {
+            for j in 0..nxy {
+                for i in 0..nxy {
+                    labels[grid.linear(i, j, k)] = layer.id();
+                    hu[grid.linear(i, j, k)] = v;
+                }
+            }
+        }
+    }
+    (Arc::new(Volume::from_hu(grid, &hu, Some(&labels), HuMapping::default()).unwrap()), air_before)
+}

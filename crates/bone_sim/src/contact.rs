@@ -1,0 +1,164 @@
+//! Contact between the burr and the remaining bone, sampled at points on the burr's surface.
+//!
+//! The burr is probed at 64 directions spread evenly over the sphere (a Fibonacci lattice). At
+//! each probe point the remaining material fraction is interpolated trilinearly, so the surface
+//! the proxy rests on moves smoothly as material erodes rather than in voxel steps. A point is
+//! "in contact" where the fraction is at least one half (the iso-surface between full and empty
+//! voxels).
+//!
+//! The cutting zone is the burr's front cap within 59° of the drill axis, like a 118° drill
+//! point. Its density falls over the cap's axial length (≈ 0.5 r) as the burr leaves the bone,
+//! which makes the resistance collapse progressively at breakthrough.
+
+use nalgebra::{Point3, Vector3};
+
+use crate::volume::drilled::DrilledVolume;
+use crate::volume::grid::Grid;
+use crate::volume::layer::Layer;
+
+/// Probe points on the burr.
+pub const PROBE_POINTS: usize = 64;
+/// cos(59°): probe directions at least this aligned with the axis form the cutting cap.
+pub const CAP_COS: f64 = 0.515;
+/// Material fraction from which a probe point counts as touching bone.
+const SOLID: f64 = 0.5;
+/// Material fraction above which a cutting-cap point counts as bone ahead of the drill.
+const PRESENT: f64 = 0.05;
+
+/// What the probe points inside the burr's contact shell found.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Contact {
+    /// Probe points touching bone.
+    pub points: u32,
+    /// Sum of the material gradients (world frame, per metre) at those points: it points into the
+    /// bone, and on a flat face it is exactly the face's normal.
+    pub gradient_sum: Vector3<f64>,
+}
+
+impl Contact {
+    /// Outward surface normal at the contact (pointing from the bone to the burr centre), if any.
+    #[must_use]
+    pub fn normal(&self) -> Option<Vector3<f64>> {
+        let n = self.gradient_sum.norm();
+        (self.points > 0 && n > 1e-12).then(|| -self.gradient_sum / n)
+    }
+}
+
+/// The bone in the burr's cutting cap.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CuttingZone {
+    /// Mean over the cap's probe points of the (pristine) cutting density where bone remains,
+    /// zero where it is gone (kg/m³).
+    pub density_kg_m3: f64,
+    /// The layer of most of the cap's points that still hold bone (`Outside` if none).
+    pub layer: Layer,
+}
+
+/// Probe points of a burr of a given radius, precomputed in the grid's index space so a
+/// query does no trigonometry and no allocation.
+#[derive(Debug, Clone)]
+pub struct BurrProbe {
+    radius_m: f64,
+    directions: [Vector3<f64>; PROBE_POINTS],
+    /// Offsets (index units) of the contact shell, half a voxel inside the burr's radius.
+    contact_idx: [Vector3<f64>; PROBE_POINTS],
+    /// Offsets (index units) of the cutting cap's shell, a voxel beyond the radius (half a voxel
+    /// beyond what the burr removes, so the cap sees the bone ahead, not the burr's own cut).
+    cutting_idx: [Vector3<f64>; PROBE_POINTS],
+}
+
+impl BurrProbe {
+    /// Probe points for a burr of `radius_m` (m) on `grid`.
+    #[must_use]
+    pub fn new(grid: &Grid, radius_m: f64) -> Self {
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        let mut directions = [Vector3::zeros(); PROBE_POINTS];
+        for (i, d) in directions.iter_mut().enumerate() {
+            let z = 1.0 - (i as f64 + 0.5) * 2.0 / PROBE_POINTS as f64;
+            let r = (1.0 - z * z).sqrt();
+            let phi = golden * i as f64;
+            *d = Vector3::new(r * phi.cos(), r * phi.sin(), z);
+        }
+        let h = grid.spacing_m();
+        let half_voxel = 0.5 * h[0].min(h[1]).min(h[2]);
+        let to_idx = |v: Vector3<f64>| {
+            let local = grid.direction().tr_mul(&v);
+            Vector3::new(local.x / h[0], local.y / h[1], local.z / h[2])
+        };
+        // The contact shell sits half a voxel inside the burr and removal reaches half a voxel
+        // beyond it: the interpolated surface of what the burr has cut then always lies clear of
+        // the contact shell, so a proxy can never be held by material its burr cannot reach.
+        let contact_idx = directions.map(|d| to_idx(d * (radius_m - half_voxel).max(0.5 * radius_m)));
+        let cutting_idx = directions.map(|d| to_idx(d * (radius_m + 2.0 * half_voxel)));
+        Self { radius_m, directions, contact_idx, cutting_idx }
+    }
+
+    /// The burr radius (m).
+    #[must_use]
+    pub fn radius_m(&self) -> f64 {
+        self.radius_m
+    }
+
+    /// Radius (m) of the sphere whose material the burr removes: half a voxel beyond its radius.
+    #[must_use]
+    pub fn cutting_radius_m(&self, grid: &Grid) -> f64 {
+        let h = grid.spacing_m();
+        self.radius_m + 0.5 * h[0].min(h[1]).min(h[2])
+    }
+
+    /// Probe points touching bone for a burr centred at `center_m`. With `exclude_cap = Some(axis)`
+    /// the cutting cap around `axis` is ignored (while drilling, the cap is the cutting law's
+    /// business, not the contact's).
+    #[must_use]
+    pub fn contact(&self, bone: &DrilledVolume, center_m: &Point3<f64>, exclude_cap: Option<&Vector3<f64>>) -> Contact {
+        let c = bone.volume().grid().world_to_index(center_m);
+        let grid = bone.volume().grid();
+        let h = grid.spacing_m();
+        let mut out = Contact { points: 0, gradient_sum: Vector3::zeros() };
+        for (dir, off) in self.directions.iter().zip(&self.contact_idx) {
+            if exclude_cap.is_some_and(|axis| dir.dot(axis) >= CAP_COS) {
+                continue;
+            }
+            let (m, g) = bone.material_and_gradient_at_index(&(c + off));
+            if m >= SOLID {
+                out.points += 1;
+                out.gradient_sum += grid.direction() * Vector3::new(g.x / h[0], g.y / h[1], g.z / h[2]);
+            }
+        }
+        out
+    }
+
+    /// The bone in the cutting cap of a burr centred at `center_m` drilling along `axis` (unit).
+    #[must_use]
+    pub fn cutting_zone(&self, bone: &DrilledVolume, center_m: &Point3<f64>, axis: &Vector3<f64>) -> CuttingZone {
+        let volume = bone.volume();
+        let c = volume.grid().world_to_index(center_m);
+        let mut density_sum = 0.0;
+        let mut count = 0u32;
+        let mut per_layer = [0.0f64; Layer::COUNT];
+        for (dir, off) in self.directions.iter().zip(&self.cutting_idx) {
+            if dir.dot(axis) < CAP_COS {
+                continue;
+            }
+            count += 1;
+            let p = c + off;
+            // The drill point meets intact bone wherever any material is left: the erosion lag
+            // of the removal model must not make bone ahead look softer (or harder) than it is.
+            let m = bone.material_at_index(&p);
+            if m <= PRESENT {
+                continue;
+            }
+            if let Some(l) = volume.nearest_index(&p) {
+                let (label, hu) = (volume.labels()[l], volume.hu()[l]);
+                density_sum += f64::from(volume.table().cutting_density_kg_m3(label, hu));
+                per_layer[usize::from(label)] += 1.0;
+            }
+        }
+        let layer = (1..Layer::COUNT)
+            .filter(|&i| per_layer[i] > 0.0)
+            .max_by(|&a, &b| per_layer[a].total_cmp(&per_layer[b]))
+            .and_then(|i| Layer::from_id(i as u8))
+            .unwrap_or(Layer::Outside);
+        CuttingZone { density_kg_m3: if count > 0 { density_sum / f64::from(count) } else { 0.0 }, layer }
+    }
+}

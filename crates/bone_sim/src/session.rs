@@ -1,0 +1,567 @@
+//! A drilling session: one trainee's drill on one (copy-on-write) bone, advanced in fixed 1 ms
+//! ticks.
+//!
+//! Each tick takes the stylus pose (burr centre in the world frame, orientation whose +z is the
+//! drill axis, drill on/off, spindle speed) and returns the force for the device. The force
+//! comes from a god-object proxy of the burr:
+//! - the proxy stays outside the remaining bone; a spring–damper between the device and the proxy
+//!   gives the force. With the drill off, bone feels like a rigid surface;
+//! - with the drill on and bone in the cutting cap, the proxy advances along the axis at the feed
+//!   the cutting law gives for the user's axial push. The user's push *is* the thrust, scaled into
+//!   the device's range, so the resistance felt follows `F = C·n^a·f^b·ρ^c`. The burr erodes
+//!   the bone around it (the removal model), and the proxy advances sideways as walls erode;
+//! - leaving the bone empties the cutting cap: the resistance collapses over the cap's length, the
+//!   proxy runs ahead to the device, and a push that is not held back plunges. The session reports
+//!   the breakthrough and measures the plunge;
+//! - every force passes the device's safety stage ([`ForceLimiter`]).
+//!
+//! A tick allocates nothing, takes no locks and does no I/O, as long as the bone's reserved
+//! bricks suffice (see [`DrilledVolume::with_reserve`]).
+
+use std::f64::consts::TAU;
+use std::sync::Arc;
+
+use nalgebra::{Point3, UnitQuaternion, Vector3};
+
+use crate::contact::BurrProbe;
+use crate::cutting::CuttingLaw;
+use crate::device::{DeviceProfile, ForceLimiter};
+use crate::error::{positive, SimError, SimResult};
+use crate::path::PlannedPath;
+use crate::record::{Record, RECORD_PERIOD_TICKS, TICK_S};
+use crate::removal::{Burr, Cut, MAX_BURR_RADIUS_M};
+use crate::thermal::{Thermal, ThermalParams};
+use crate::volume::drilled::DrilledVolume;
+use crate::volume::layer::Layer;
+use crate::volume::Volume;
+
+/// Cutting-zone density (kg/m³) at or below which the cap counts as empty: any real bone or
+/// marrow in the cap engages the cutting law.
+const EMPTY_CAP_KG_M3: f64 = 2.0;
+/// Ticks of non-advancing motion that end a plunge.
+const PLUNGE_END_TICKS: u32 = 20;
+
+/// Everything configurable about a session.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SessionConfig {
+    /// Burr (drill tip) radius (m).
+    pub burr_radius_m: f64,
+    /// The haptic device.
+    pub device: DeviceProfile,
+    /// Device–proxy coupling stiffness (N/m); at most the device's `max_stiffness_n_per_m`.
+    pub coupling_stiffness_n_per_m: f64,
+    /// Device–proxy coupling damping on their relative velocity (N·s/m).
+    pub coupling_damping_n_s_per_m: f64,
+    /// Physical force (N) rendered as the device's peak force: the force scale is
+    /// `device.peak_force_n / physical_full_scale_n` (0.11 for the Touch at 30 N).
+    pub physical_full_scale_n: f64,
+    /// Physical push (N) at which a burr pressed sideways erodes at its full rate.
+    pub lateral_cut_reference_n: f64,
+    /// Fastest the proxy may move (m/s); a faster device is followed over several ticks.
+    pub max_proxy_speed_m_s: f64,
+    /// Thrust and torque laws.
+    pub cutting: CuttingLaw,
+    /// Drill-tip thermal model.
+    pub thermal: ThermalParams,
+}
+
+impl Default for SessionConfig {
+    fn default() -> Self {
+        let device = DeviceProfile::geomagic_touch();
+        Self {
+            burr_radius_m: 1.25e-3,
+            coupling_stiffness_n_per_m: device.max_stiffness_n_per_m,
+            device,
+            coupling_damping_n_s_per_m: 1.0,
+            physical_full_scale_n: 30.0,
+            lateral_cut_reference_n: 10.0,
+            max_proxy_speed_m_s: 1.0,
+            cutting: CuttingLaw::default(),
+            thermal: ThermalParams::default(),
+        }
+    }
+}
+
+impl SessionConfig {
+    /// Checks every field.
+    ///
+    /// # Errors
+    /// Any invalid value, or a coupling stiffer than the device can render.
+    pub fn validate(&self) -> SimResult<()> {
+        positive("burr_radius_m", self.burr_radius_m)?;
+        if self.burr_radius_m > MAX_BURR_RADIUS_M {
+            return Err(SimError::InvalidParameter {
+                name: "burr_radius_m",
+                value: self.burr_radius_m,
+                reason: "must be at most 0.02 m",
+            });
+        }
+        self.device.validate()?;
+        positive("coupling_stiffness_n_per_m", self.coupling_stiffness_n_per_m)?;
+        if self.coupling_stiffness_n_per_m > self.device.max_stiffness_n_per_m {
+            return Err(SimError::InvalidParameter {
+                name: "coupling_stiffness_n_per_m",
+                value: self.coupling_stiffness_n_per_m,
+                reason: "must not exceed the device's max_stiffness_n_per_m",
+            });
+        }
+        crate::error::non_negative("coupling_damping_n_s_per_m", self.coupling_damping_n_s_per_m)?;
+        positive("physical_full_scale_n", self.physical_full_scale_n)?;
+        positive("lateral_cut_reference_n", self.lateral_cut_reference_n)?;
+        positive("max_proxy_speed_m_s", self.max_proxy_speed_m_s)?;
+        self.cutting.validate()?;
+        self.thermal.validate()
+    }
+
+    /// Device newtons per physical newton.
+    #[must_use]
+    pub fn force_scale(&self) -> f64 {
+        self.device.peak_force_n / self.physical_full_scale_n
+    }
+}
+
+/// One stylus sample.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pose {
+    /// Burr centre (m, world frame).
+    pub position_m: Point3<f64>,
+    /// Tool orientation; its +z axis is the drill axis, pointing in the drilling direction.
+    pub orientation: UnitQuaternion<f64>,
+    /// Whether the drill is running.
+    pub drill_on: bool,
+    /// Spindle speed (rpm, >= 0).
+    pub spindle_rpm: f64,
+}
+
+impl Pose {
+    /// A pose from raw values (quaternion `w, x, y, z`, normalised here). Never fails: check
+    /// [`is_valid`](Self::is_valid), which [`DrillingSession::tick`] does for every pose.
+    #[must_use]
+    pub fn new(position_m: [f64; 3], quat_wxyz: [f64; 4], drill_on: bool, spindle_rpm: f64) -> Self {
+        let q = nalgebra::Quaternion::new(quat_wxyz[0], quat_wxyz[1], quat_wxyz[2], quat_wxyz[3]);
+        Self {
+            position_m: Point3::from(position_m),
+            // A zero or NaN quaternion normalises to NaN, which `is_valid` rejects.
+            orientation: UnitQuaternion::new_unchecked(q / q.norm()),
+            drill_on,
+            spindle_rpm,
+        }
+    }
+
+    /// Whether every value is finite, the orientation a unit quaternion and the speed >= 0.
+    #[must_use]
+    pub fn is_valid(&self) -> bool {
+        self.position_m.iter().all(|v| v.is_finite())
+            && self.orientation.coords.iter().all(|v| v.is_finite())
+            && (self.orientation.norm() - 1.0).abs() < 1e-6
+            && self.spindle_rpm.is_finite()
+            && self.spindle_rpm >= 0.0
+    }
+
+    /// The drill axis (unit, world frame).
+    #[must_use]
+    pub fn axis(&self) -> Vector3<f64> {
+        self.orientation * Vector3::z()
+    }
+}
+
+/// What a session reports about itself (SI units; forces on the device unless marked physical).
+#[derive(Debug, Clone, PartialEq)]
+#[allow(clippy::struct_excessive_bools)] // a report: each flag is an independent fact
+pub struct SessionState {
+    /// Session time (s).
+    pub time_s: f64,
+    /// Ticks run.
+    pub ticks: u64,
+    /// Where the device is (m).
+    pub device_m: Point3<f64>,
+    /// The drill tip: the proxy's burr centre (m).
+    pub tip_m: Point3<f64>,
+    /// Drill axis (unit).
+    pub axis: Vector3<f64>,
+    /// Whether the drill is running.
+    pub drill_on: bool,
+    /// Spindle speed (rpm).
+    pub spindle_rpm: f64,
+    /// Whether the burr touches bone.
+    pub in_contact: bool,
+    /// Whether the drill is cutting along its axis this tick.
+    pub cutting: bool,
+    /// Anatomical layer at the burr's front point.
+    pub layer: Layer,
+    /// Penetration depth along A→B (m).
+    pub depth_m: f64,
+    /// Distance from the planned segment (m).
+    pub deviation_m: f64,
+    /// Feed rate along the axis while cutting (m/s).
+    pub feed_m_s: f64,
+    /// Physical thrust estimate (N).
+    pub thrust_n: f64,
+    /// Physical cutting torque estimate (N·m).
+    pub torque_n_m: f64,
+    /// Density in the cutting cap (kg/m³).
+    pub cutting_density_kg_m3: f64,
+    /// The force sent to the device (N).
+    pub force_n: Vector3<f64>,
+    /// Drill-tip temperature (°C).
+    pub temperature_c: f64,
+    /// Highest temperature so far (°C).
+    pub peak_temperature_c: f64,
+    /// Time above 47 °C (s).
+    pub time_above_47_s: f64,
+    /// Breakthroughs (exits of the burr from cortical bone into no bone) so far.
+    pub breakthroughs: u32,
+    /// Whether a plunge is under way.
+    pub plunging: bool,
+    /// Depth of the current or last plunge past its breakthrough point (m).
+    pub plunge_depth_m: f64,
+    /// Bone mass removed (kg).
+    pub removed_mass_kg: f64,
+    /// Whether the input is stale (no pose for longer than the device allows).
+    pub stale: bool,
+    /// Poses rejected as invalid (NaN, infinite, zero quaternion, negative speed).
+    pub rejected_poses: u64,
+}
+
+/// What one tick produced.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TickOutput {
+    /// The force to send to the device (N, world frame).
+    pub force_n: Vector3<f64>,
+    /// The 10 Hz record, on every 100th tick.
+    pub record: Option<Record>,
+}
+
+#[derive(Debug, Clone, Default)]
+struct Breakthrough {
+    in_cortex: bool,
+    point_m: Point3<f64>,
+    still_ticks: u32,
+}
+
+/// A trainee's drilling session.
+#[derive(Debug, Clone)]
+pub struct DrillingSession {
+    config: SessionConfig,
+    bone: DrilledVolume,
+    path: PlannedPath,
+    probe: BurrProbe,
+    limiter: ForceLimiter,
+    thermal: Thermal,
+    pose: Option<Pose>,
+    proxy_m: Point3<f64>,
+    prev_device_m: Point3<f64>,
+    prev_proxy_m: Point3<f64>,
+    breakthrough: Breakthrough,
+    state: SessionState,
+}
+
+impl DrillingSession {
+    /// A session drilling `volume` along `path`.
+    ///
+    /// # Errors
+    /// An invalid configuration.
+    pub fn new(volume: Arc<Volume>, path: PlannedPath, config: SessionConfig) -> SimResult<Self> {
+        config.validate()?;
+        let probe = BurrProbe::new(volume.grid(), config.burr_radius_m);
+        let limiter = ForceLimiter::new(config.device.clone())?;
+        let thermal = Thermal::new(config.thermal.clone())?;
+        let entry = path.entry_m();
+        let state = Self::initial_state(&path, &thermal);
+        Ok(Self {
+            config,
+            bone: DrilledVolume::new(volume),
+            path,
+            probe,
+            limiter,
+            thermal,
+            pose: None,
+            proxy_m: entry,
+            prev_device_m: entry,
+            prev_proxy_m: entry,
+            breakthrough: Breakthrough::default(),
+            state,
+        })
+    }
+
+    fn initial_state(path: &PlannedPath, thermal: &Thermal) -> SessionState {
+        let entry = path.entry_m();
+        SessionState {
+            time_s: 0.0,
+            ticks: 0,
+            device_m: entry,
+            tip_m: entry,
+            axis: path.direction(),
+            drill_on: false,
+            spindle_rpm: 0.0,
+            in_contact: false,
+            cutting: false,
+            layer: Layer::Outside,
+            depth_m: 0.0,
+            deviation_m: 0.0,
+            feed_m_s: 0.0,
+            thrust_n: 0.0,
+            torque_n_m: 0.0,
+            cutting_density_kg_m3: 0.0,
+            force_n: Vector3::zeros(),
+            temperature_c: thermal.temperature_c,
+            peak_temperature_c: thermal.peak_c,
+            time_above_47_s: 0.0,
+            breakthroughs: 0,
+            plunging: false,
+            plunge_depth_m: 0.0,
+            removed_mass_kg: 0.0,
+            stale: true,
+            rejected_poses: 0,
+        }
+    }
+
+    /// The configuration.
+    #[must_use]
+    pub fn config(&self) -> &SessionConfig {
+        &self.config
+    }
+
+    /// The current state.
+    #[must_use]
+    pub fn state(&self) -> &SessionState {
+        &self.state
+    }
+
+    /// The bone as drilled.
+    #[must_use]
+    pub fn bone(&self) -> &DrilledVolume {
+        &self.bone
+    }
+
+    /// The planned path.
+    #[must_use]
+    pub fn path(&self) -> &PlannedPath {
+        &self.path
+    }
+
+    /// Sets a new planned path (depth and deviation are measured against it from now on).
+    pub fn set_path(&mut self, path: PlannedPath) {
+        self.path = path;
+    }
+
+    /// Restores the undrilled bone and a fresh state (as after [`new`](Self::new)); O(drilled
+    /// bricks).
+    pub fn reset(&mut self) {
+        self.bone.reset();
+        self.limiter.reset();
+        self.thermal.reset();
+        self.pose = None;
+        let entry = self.path.entry_m();
+        (self.proxy_m, self.prev_proxy_m, self.prev_device_m) = (entry, entry, entry);
+        self.breakthrough = Breakthrough::default();
+        self.state = Self::initial_state(&self.path, &self.thermal);
+    }
+
+    /// Advances one 1 ms tick. `pose` is the newest stylus sample, or `None` if none arrived
+    /// this tick; an invalid pose counts as none (and is counted). Without fresh poses the last
+    /// one is held, and after the device's stale time the force ramps to zero.
+    pub fn tick(&mut self, pose: Option<&Pose>) -> TickOutput {
+        let dt = TICK_S;
+        match pose {
+            Some(p) if p.is_valid() => {
+                if self.pose.is_none() {
+                    // First contact with the stylus: the proxy starts where the device is.
+                    self.proxy_m = p.position_m;
+                    self.prev_proxy_m = p.position_m;
+                    self.prev_device_m = p.position_m;
+                }
+                self.pose = Some(*p);
+                self.limiter.pose_received();
+            }
+            Some(_) => self.state.rejected_poses += 1,
+            None => {}
+        }
+        let desired = if let Some(pose) = self.pose {
+            self.simulate(&pose, dt)
+        } else {
+            self.thermal.step(0.0, 0.0, 0.0, 0.0, dt);
+            Vector3::zeros()
+        };
+        let force_n = self.limiter.step(desired, dt);
+        let s = &mut self.state;
+        s.ticks += 1;
+        s.time_s = s.ticks as f64 * dt;
+        s.force_n = force_n;
+        s.stale = self.limiter.is_stale();
+        s.temperature_c = self.thermal.temperature_c;
+        s.peak_temperature_c = self.thermal.peak_c;
+        s.time_above_47_s = self.thermal.time_above_threshold_s;
+        s.removed_mass_kg = self.bone.removed_mass_kg();
+        let record = (s.ticks % RECORD_PERIOD_TICKS == 0).then(|| Record {
+            time_s: s.time_s,
+            features: [
+                force_n.x,
+                force_n.y,
+                force_n.z,
+                s.tip_m.x,
+                s.tip_m.y,
+                s.tip_m.z,
+                f64::from(s.layer.id()),
+                s.depth_m,
+                s.temperature_c,
+            ],
+            drill_on: s.drill_on,
+        });
+        TickOutput { force_n, record }
+    }
+
+    /// One tick of the proxy, removal, thermal and breakthrough models; returns the force the
+    /// coupling asks for (before the safety stage).
+    fn simulate(&mut self, pose: &Pose, dt: f64) -> Vector3<f64> {
+        let cfg = &self.config;
+        let axis = pose.axis();
+        let rpm = if pose.drill_on { pose.spindle_rpm } else { 0.0 };
+        let device = pose.position_m;
+        let k = cfg.coupling_stiffness_n_per_m;
+        let scale = cfg.force_scale();
+        let goal = device - self.proxy_m;
+        let push_ax = goal.dot(&axis);
+        let zone = self.probe.cutting_zone(&self.bone, &self.proxy_m, &axis);
+        let cutting = rpm > 0.0 && zone.density_kg_m3 > EMPTY_CAP_KG_M3 && push_ax > 0.0;
+        let mut feed = 0.0;
+        if cutting {
+            // The axial push is the thrust: the cutting law says how fast it feeds.
+            let thrust = k * push_ax / scale;
+            let f = cfg.cutting.feed_for_thrust_m_s(rpm, thrust, zone.density_kg_m3);
+            let advance = (f * dt).min(push_ax).min(cfg.max_proxy_speed_m_s * dt);
+            self.proxy_m += axis * advance;
+            feed = advance / dt;
+            let lateral = goal - axis * push_ax;
+            self.proxy_m = self.god_move(self.proxy_m, lateral, Some(&axis), dt);
+        } else {
+            self.proxy_m = self.god_move(self.proxy_m, goal, None, dt);
+        }
+        let spring = self.proxy_m - device;
+        let push_phys = k * spring.norm() / scale;
+        if rpm > 0.0 {
+            let contact = if cutting { 1.0 } else { (push_phys / cfg.lateral_cut_reference_n).min(1.0) };
+            if contact > 0.0 {
+                let radius_m = self.probe.cutting_radius_m(self.bone.volume().grid());
+                let burr = Burr { center_m: self.proxy_m, radius_m };
+                // Burr, cut and contact are valid by construction; an error here would change nothing.
+                let _ = self.bone.remove(&burr, &Cut { spindle_rpm: rpm, dt_s: dt, contact });
+            }
+        }
+        let advance_ax = (self.proxy_m - self.prev_proxy_m).dot(&axis);
+        // Coupling: spring to the proxy, damping on the relative velocity while apart.
+        let v_device = (device - self.prev_device_m) / dt;
+        let v_proxy = (self.proxy_m - self.prev_proxy_m) / dt;
+        self.prev_device_m = device;
+        self.prev_proxy_m = self.proxy_m;
+        let apart = spring.norm() > 1e-7;
+        let force =
+            spring * k + if apart { (v_proxy - v_device) * cfg.coupling_damping_n_s_per_m } else { Vector3::zeros() };
+
+        let (thrust, torque) = if cutting {
+            (cfg.cutting.thrust_n(rpm, feed, zone.density_kg_m3), cfg.cutting.torque_n_m(rpm, feed, zone.density_kg_m3))
+        } else {
+            (0.0, 0.0)
+        };
+        self.thermal.step(torque, rpm * TAU / 60.0, thrust, feed, dt);
+        self.track_breakthrough(rpm, cutting, zone.layer, zone.density_kg_m3, push_ax, advance_ax, &axis);
+
+        let front = self.proxy_m + axis * self.probe.radius_m();
+        let s = &mut self.state;
+        s.device_m = device;
+        s.tip_m = self.proxy_m;
+        s.axis = axis;
+        s.drill_on = pose.drill_on;
+        s.spindle_rpm = pose.spindle_rpm;
+        s.in_contact = apart || zone.density_kg_m3 > EMPTY_CAP_KG_M3;
+        s.cutting = cutting;
+        s.layer = self.bone.volume().layer_at(&front).unwrap_or(Layer::Outside);
+        s.depth_m = self.path.depth_m(&self.proxy_m);
+        s.deviation_m = self.path.deviation_m(&self.proxy_m);
+        s.feed_m_s = feed;
+        s.thrust_n = thrust;
+        s.torque_n_m = torque;
+        s.cutting_density_kg_m3 = zone.density_kg_m3;
+        force
+    }
+
+    /// Moves the proxy from `from` by `delta` as far as the bone allows, sliding along surfaces.
+    /// A move is refused when it brings more probe points into bone than the proxy already has
+    /// (so a proxy that is already embedded can always back out).
+    fn god_move(
+        &self,
+        from: Point3<f64>,
+        delta: Vector3<f64>,
+        exclude_cap: Option<&Vector3<f64>>,
+        dt: f64,
+    ) -> Point3<f64> {
+        let len = delta.norm();
+        if len < 1e-12 {
+            return from;
+        }
+        let h = self.bone.volume().grid().spacing_m();
+        let max_step = 0.25 * h[0].min(h[1]).min(h[2]);
+        let reach = len.min(self.config.max_proxy_speed_m_s * dt);
+        let steps = (reach / max_step).ceil().clamp(1.0, 16.0);
+        let step = delta * (reach / len / steps);
+        let mut p = from;
+        let mut inside = self.probe.contact(&self.bone, &p, exclude_cap).points;
+        for _ in 0..steps as usize {
+            let candidate = self.probe.contact(&self.bone, &(p + step), exclude_cap);
+            if candidate.points == 0 || candidate.points <= inside {
+                p += step;
+                inside = candidate.points;
+                continue;
+            }
+            let Some(normal) = candidate.normal() else { break };
+            let into = step.dot(&normal);
+            let slide = if into < 0.0 { step - normal * into } else { step };
+            if slide.norm() < 1e-12 {
+                break;
+            }
+            let slid = self.probe.contact(&self.bone, &(p + slide), exclude_cap);
+            if slid.points == 0 || slid.points <= inside {
+                p += slide;
+                inside = slid.points;
+            } else {
+                break;
+            }
+        }
+        p
+    }
+
+    #[allow(clippy::too_many_arguments)] // the per-tick facts it needs, all computed by `simulate`
+    fn track_breakthrough(
+        &mut self,
+        rpm: f64,
+        cutting: bool,
+        layer: Layer,
+        density: f64,
+        push_ax: f64,
+        advance_ax: f64,
+        axis: &Vector3<f64>,
+    ) {
+        let bt = &mut self.breakthrough;
+        let s = &mut self.state;
+        if cutting {
+            bt.in_cortex = layer == Layer::Cortical;
+        }
+        if bt.in_cortex && rpm > 0.0 && density <= EMPTY_CAP_KG_M3 && push_ax > 0.0 {
+            // The cutting cap has left cortical bone for no bone at all: breakthrough.
+            bt.in_cortex = false;
+            bt.point_m = self.proxy_m;
+            bt.still_ticks = 0;
+            s.breakthroughs += 1;
+            s.plunging = true;
+            s.plunge_depth_m = 0.0;
+        }
+        if s.plunging {
+            s.plunge_depth_m = s.plunge_depth_m.max((self.proxy_m - bt.point_m).dot(axis));
+            bt.still_ticks = if advance_ax > 1e-9 { 0 } else { bt.still_ticks + 1 };
+            // The plunge ends when the drill stops, bites into bone again, or stops advancing.
+            if rpm <= 0.0 || cutting || bt.still_ticks >= PLUNGE_END_TICKS {
+                s.plunging = false;
+            }
+        }
+    }
+}

@@ -1,0 +1,336 @@
+//! The drilling session's physics and safety, on flat slabs with a simulated hand.
+
+// Exact comparisons are intended where a value must be exactly zero.
+#![allow(clippy::float_cmp, clippy::cast_lossless)]
+
+mod common;
+
+use bone_sim::{DrillingSession, Layer, PlannedPath, Pose, SessionConfig, FEATURES};
+use common::{slab, H};
+use nalgebra::{Point3, UnitQuaternion, Vector3};
+
+const NXY: usize = 24;
+const CENTRE: f64 = 12.0 * H;
+const PEAK: f64 = 3.3;
+
+fn session(layers: &[(Layer, f32, f64)]) -> (DrillingSession, f64, f64) {
+    let (vol, surface) = slab(NXY, layers);
+    let thickness: f64 = layers.iter().map(|l| l.2).sum();
+    let path = PlannedPath::new(Point3::new(CENTRE, CENTRE, surface), Point3::new(CENTRE, CENTRE, surface + thickness))
+        .unwrap();
+    (DrillingSession::new(vol, path, SessionConfig::default()).unwrap(), surface, thickness)
+}
+
+fn pose(z: f64, drill_on: bool, rpm: f64) -> Pose {
+    Pose {
+        position_m: Point3::new(CENTRE, CENTRE, z),
+        orientation: UnitQuaternion::identity(),
+        drill_on,
+        spindle_rpm: rpm,
+    }
+}
+
+/// Brings the device from 3 mm above the surface to `z` at 0.05 mm per tick (as a hand would),
+/// then holds it there for `hold` ticks.
+fn approach(s: &mut DrillingSession, surface: f64, p: Pose, hold: usize) -> Vector3<f64> {
+    let mut z = surface - 3e-3;
+    let mut f = Vector3::zeros();
+    while z < p.position_m.z {
+        z = (z + 0.05e-3).min(p.position_m.z);
+        f = s.tick(Some(&Pose { position_m: Point3::new(p.position_m.x, p.position_m.y, z), ..p })).force_n;
+    }
+    for _ in 0..hold {
+        f = s.tick(Some(&p)).force_n;
+    }
+    f
+}
+
+/// A hand holding the stylus: a mass pushed along +z with a constant force, with damping, and
+/// the session's force acting back on it. Integrated at 10 kHz, the force held over each tick.
+struct Hand {
+    z: f64,
+    v: f64,
+    mass_kg: f64,
+    damping_n_s_per_m: f64,
+    push_n: f64,
+}
+
+impl Hand {
+    fn new(z: f64, push_n: f64) -> Self {
+        Self { z, v: 0.0, mass_kg: 0.1, damping_n_s_per_m: 20.0, push_n }
+    }
+
+    fn step(&mut self, device_force_z: f64) {
+        for _ in 0..10 {
+            let a = (self.push_n + device_force_z - self.damping_n_s_per_m * self.v) / self.mass_kg;
+            self.v += a * 1e-4;
+            self.z += self.v * 1e-4;
+        }
+    }
+}
+
+/// Drills with a hand pushing `push_n` (device N) at `rpm` until the tip passes `until_z` or
+/// `max_s` elapses; returns the time taken (s) and the session.
+fn drill_until(
+    mut s: DrillingSession,
+    surface: f64,
+    push_n: f64,
+    rpm: f64,
+    until_z: f64,
+    max_s: f64,
+) -> (f64, DrillingSession) {
+    let mut hand = Hand::new(surface - 2e-3, push_n);
+    let mut force_z = 0.0;
+    for tick in 1..=(max_s * 1000.0) as usize {
+        hand.step(force_z);
+        force_z = s.tick(Some(&pose(hand.z, true, rpm))).force_n.z;
+        if s.state().tip_m.z >= until_z {
+            return (tick as f64 * 1e-3, s);
+        }
+    }
+    (f64::INFINITY, s)
+}
+
+#[test]
+fn drill_off_bone_is_a_rigid_surface_with_force_along_the_normal_growing_and_capped() {
+    let (mut s, surface, _) = session(&[(Layer::Cortical, 1800.0, 3e-3)]);
+    let r = s.config().burr_radius_m;
+    let mut last = 0.0;
+    for mm in [0.5, 1.0, 2.0, 4.0, 8.0, 20.0] {
+        // The device sinks `mm` into the bone, slightly off-centre so the proxy must slide.
+        let p =
+            Pose { position_m: Point3::new(CENTRE + 0.3e-3, CENTRE, surface - r + mm * 1e-3), ..pose(0.0, false, 0.0) };
+        let f = approach(&mut s, surface, p, 400);
+        assert!(f.norm() <= PEAK + 1e-12, "capped at the device's peak");
+        assert!(f.z < 0.0 && f.x.abs() < 0.05 * f.norm(), "{mm} mm: force {f:?} not along the surface normal (−z)");
+        assert!(f.norm() >= last - 1e-9, "{mm} mm: force fell from {last} to {}", f.norm());
+        last = f.norm();
+        assert!(s.state().tip_m.z <= surface - r + 0.3e-3, "the proxy entered the bone: {}", s.state().tip_m);
+    }
+    assert!((last - PEAK).abs() < 1e-9, "a deep push is capped at the peak, got {last}");
+    assert_eq!(s.state().removed_mass_kg, 0.0, "a stopped drill removes nothing");
+}
+
+#[test]
+fn drilling_through_takes_longest_in_cortical_then_cancellous_then_marrow() {
+    let time = |layer, hu| {
+        let (s, surface, t) = session(&[(layer, hu, 3e-3)]);
+        drill_until(s, surface, 1.5, 1250.0, surface + t + 1.25e-3, 30.0).0
+    };
+    let (cortical, cancellous, marrow) =
+        (time(Layer::Cortical, 1800.0), time(Layer::Cancellous, 350.0), time(Layer::Marrow, 0.0));
+    assert!(cortical.is_finite(), "a 13.6 N push must get through 3 mm of cortical bone");
+    assert!(cortical > 3.0 * cancellous, "cortical {cortical} s vs cancellous {cancellous} s");
+    assert!(cancellous > marrow, "cancellous {cancellous} s vs marrow {marrow} s");
+}
+
+/// Mean feed (m/s) and physical thrust (N) while cutting in the middle of a thick cortical slab.
+fn steady_cut(push_n: f64, rpm: f64) -> (f64, f64) {
+    let (mut s, surface, _) = session(&[(Layer::Cortical, 1800.0, 10e-3)]);
+    let mut hand = Hand::new(surface - 2e-3, push_n);
+    let (mut force_z, mut feed, mut thrust, mut n) = (0.0, 0.0, 0.0, 0.0);
+    for _ in 0..5000 {
+        hand.step(force_z);
+        force_z = s.tick(Some(&pose(hand.z, true, rpm))).force_n.z;
+        let st = s.state();
+        // Fully engaged: the burr's centre is past the cap's reach behind the surface.
+        if st.cutting && st.tip_m.z > surface - 0.5e-3 {
+            feed += st.feed_m_s;
+            thrust += st.thrust_n;
+            n += 1.0;
+        }
+    }
+    assert!(n > 500.0, "too little steady cutting ({n} ticks)");
+    (feed / n, thrust / n)
+}
+
+#[test]
+fn thrust_rises_with_feed_and_falls_with_spindle_speed() {
+    let (slow_feed, low_thrust) = steady_cut(1.0, 1250.0);
+    let (fast_feed, high_thrust) = steady_cut(2.0, 1250.0);
+    assert!(fast_feed > 1.5 * slow_feed, "pushing harder feeds faster: {slow_feed} → {fast_feed}");
+    assert!(high_thrust > 1.5 * low_thrust, "faster feed needs more thrust: {low_thrust} → {high_thrust}");
+    // The physical thrust is the device push scaled back up (1 device N ≈ 9.1 N).
+    assert!((low_thrust - 1.0 / 0.11).abs() < 1.5, "thrust estimate {low_thrust} N for a 1 N device push");
+    assert!((8.0..30.0).contains(&high_thrust));
+    // The same push feeds faster with a faster spindle: less thrust for the same feed.
+    let (feed_fast_spindle, _) = steady_cut(1.0, 2500.0);
+    assert!(feed_fast_spindle > 1.2 * slow_feed, "{slow_feed} at 1250 rpm vs {feed_fast_spindle} at 2500 rpm");
+}
+
+#[test]
+fn breakthrough_drops_the_force_and_the_plunge_is_reported() {
+    let (mut s, surface, t) = session(&[(Layer::Cortical, 1800.0, 3e-3)]);
+    let mut hand = Hand::new(surface - 2e-3, 1.5);
+    let mut force_z = 0.0;
+    let mut cutting_force = 0.0;
+    let mut exit_tick = None;
+    for tick in 0..20_000 {
+        hand.step(force_z);
+        let out = s.tick(Some(&pose(hand.z, true, 1250.0)));
+        force_z = out.force_n.z;
+        if s.state().cutting && s.state().tip_m.z > surface + 1e-3 {
+            cutting_force = out.force_n.norm();
+        }
+        if exit_tick.is_none() && s.state().breakthroughs == 1 {
+            exit_tick = Some(tick);
+        }
+        // The hand reacts 150 ms after breakthrough by stopping its push.
+        if exit_tick.is_some_and(|e| tick == e + 150) {
+            hand.push_n = 0.0;
+        }
+        if exit_tick.is_some_and(|e| tick > e + 1000) {
+            break;
+        }
+    }
+    let st = s.state();
+    assert_eq!(st.breakthroughs, 1, "one exit from the slab");
+    assert!(cutting_force > 1.0, "resistance while cutting: {cutting_force} N");
+    assert!(st.force_n.norm() < 0.2 * cutting_force, "force after breakthrough {} N", st.force_n.norm());
+    assert!(!st.plunging, "the plunge ended once the hand stopped");
+    assert!(st.plunge_depth_m > 1e-3 && st.plunge_depth_m < 40e-3, "plunge {} m", st.plunge_depth_m);
+    assert!(st.tip_m.z > surface + t, "the tip went through");
+}
+
+#[test]
+fn temperature_rises_while_drilling_decays_after_and_the_dose_is_counted() {
+    let (s, surface, _) = session(&[(Layer::Cortical, 1800.0, 20e-3)]);
+    let (_, mut s) = drill_until(s, surface, 0.8, 1250.0, surface + 8e-3, 60.0);
+    let hot = s.state().temperature_c;
+    assert!(hot > 47.0, "8 mm of slow cortical drilling should pass 47 °C, got {hot}");
+    assert!(s.state().time_above_47_s > 0.0);
+    let still = s.state().device_m.z;
+    let mut prev = hot;
+    for _ in 0..10_000 {
+        s.tick(Some(&pose(still - 5e-3, false, 0.0)));
+        assert!(s.state().temperature_c <= prev, "cooling is monotone");
+        prev = s.state().temperature_c;
+    }
+    let st = s.state();
+    assert!(st.temperature_c < hot - 5.0, "cools when the drill stops: {hot} → {}", st.temperature_c);
+    assert_eq!(st.peak_temperature_c, hot.max(st.peak_temperature_c));
+    // Feeding faster through the same depth gives a lower peak.
+    let peak = |push| {
+        let (s, surface, _) = session(&[(Layer::Cortical, 1800.0, 20e-3)]);
+        drill_until(s, surface, push, 1250.0, surface + 8e-3, 60.0).1.state().peak_temperature_c
+    };
+    assert!(peak(2.0) < peak(0.8) - 1.0, "higher feed, lower peak");
+}
+
+#[test]
+fn pressing_and_releasing_does_not_gain_energy() {
+    // Device mass with a hand spring pressing it into cortical bone (drill off), then released.
+    let (mut s, surface, _) = session(&[(Layer::Cortical, 1800.0, 3e-3)]);
+    let k = s.config().coupling_stiffness_n_per_m;
+    let (m, mut z, mut v) = (0.05, surface - 2e-3, 0.0);
+    let (k_hand, b_hand, hand_target) = (300.0, 3.0, surface + 5e-3);
+    let mut force_z = 0.0;
+    for _ in 0..2000 {
+        for _ in 0..10 {
+            let a = (force_z + k_hand * (hand_target - z) - b_hand * v) / m;
+            v += a * 1e-4;
+            z += v * 1e-4;
+        }
+        force_z = s.tick(Some(&pose(z, false, 0.0))).force_n.z;
+    }
+    let pressed = s.state().tip_m.z - z;
+    assert!(pressed < -1e-3, "the device sits inside the surface while pressed");
+    let stored = 0.5 * k * pressed * pressed + 0.5 * m * v * v;
+    let mut max_energy: f64 = 0.0;
+    let mut contacts = 0;
+    let mut was_in = true;
+    for _ in 0..3000 {
+        for _ in 0..10 {
+            v += force_z / m * 1e-4;
+            z += v * 1e-4;
+        }
+        force_z = s.tick(Some(&pose(z, false, 0.0))).force_n.z;
+        let gap = s.state().tip_m.z - z;
+        let energy = 0.5 * m * v * v + if gap < 0.0 { 0.5 * k * gap * gap } else { 0.0 };
+        max_energy = max_energy.max(energy);
+        let inside = force_z.abs() > 1e-9;
+        if inside && !was_in {
+            contacts += 1;
+        }
+        was_in = inside;
+    }
+    assert!(max_energy <= stored * 1.02, "energy grew after release: {stored} J → {max_energy} J");
+    assert!(v < 0.0, "released, the device is pushed back out of the bone");
+    assert!(contacts <= 1, "it must not bounce back into contact repeatedly ({contacts} re-contacts)");
+}
+
+#[test]
+fn nan_inf_and_stale_inputs_give_finite_bounded_ramped_forces() {
+    let (mut s, surface, _) = session(&[(Layer::Cortical, 1800.0, 3e-3)]);
+    let deep = pose(surface + 10e-3, false, 0.0);
+    approach(&mut s, surface, deep, 300);
+    let pushing = s.state().force_n.norm();
+    assert!((pushing - PEAK).abs() < 1e-9);
+    let bad = [
+        Pose { position_m: Point3::new(f64::NAN, 0.0, 0.0), ..deep },
+        Pose { position_m: Point3::new(0.0, f64::INFINITY, 0.0), ..deep },
+        Pose { spindle_rpm: f64::NAN, ..deep },
+        Pose { spindle_rpm: -100.0, ..deep },
+    ];
+    let mut prev = s.state().force_n;
+    for tick in 0..200 {
+        let f = s.tick(Some(&bad[tick % bad.len()])).force_n;
+        assert!(f.iter().all(|v| v.is_finite()) && f.norm() <= PEAK + 1e-12);
+        assert!((f - prev).norm() <= 0.2 + 1e-12, "jump of {} N", (f - prev).norm());
+        prev = f;
+    }
+    assert_eq!(s.state().rejected_poses, 200);
+    assert!(s.state().stale);
+    assert_eq!(prev.norm(), 0.0, "stale for 150 ms: ramped to zero");
+    // Zero or NaN quaternions are invalid too, and are rejected the same way.
+    let zero_q = Pose::new([CENTRE, CENTRE, surface], [0.0; 4], true, 1000.0);
+    let nan_q = Pose::new([CENTRE, CENTRE, surface], [f64::NAN, 0.0, 0.0, 1.0], true, 1000.0);
+    assert!(!zero_q.is_valid() && !nan_q.is_valid());
+    assert!(Pose::new([0.0; 3], [2.0, 0.0, 0.0, 0.0], false, 0.0).is_valid(), "quaternions are normalised");
+    let f = s.tick(Some(&zero_q)).force_n;
+    assert!(f.iter().all(|v| v.is_finite()));
+    assert_eq!(s.state().rejected_poses, 201);
+    // A fresh pose brings the force back, ramped.
+    let f = s.tick(Some(&deep)).force_n;
+    assert!(f.norm() > 0.0 && f.norm() <= 0.2 + 1e-12);
+}
+
+#[test]
+fn records_every_100_ticks_in_the_documented_order() {
+    let (mut s, surface, _) = session(&[(Layer::Cortical, 1800.0, 3e-3)]);
+    let mut records = Vec::new();
+    let mut last_force = Vector3::zeros();
+    let resting = pose(surface + 0.5e-3, false, 0.0);
+    approach(&mut s, surface, resting, 0);
+    let start = s.state().ticks;
+    for tick in start + 1..=start + 250 {
+        let out = s.tick(Some(&resting));
+        if let Some(r) = out.record {
+            assert_eq!(tick % 100, 0);
+            last_force = out.force_n;
+            records.push((r, s.state().clone()));
+        }
+    }
+    assert_eq!(records.len() as u64, (start + 250) / 100 - start / 100);
+    assert_eq!(FEATURES.len(), 9);
+    let (r, st) = &records[records.len() - 1];
+    assert!((r.time_s - records[records.len() - 2].0.time_s - 0.1).abs() < 1e-12);
+    assert_eq!(&r.features[0..3], last_force.as_slice());
+    assert_eq!(&r.features[3..6], st.tip_m.coords.as_slice());
+    assert_eq!(r.features[6], f64::from(Layer::Cortical.id()), "the front of the resting burr touches cortical bone");
+    assert!((r.features[7] - s.path().depth_m(&st.tip_m)).abs() < 1e-12);
+    assert!(r.features[7] < 0.0, "resting on the surface, the burr centre is before A");
+    assert!((r.features[8] - 37.0).abs() < 1e-9, "°C, at body temperature");
+    assert!(!r.drill_on);
+}
+
+#[test]
+fn reset_restores_bone_and_state() {
+    let (s, surface, t) = session(&[(Layer::Cancellous, 350.0, 3e-3)]);
+    let (_, mut s) = drill_until(s, surface, 1.5, 1250.0, surface + t, 10.0);
+    assert!(s.state().removed_mass_kg > 0.0);
+    s.reset();
+    assert_eq!(s.state().removed_mass_kg, 0.0);
+    assert_eq!(s.state().ticks, 0);
+    assert_eq!(s.bone().overlay().owned_count(), 0);
+}
