@@ -17,6 +17,15 @@ from dhg.errors import (
 )
 from dhg.layers import Layer
 from dhg.phantom import Phantom, default_phantom, femur
+from dhg.session import (
+    CuttingLaw,
+    DeviceProfile,
+    DrillingSession,
+    SessionConfig,
+    SessionState,
+    StepResult,
+    ThermalParams,
+)
 from dhg.task import PlannedPath
 from dhg.volume import DrilledVolume, HuMapping, RemovalReport, Volume, XRayViews
 
@@ -24,6 +33,13 @@ __version__: str = _bone_sim.__version__
 
 __all__ = [
     "CTImportError",
+    "CuttingLaw",
+    "DeviceProfile",
+    "DrillingSession",
+    "SessionConfig",
+    "SessionState",
+    "StepResult",
+    "ThermalParams",
     "DhgError",
     "DrilledVolume",
     "HuMapping",

@@ -1,6 +1,6 @@
 """Type stubs for the native core ``dhg._bone_sim`` (written by hand; checked by mypy.stubtest)."""
 
-from typing import Final, Literal, final
+from typing import Any, Final, Literal, final
 
 import numpy as np
 import numpy.typing as npt
@@ -8,6 +8,13 @@ import numpy.typing as npt
 __all__ = [
     "Volume",
     "DrilledVolume",
+    "DrillingSession",
+    "FEATURE_NAMES",
+    "FEATURE_UNITS",
+    "RECORD_PERIOD_TICKS",
+    "TICK_S",
+    "POSE_COLUMNS",
+    "RECORD_COLUMNS",
     "LAYER_NAMES",
     "HU_MIN",
     "HU_MAX",
@@ -17,6 +24,12 @@ __all__ = [
 ]
 
 LAYER_NAMES: Final[list[str]]
+FEATURE_NAMES: Final[list[str]]
+FEATURE_UNITS: Final[list[str]]
+RECORD_PERIOD_TICKS: Final[int]
+TICK_S: Final[float]
+POSE_COLUMNS: Final[int]
+RECORD_COLUMNS: Final[int]
 HU_MIN: Final[int]
 HU_MAX: Final[int]
 BRICK_EDGE: Final[int]
@@ -93,3 +106,25 @@ class DrilledVolume:
     def drilled_bricks(self) -> int: ...
     @property
     def memory_bytes(self) -> int: ...
+
+@final
+class DrillingSession:
+    def __new__(
+        cls,
+        volume: Volume,
+        entry_m: tuple[float, float, float],
+        target_m: tuple[float, float, float],
+        config: dict[str, float] | None = None,
+    ) -> DrillingSession: ...
+    def tick(
+        self, pose: tuple[float, ...] | None = None
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64] | None]: ...
+    def step(self, poses: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    def state(self) -> dict[str, Any]: ...
+    def set_path(self, entry_m: tuple[float, float, float], target_m: tuple[float, float, float]) -> None: ...
+    def path(self) -> tuple[list[float], list[float]]: ...
+    def reset(self) -> None: ...
+    def xray(self) -> tuple[_Image, _Image, _Image]: ...
+    @property
+    def memory_bytes(self) -> int: ...
+    def config(self) -> dict[str, float]: ...

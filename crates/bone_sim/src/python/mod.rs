@@ -6,10 +6,12 @@
 
 mod convert;
 mod errors;
+mod session;
 mod volume;
 
 use pyo3::prelude::*;
 
+use crate::record::{FEATURES, RECORD_PERIOD_TICKS, TICK_S};
 use crate::removal::MAX_BURR_RADIUS_M;
 use crate::volume::bricks::BRICK_EDGE;
 use crate::volume::layer::Layer;
@@ -20,6 +22,15 @@ use crate::volume::material::{HU_MAX, HU_MIN};
 fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<volume::PyVolume>()?;
     m.add_class::<volume::PyDrilledVolume>()?;
+    m.add_class::<session::PySession>()?;
+    let features: Vec<&str> = FEATURES.iter().map(|f| f.name).collect();
+    let units: Vec<&str> = FEATURES.iter().map(|f| f.unit).collect();
+    m.add("FEATURE_NAMES", features)?;
+    m.add("FEATURE_UNITS", units)?;
+    m.add("RECORD_PERIOD_TICKS", RECORD_PERIOD_TICKS)?;
+    m.add("TICK_S", TICK_S)?;
+    m.add("POSE_COLUMNS", session::POSE_COLUMNS)?;
+    m.add("RECORD_COLUMNS", session::RECORD_COLUMNS)?;
     let names: Vec<&str> = Layer::ALL.iter().map(|l| l.name()).collect();
     m.add("LAYER_NAMES", names)?;
     m.add("HU_MIN", HU_MIN)?;

@@ -87,9 +87,9 @@ fn mapping_to_dict<'py>(py: Python<'py>, m: &HuMapping) -> PyResult<Bound<'py, P
 }
 
 /// The (top, front, side) images handed to Python.
-type Views<'py> = (Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>);
+pub(crate) type Views<'py> = (Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>);
 
-fn xray_tuple<'py>(py: Python<'py>, p: &Projections) -> Views<'py> {
+pub(crate) fn xray_tuple<'py>(py: Python<'py>, p: &Projections) -> Views<'py> {
     let [top, front, side] = View::ALL.map(|v| {
         let (data, shape) = p.view(v);
         image(py, data, shape)

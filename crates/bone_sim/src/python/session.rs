@@ -1,0 +1,270 @@
+//! `DrillingSession`: the 1 kHz drilling session, per tick or many ticks per call.
+
+use numpy::ndarray::Array2;
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use super::convert::detached;
+use super::errors::IntoPyResult;
+use super::volume::{xray_tuple, PyVolume, Views};
+use crate::error::SimError;
+use crate::path::PlannedPath;
+use crate::record::{Record, FEATURE_COUNT};
+use crate::session::{DrillingSession, Pose, SessionConfig, SessionState};
+
+/// Columns of a pose row: x, y, z (m), qw, qx, qy, qz, `drill_on` (> 0.5 = on), `spindle_rpm`.
+pub(crate) const POSE_COLUMNS: usize = 9;
+/// Columns of a record row: time (s), the nine features, `drill_on` (0/1).
+pub(crate) const RECORD_COLUMNS: usize = FEATURE_COUNT + 2;
+
+fn config_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<SessionConfig> {
+    let mut c = SessionConfig::default();
+    let Some(dict) = dict else { return Ok(c) };
+    let mut stiffness_given = false;
+    for (key, value) in dict.iter() {
+        let key: String = key.extract()?;
+        let value: f64 = value.extract()?;
+        let slot = match key.as_str() {
+            "burr_radius_m" => &mut c.burr_radius_m,
+            "coupling_stiffness_n_per_m" => {
+                stiffness_given = true;
+                &mut c.coupling_stiffness_n_per_m
+            }
+            "coupling_damping_n_s_per_m" => &mut c.coupling_damping_n_s_per_m,
+            "physical_full_scale_n" => &mut c.physical_full_scale_n,
+            "lateral_cut_reference_n" => &mut c.lateral_cut_reference_n,
+            "max_proxy_speed_m_s" => &mut c.max_proxy_speed_m_s,
+            "device.peak_force_n" => &mut c.device.peak_force_n,
+            "device.continuous_force_n" => &mut c.device.continuous_force_n,
+            "device.peak_duration_s" => &mut c.device.peak_duration_s,
+            "device.max_stiffness_n_per_m" => &mut c.device.max_stiffness_n_per_m,
+            "device.max_force_rate_n_per_s" => &mut c.device.max_force_rate_n_per_s,
+            "device.stale_after_s" => &mut c.device.stale_after_s,
+            "cutting.thrust_ref_n" => &mut c.cutting.thrust_ref_n,
+            "cutting.torque_ref_n_m" => &mut c.cutting.torque_ref_n_m,
+            "cutting.reference_rpm" => &mut c.cutting.reference_rpm,
+            "cutting.reference_feed_m_s" => &mut c.cutting.reference_feed_m_s,
+            "cutting.reference_density_kg_m3" => &mut c.cutting.reference_density_kg_m3,
+            "cutting.speed_exponent" => &mut c.cutting.speed_exponent,
+            "cutting.feed_exponent" => &mut c.cutting.feed_exponent,
+            "cutting.density_exponent" => &mut c.cutting.density_exponent,
+            "cutting.max_feed_m_s" => &mut c.cutting.max_feed_m_s,
+            "thermal.heat_capacity_j_per_k" => &mut c.thermal.heat_capacity_j_per_k,
+            "thermal.thermal_resistance_k_per_w" => &mut c.thermal.thermal_resistance_k_per_w,
+            "thermal.heat_fraction" => &mut c.thermal.heat_fraction,
+            "thermal.body_temperature_c" => &mut c.thermal.body_temperature_c,
+            "thermal.necrosis_threshold_c" => &mut c.thermal.necrosis_threshold_c,
+            _ => {
+                return Err(SimError::InvalidOption {
+                    name: "session config key",
+                    value: key,
+                    allowed: "the fields of dhg.SessionConfig (nested ones as 'device.x', 'cutting.x', 'thermal.x')",
+                })
+                .py()
+            }
+        };
+        *slot = value;
+    }
+    if !stiffness_given {
+        c.coupling_stiffness_n_per_m = c.device.max_stiffness_n_per_m;
+    }
+    Ok(c)
+}
+
+fn pose_from_row(row: &[f64]) -> Option<Pose> {
+    if row.iter().all(|v| v.is_nan()) {
+        return None; // no pose arrived this tick
+    }
+    Some(Pose::new([row[0], row[1], row[2]], [row[3], row[4], row[5], row[6]], row[7] > 0.5, row[8]))
+}
+
+fn record_row(r: &Record) -> [f64; RECORD_COLUMNS] {
+    let mut row = [0.0; RECORD_COLUMNS];
+    row[0] = r.time_s;
+    row[1..=FEATURE_COUNT].copy_from_slice(&r.features);
+    row[RECORD_COLUMNS - 1] = f64::from(u8::from(r.drill_on));
+    row
+}
+
+fn state_dict<'py>(py: Python<'py>, s: &SessionState) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("time_s", s.time_s)?;
+    d.set_item("ticks", s.ticks)?;
+    d.set_item("device_m", [s.device_m.x, s.device_m.y, s.device_m.z])?;
+    d.set_item("tip_m", [s.tip_m.x, s.tip_m.y, s.tip_m.z])?;
+    d.set_item("axis", [s.axis.x, s.axis.y, s.axis.z])?;
+    d.set_item("drill_on", s.drill_on)?;
+    d.set_item("spindle_rpm", s.spindle_rpm)?;
+    d.set_item("in_contact", s.in_contact)?;
+    d.set_item("cutting", s.cutting)?;
+    d.set_item("layer", s.layer.id())?;
+    d.set_item("depth_m", s.depth_m)?;
+    d.set_item("deviation_m", s.deviation_m)?;
+    d.set_item("feed_m_s", s.feed_m_s)?;
+    d.set_item("thrust_n", s.thrust_n)?;
+    d.set_item("torque_n_m", s.torque_n_m)?;
+    d.set_item("cutting_density_kg_m3", s.cutting_density_kg_m3)?;
+    d.set_item("force_n", [s.force_n.x, s.force_n.y, s.force_n.z])?;
+    d.set_item("temperature_c", s.temperature_c)?;
+    d.set_item("peak_temperature_c", s.peak_temperature_c)?;
+    d.set_item("time_above_47_s", s.time_above_47_s)?;
+    d.set_item("breakthroughs", s.breakthroughs)?;
+    d.set_item("plunging", s.plunging)?;
+    d.set_item("plunge_depth_m", s.plunge_depth_m)?;
+    d.set_item("removed_mass_kg", s.removed_mass_kg)?;
+    d.set_item("stale", s.stale)?;
+    d.set_item("rejected_poses", s.rejected_poses)?;
+    Ok(d)
+}
+
+/// Forces (N, 3) and records (M, 11) of a batch of ticks.
+type StepArrays<'py> = (Bound<'py, PyArray2<f64>>, Bound<'py, PyArray2<f64>>);
+
+/// A trainee's drilling session on a shared volume: 1 ms ticks, forces for the device, the
+/// 10 Hz record. Build it with `dhg.DrillingSession`; this is the native half.
+#[pyclass(name = "DrillingSession", module = "dhg._bone_sim")]
+pub struct PySession {
+    inner: DrillingSession,
+}
+
+#[pymethods]
+impl PySession {
+    /// A session drilling `volume` along the path `entry_m` → `target_m` (m), with an optional
+    /// flat config dict.
+    #[new]
+    #[pyo3(signature = (volume, entry_m, target_m, config=None))]
+    fn new(
+        volume: Bound<'_, PyVolume>,
+        entry_m: [f64; 3],
+        target_m: [f64; 3],
+        config: Option<&Bound<'_, PyDict>>,
+    ) -> PyResult<Self> {
+        let config = config_from_dict(config)?;
+        let path = PlannedPath::new(entry_m.into(), target_m.into()).py()?;
+        let inner = DrillingSession::new(std::sync::Arc::clone(&volume.get().inner), path, config).py()?;
+        Ok(Self { inner })
+    }
+
+    /// One tick. `pose` is a 9-value row (see `POSE_COLUMNS`) or None when no pose arrived.
+    /// Returns (force (3,) in N, record (11,) or None).
+    #[pyo3(signature = (pose=None))]
+    fn tick<'py>(
+        &mut self,
+        py: Python<'py>,
+        pose: Option<[f64; POSE_COLUMNS]>,
+    ) -> (Bound<'py, PyArray1<f64>>, Option<Bound<'py, PyArray1<f64>>>) {
+        let pose = pose.and_then(|row| pose_from_row(&row));
+        let out = self.inner.tick(pose.as_ref());
+        let force = vec![out.force_n.x, out.force_n.y, out.force_n.z].into_pyarray(py);
+        (force, out.record.map(|r| record_row(&r).to_vec().into_pyarray(py)))
+    }
+
+    /// Runs one tick per row of `poses` (N, 9) with the GIL released. Returns forces (N, 3) in N
+    /// and the records produced (M, 11).
+    fn step<'py>(&mut self, py: Python<'py>, poses: PyReadonlyArray2<'_, f64>) -> PyResult<StepArrays<'py>> {
+        let view = poses.as_array();
+        if view.ncols() != POSE_COLUMNS {
+            return Err(SimError::ShapeMismatch {
+                what: "poses",
+                expected: format!("shape (N, {POSE_COLUMNS})"),
+                got: format!("{:?}", view.shape()),
+            })
+            .py();
+        }
+        let rows: Vec<[f64; POSE_COLUMNS]> = view.rows().into_iter().map(|r| std::array::from_fn(|c| r[c])).collect();
+        let inner = &mut self.inner;
+        let (forces, records) = detached(py, move || {
+            let mut forces = Vec::with_capacity(rows.len() * 3);
+            let mut records = Vec::with_capacity((rows.len() / 100 + 1) * RECORD_COLUMNS);
+            for row in &rows {
+                let out = inner.tick(pose_from_row(row).as_ref());
+                forces.extend_from_slice(out.force_n.as_slice());
+                if let Some(r) = out.record {
+                    records.extend_from_slice(&record_row(&r));
+                }
+            }
+            (forces, records)
+        });
+        let n = forces.len() / 3;
+        let m = records.len() / RECORD_COLUMNS;
+        let internal =
+            |e: numpy::ndarray::ShapeError| pyo3::exceptions::PyRuntimeError::new_err(format!("internal: {e}"));
+        Ok((
+            Array2::from_shape_vec((n, 3), forces).map_err(internal)?.into_pyarray(py),
+            Array2::from_shape_vec((m, RECORD_COLUMNS), records).map_err(internal)?.into_pyarray(py),
+        ))
+    }
+
+    /// The current state as a dict (SI units).
+    fn state<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        state_dict(py, self.inner.state())
+    }
+
+    /// Replaces the planned path (m).
+    fn set_path(&mut self, entry_m: [f64; 3], target_m: [f64; 3]) -> PyResult<()> {
+        self.inner.set_path(PlannedPath::new(entry_m.into(), target_m.into()).py()?);
+        Ok(())
+    }
+
+    /// The planned path as (entry (3,), target (3,)) in m.
+    fn path(&self) -> ([f64; 3], [f64; 3]) {
+        let (a, b) = (self.inner.path().entry_m(), self.inner.path().target_m());
+        ([a.x, a.y, a.z], [b.x, b.y, b.z])
+    }
+
+    /// Restores the undrilled bone and a fresh state.
+    fn reset(&mut self) {
+        self.inner.reset();
+    }
+
+    /// X-ray line integrals of the bone as drilled: (top, front, side).
+    fn xray<'py>(&self, py: Python<'py>) -> Views<'py> {
+        let bone = self.inner.bone();
+        let p = detached(py, || bone.xray());
+        xray_tuple(py, &p)
+    }
+
+    /// Bytes this session's bone holds beyond the shared volume.
+    #[getter]
+    fn memory_bytes(&self) -> usize {
+        self.inner.bone().memory_bytes()
+    }
+
+    /// The configuration in use, as a flat dict.
+    fn config<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let c = self.inner.config();
+        let d = PyDict::new(py);
+        for (k, v) in [
+            ("burr_radius_m", c.burr_radius_m),
+            ("coupling_stiffness_n_per_m", c.coupling_stiffness_n_per_m),
+            ("coupling_damping_n_s_per_m", c.coupling_damping_n_s_per_m),
+            ("physical_full_scale_n", c.physical_full_scale_n),
+            ("lateral_cut_reference_n", c.lateral_cut_reference_n),
+            ("max_proxy_speed_m_s", c.max_proxy_speed_m_s),
+            ("device.peak_force_n", c.device.peak_force_n),
+            ("device.continuous_force_n", c.device.continuous_force_n),
+            ("device.peak_duration_s", c.device.peak_duration_s),
+            ("device.max_stiffness_n_per_m", c.device.max_stiffness_n_per_m),
+            ("device.max_force_rate_n_per_s", c.device.max_force_rate_n_per_s),
+            ("device.stale_after_s", c.device.stale_after_s),
+            ("cutting.thrust_ref_n", c.cutting.thrust_ref_n),
+            ("cutting.torque_ref_n_m", c.cutting.torque_ref_n_m),
+            ("cutting.reference_rpm", c.cutting.reference_rpm),
+            ("cutting.reference_feed_m_s", c.cutting.reference_feed_m_s),
+            ("cutting.reference_density_kg_m3", c.cutting.reference_density_kg_m3),
+            ("cutting.speed_exponent", c.cutting.speed_exponent),
+            ("cutting.feed_exponent", c.cutting.feed_exponent),
+            ("cutting.density_exponent", c.cutting.density_exponent),
+            ("cutting.max_feed_m_s", c.cutting.max_feed_m_s),
+            ("thermal.heat_capacity_j_per_k", c.thermal.heat_capacity_j_per_k),
+            ("thermal.thermal_resistance_k_per_w", c.thermal.thermal_resistance_k_per_w),
+            ("thermal.heat_fraction", c.thermal.heat_fraction),
+            ("thermal.body_temperature_c", c.thermal.body_temperature_c),
+            ("thermal.necrosis_threshold_c", c.thermal.necrosis_threshold_c),
+        ] {
+            d.set_item(k, v)?;
+        }
+        Ok(d)
+    }
+}

@@ -1,0 +1,279 @@
+"""Drilling sessions: the 1 kHz haptic simulation a trainee (or a virtual surgeon) drives.
+
+A session owns a copy-on-write view of a shared :class:`~dhg.Volume` and a planned path. Each
+1 ms tick takes the stylus pose and returns the force for the device (N, world frame), always
+finite and within the device profile. Every 100 ticks it also returns the paper's 10 Hz record
+(:mod:`dhg.features`). Use :meth:`DrillingSession.step` for many ticks per call (offline
+simulation: a 60 s run at 1 kHz takes a fraction of a second) and :meth:`DrillingSession.tick`
+for one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from dhg import _bone_sim
+from dhg.errors import InvalidInputError, ShapeError
+from dhg.features import POSE_COLUMNS
+from dhg.layers import Layer
+from dhg.task import PlannedPath
+from dhg.volume import Volume, XRayViews, as_points
+
+__all__ = [
+    "CuttingLaw",
+    "DeviceProfile",
+    "DrillingSession",
+    "SessionConfig",
+    "SessionState",
+    "StepResult",
+    "ThermalParams",
+    "poses",
+]
+
+
+@dataclass(frozen=True)
+class DeviceProfile:
+    """Force limits of the haptic device. Defaults: the 3D Systems (Geomagic) Touch (3.3 N peak,
+    0.88 N continuous, 0.4 N/mm stiffness); the 200 N/s rate limit and 2 s peak budget are this
+    project's choices."""
+
+    peak_force_n: float = 3.3
+    continuous_force_n: float = 0.88
+    peak_duration_s: float = 2.0
+    max_stiffness_n_per_m: float = 400.0
+    max_force_rate_n_per_s: float = 200.0
+    stale_after_s: float = 0.05
+
+
+@dataclass(frozen=True)
+class CuttingLaw:
+    """Thrust and torque ``= ref · (n/n₀)^a · (f/f₀)^b · (ρ/ρ₀)^c``, calibrated so that a 2.5 mm
+    drill in cortical bone at 1250 rpm and 1.5 mm/s needs 17 N and 32 N·mm."""
+
+    thrust_ref_n: float = 17.0
+    torque_ref_n_m: float = 0.032
+    reference_rpm: float = 1250.0
+    reference_feed_m_s: float = 1.5e-3
+    reference_density_kg_m3: float = 1850.0
+    speed_exponent: float = -0.25
+    feed_exponent: float = 0.6
+    density_exponent: float = 1.5
+    max_feed_m_s: float = 0.05
+
+
+@dataclass(frozen=True)
+class ThermalParams:
+    """Lumped drill-tip thermal model ``C·dT/dt = η(M·ω + F·v) − (T − T_body)/R_th``."""
+
+    heat_capacity_j_per_k: float = 0.5
+    thermal_resistance_k_per_w: float = 30.0
+    heat_fraction: float = 0.6
+    body_temperature_c: float = 37.0
+    necrosis_threshold_c: float = 47.0
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """Everything configurable about a session (SI units). ``coupling_stiffness_n_per_m=None``
+    uses the device's maximum stiffness."""
+
+    burr_radius_m: float = 1.25e-3
+    coupling_stiffness_n_per_m: float | None = None
+    coupling_damping_n_s_per_m: float = 1.0
+    physical_full_scale_n: float = 30.0
+    lateral_cut_reference_n: float = 10.0
+    max_proxy_speed_m_s: float = 1.0
+    device: DeviceProfile = field(default_factory=DeviceProfile)
+    cutting: CuttingLaw = field(default_factory=CuttingLaw)
+    thermal: ThermalParams = field(default_factory=ThermalParams)
+
+    def to_flat_dict(self) -> dict[str, float]:
+        """``{"burr_radius_m": ..., "device.peak_force_n": ..., ...}``: what the core takes."""
+        flat: dict[str, float] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, DeviceProfile | CuttingLaw | ThermalParams):
+                flat.update({f"{f.name}.{k}": float(v) for k, v in asdict(value).items()})
+            elif value is not None:
+                flat[f.name] = float(value)
+        return flat
+
+    @classmethod
+    def from_flat_dict(cls, flat: dict[str, float]) -> SessionConfig:
+        """Inverse of :meth:`to_flat_dict`; unknown keys are an :class:`InvalidInputError`."""
+        nested: dict[str, dict[str, float]] = {"device": {}, "cutting": {}, "thermal": {}}
+        top: dict[str, Any] = {}
+        known = {f.name for f in fields(cls)}
+        for key, value in flat.items():
+            group, _, name = key.partition(".")
+            if name and group in nested:
+                nested[group][name] = float(value)
+            elif key in known:
+                top[key] = float(value)
+            else:
+                raise InvalidInputError(f"unknown session config key {key!r}")
+        try:
+            return cls(
+                **top,
+                device=DeviceProfile(**nested["device"]),
+                cutting=CuttingLaw(**nested["cutting"]),
+                thermal=ThermalParams(**nested["thermal"]),
+            )
+        except TypeError as exc:
+            raise InvalidInputError(f"unknown session config key: {exc}") from None
+
+
+@dataclass(frozen=True)
+class SessionState:
+    """A session's state after its last tick (SI units; forces on the device unless physical)."""
+
+    time_s: float
+    ticks: int
+    device_m: np.ndarray
+    tip_m: np.ndarray
+    axis: np.ndarray
+    drill_on: bool
+    spindle_rpm: float
+    in_contact: bool
+    cutting: bool
+    layer: Layer
+    depth_m: float
+    deviation_m: float
+    feed_m_s: float
+    thrust_n: float
+    """Physical thrust estimate (N)."""
+    torque_n_m: float
+    """Physical torque estimate (N·m)."""
+    cutting_density_kg_m3: float
+    force_n: np.ndarray
+    temperature_c: float
+    peak_temperature_c: float
+    time_above_47_s: float
+    breakthroughs: int
+    plunging: bool
+    plunge_depth_m: float
+    removed_mass_kg: float
+    stale: bool
+    rejected_poses: int
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SessionState:
+        """From the native state dict."""
+        vec = {"device_m", "tip_m", "axis", "force_n"}
+        values = {k: (np.asarray(v, dtype=float) if k in vec else v) for k, v in d.items()}
+        values["layer"] = Layer(int(values["layer"]))
+        return cls(**values)
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """What :meth:`DrillingSession.step` produced."""
+
+    forces_n: npt.NDArray[np.float64]
+    """Force sent to the device at each tick, (N, 3) in N."""
+    records: npt.NDArray[np.float64]
+    """The 10 Hz records produced, (M, 11): columns :data:`dhg.features.RECORD_COLUMNS`."""
+
+    @property
+    def features(self) -> npt.NDArray[np.float64]:
+        """The records' nine features, (M, 9)."""
+        return self.records[:, 1:10]
+
+    @property
+    def times_s(self) -> npt.NDArray[np.float64]:
+        """The records' times (s)."""
+        return self.records[:, 0]
+
+
+def poses(
+    positions_m: npt.ArrayLike,
+    orientations_wxyz: npt.ArrayLike = (1.0, 0.0, 0.0, 0.0),
+    drill_on: npt.ArrayLike = False,
+    spindle_rpm: npt.ArrayLike = 0.0,
+) -> npt.NDArray[np.float64]:
+    """Builds the (N, 9) pose array :meth:`DrillingSession.step` takes. Orientations, drill state and
+    speed broadcast: give one for all ticks or one per tick. A row of NaN means "no pose arrived".
+    """
+    pos = as_points(positions_m, "positions_m")
+    n = pos.shape[0]
+    try:
+        q = np.broadcast_to(np.asarray(orientations_wxyz, dtype=float), (n, 4))
+        on = np.broadcast_to(np.asarray(drill_on, dtype=float), (n,))
+        rpm = np.broadcast_to(np.asarray(spindle_rpm, dtype=float), (n,))
+    except ValueError as exc:
+        raise ShapeError(f"orientations, drill_on and spindle_rpm must broadcast to {n} ticks: {exc}") from None
+    return np.ascontiguousarray(np.column_stack([pos, q, on, rpm]))
+
+
+class DrillingSession:
+    """A trainee's drilling session on a shared :class:`~dhg.Volume` along a planned path."""
+
+    def __init__(self, volume: Volume, path: PlannedPath, config: SessionConfig | None = None) -> None:
+        self.config = config or SessionConfig()
+        """The configuration."""
+        self.volume = volume
+        """The shared volume."""
+        self._path = path
+        self._s = _bone_sim.DrillingSession(
+            volume._vol, tuple(path.entry_m), tuple(path.target_m), self.config.to_flat_dict()
+        )
+
+    @property
+    def path(self) -> PlannedPath:
+        """The planned path (m)."""
+        return self._path
+
+    @path.setter
+    def path(self, path: PlannedPath) -> None:
+        self._s.set_path(tuple(path.entry_m), tuple(path.target_m))
+        self._path = path
+
+    def tick(
+        self,
+        position_m: npt.ArrayLike | None,
+        orientation_wxyz: npt.ArrayLike = (1.0, 0.0, 0.0, 0.0),
+        drill_on: bool = False,
+        spindle_rpm: float = 0.0,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64] | None]:
+        """Advances one 1 ms tick with this pose (``position_m=None``: no pose arrived). Returns the
+        force for the device (3,) in N and, every 100th tick, the record (11,)."""
+        if position_m is None:
+            return self._s.tick(None)
+        row = poses(position_m, orientation_wxyz, drill_on, spindle_rpm)
+        if row.shape[0] != 1:
+            raise ShapeError(f"tick takes one position (3,), got shape {np.shape(position_m)}")
+        return self._s.tick(tuple(row[0]))
+
+    def step(self, pose_rows: npt.ArrayLike) -> StepResult:
+        """Runs one tick per row of ``pose_rows`` (N, 9), columns :data:`dhg.features.POSE_COLUMNS`
+        (build them with :func:`poses`). Invalid rows are counted and treated as no pose."""
+        try:
+            arr = np.asarray(pose_rows, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise TypeError(f"pose_rows must be numeric (N, 9) rows: {exc}") from None
+        if arr.ndim != 2 or arr.shape[1] != len(POSE_COLUMNS):
+            raise ShapeError(f"pose_rows must have shape (N, {len(POSE_COLUMNS)}), got {arr.shape}")
+        forces, records = self._s.step(np.ascontiguousarray(arr))
+        return StepResult(forces, records)
+
+    @property
+    def state(self) -> SessionState:
+        """The state after the last tick."""
+        return SessionState.from_dict(self._s.state())
+
+    def xray(self) -> XRayViews:
+        """X-ray views of the bone as this session has drilled it."""
+        return XRayViews(*self._s.xray())
+
+    def reset(self) -> None:
+        """Restores the undrilled bone and a fresh state."""
+        self._s.reset()
+
+    @property
+    def memory_bytes(self) -> int:
+        """Bytes the session's bone holds beyond the shared volume."""
+        return self._s.memory_bytes

@@ -1,0 +1,148 @@
+"""The drilling session's Python contract: the batched and per-tick APIs, records, config, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import dhg
+from dhg import InvalidInputError, Layer, SessionConfig, ShapeError
+from dhg.features import FEATURE_NAMES, FEATURE_UNITS, POSE_COLUMNS, RECORD_COLUMNS
+from dhg.session import poses
+
+
+def axis_quaternion(d):
+    """Quaternion (w, x, y, z) turning the tool's +z onto the unit vector d."""
+    z = np.array([0.0, 0.0, 1.0])
+    q = np.array([1.0 + z @ d, *np.cross(z, d)])
+    return q / np.linalg.norm(q)
+
+
+def drive(path, seconds, lead_m=4e-3, feed_m_s=1.5e-3, start_before_m=5e-3):
+    """Poses that lead the drill along the path at a constant feed, `lead_m` ahead (a push)."""
+    n = int(seconds * 1000)
+    depth = -start_before_m + np.arange(n) * 1e-3 * feed_m_s + lead_m
+    return poses(path.point_at(depth), axis_quaternion(path.direction), True, 1250.0)
+
+
+@pytest.fixture(scope="module")
+def run(coarse_phantom):
+    s = dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path)
+    result = s.step(drive(coarse_phantom.path, 30.0))
+    return s, result
+
+
+def test_feature_order_and_units_are_the_documented_ones():
+    assert FEATURE_NAMES == (
+        "force_x_n",
+        "force_y_n",
+        "force_z_n",
+        "tip_x_m",
+        "tip_y_m",
+        "tip_z_m",
+        "layer",
+        "depth_m",
+        "temperature_c",
+    )
+    assert FEATURE_UNITS == ("N", "N", "N", "m", "m", "m", "1", "m", "°C")
+    assert RECORD_COLUMNS[0] == "time_s" and RECORD_COLUMNS[-1] == "drill_on"
+    assert len(POSE_COLUMNS) == 9
+
+
+def test_step_shapes_records_and_units(run, coarse_phantom):
+    s, r = run
+    assert r.forces_n.shape == (30_000, 3) and r.forces_n.dtype == np.float64
+    assert r.records.shape == (300, 11)
+    np.testing.assert_allclose(r.times_s, np.arange(1, 301) * 0.1)
+    # The record's force is the force sent at that tick.
+    np.testing.assert_array_equal(r.features[:, 0:3], r.forces_n[99::100])
+    assert np.all(np.linalg.norm(r.forces_n, axis=1) <= 3.3 + 1e-12)
+    # Tip positions lie near the planned path; depth grows; temperature in °C above body.
+    dev = coarse_phantom.path.lateral_deviation(r.features[:, 3:6])
+    assert dev.max() < 2e-3
+    depth = r.features[:, 7]
+    assert depth[-1] > depth[0] + 0.03
+    assert np.all(r.features[:, 8] >= 37.0 - 1e-9) and r.features[:, 8].max() > 38.0
+    assert set(np.unique(r.features[:, 6]).astype(int)) >= {Layer.CORTICAL, Layer.CANCELLOUS, Layer.MARROW}
+    assert np.all(r.records[:, 10] == 1.0)
+    st = s.state
+    assert st.ticks == 30_000 and st.drill_on and st.removed_mass_kg > 0
+    np.testing.assert_allclose(st.tip_m, r.features[-1, 3:6])
+
+
+def test_step_equals_ticks_and_is_deterministic(coarse_phantom):
+    rows = drive(coarse_phantom.path, 0.5)
+    a = dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path)
+    b = dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path)
+    batch = a.step(rows)
+    forces, records = [], []
+    for row in rows:
+        f, rec = b.tick(row[0:3], row[3:7], bool(row[7]), row[8])
+        forces.append(f)
+        if rec is not None:
+            records.append(rec)
+    np.testing.assert_array_equal(batch.forces_n, np.array(forces))
+    np.testing.assert_array_equal(batch.records, np.array(records))
+    again = dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path).step(rows)
+    np.testing.assert_array_equal(again.forces_n, batch.forces_n)
+
+
+def test_nan_rows_and_silence_give_bounded_ramped_forces(coarse_phantom):
+    s = dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path)
+    rows = drive(coarse_phantom.path, 3.0)
+    s.step(rows[:2000])
+    bad = rows[2000:2300].copy()
+    bad[::3, 0] = np.nan  # invalid: counted
+    bad[1::3, 3:7] = 0.0  # zero quaternion: invalid
+    bad[2::3] = np.nan  # no pose at all
+    r = s.step(bad)
+    assert np.all(np.isfinite(r.forces_n))
+    assert np.all(np.linalg.norm(np.diff(r.forces_n, axis=0), axis=1) <= 0.2 + 1e-9)
+    assert s.state.rejected_poses == 200
+    assert s.state.stale and np.linalg.norm(r.forces_n[-1]) == 0.0
+
+
+def test_reset_and_xray(coarse_phantom):
+    s = dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path)
+    before = s.xray().front.copy()
+    s.step(drive(coarse_phantom.path, 5.0))
+    assert (before - s.xray().front).max() > 0.01
+    assert s.memory_bytes > 0
+    s.reset()
+    np.testing.assert_array_equal(s.xray().front, before)
+    assert s.state.ticks == 0 and s.state.removed_mass_kg == 0.0
+
+
+def test_config_round_trip_and_bad_config(coarse_phantom):
+    cfg = SessionConfig(burr_radius_m=1.5e-3, device=dhg.DeviceProfile(peak_force_n=2.5))
+    flat = cfg.to_flat_dict()
+    assert flat["device.peak_force_n"] == 2.5 and "coupling_stiffness_n_per_m" not in flat
+    assert SessionConfig.from_flat_dict(flat) == cfg
+    s = dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path, cfg)
+    r = s.step(drive(coarse_phantom.path, 20.0, lead_m=20e-3))
+    assert np.linalg.norm(r.forces_n, axis=1).max() <= 2.5 + 1e-12
+    with pytest.raises(InvalidInputError, match="burr_radius_m"):
+        dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path, SessionConfig(burr_radius_m=-1.0))
+    with pytest.raises(InvalidInputError, match="max_stiffness"):
+        dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path, SessionConfig(coupling_stiffness_n_per_m=5e3))
+    with pytest.raises(InvalidInputError, match="continuous_force_n"):
+        dhg.DrillingSession(
+            coarse_phantom.volume, coarse_phantom.path, SessionConfig(device=dhg.DeviceProfile(continuous_force_n=9.0))
+        )
+    with pytest.raises(InvalidInputError, match="unknown session config key"):
+        SessionConfig.from_flat_dict({"device.bogus": 1.0})
+
+
+def test_bad_pose_arrays_are_clear_errors(coarse_phantom):
+    s = dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path)
+    with pytest.raises(ShapeError, match=r"\(N, 9\)"):
+        s.step(np.zeros((10, 8)))
+    with pytest.raises(ShapeError):
+        s.step(np.zeros(9))
+    with pytest.raises(ShapeError, match="broadcast"):
+        poses(np.zeros((5, 3)), np.zeros((4, 4)))
+    with pytest.raises(ShapeError):
+        s.tick(np.zeros((2, 3)))
+    with pytest.raises(TypeError):
+        s.step([["a"] * 9])
+    assert s.state.ticks == 0, "nothing ran"
