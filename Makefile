@@ -52,8 +52,10 @@ lint: build ## clippy, rustfmt, ruff, stubtest
 	$(VPY) -m mypy.stubtest dhg._bone_sim
 
 bench: build ## criterion benches and the Python benchmarks (figures go in docs/benchmarks.md)
-	cargo bench -p bone_sim
+	$(VPY) tests/benchmarks/export_phantom_raw.py target/bench-data
+	DHG_BENCH_DATA=$(abspath target/bench-data) cargo bench -p bone_sim
 	$(VPY) tests/benchmarks/bench_volume.py
+	$(VPY) tests/benchmarks/bench_session.py
 
 clean: ## remove build outputs in the clone (keeps the caches)
 	rm -rf $(VENV) out python/dhg/*.so

@@ -49,8 +49,9 @@ def test_ct_import_then_xray_from_the_file(tmp_path):
 def test_demo_drills_and_reports(tmp_path):
     r = run("demo", "--out", str(tmp_path / "demo"), "--voxel-mm", "1.0")
     assert r.returncode == 0, r.stderr
-    assert "necrosis" in r.stdout and "removed" in r.stdout
+    assert "necrosis" in r.stdout and "removed" in r.stdout and "peak tip temperature" in r.stdout
     assert (tmp_path / "demo" / "side.png").is_file()
+    assert (tmp_path / "demo" / "drilling.png").read_bytes()[:4] == b"\x89PNG"
 
 
 @pytest.mark.parametrize(

@@ -13,6 +13,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from dhg.errors import DhgError, NotBuiltYetError
 
 EXIT_OK = 0
@@ -82,7 +84,9 @@ def cmd_xray(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from dhg.surgeons import straight_line_drill
+    from dhg.plots import plot_drilling
+    from dhg.session import DrillingSession, SessionConfig, StepResult
+    from dhg.surgeons import layer_runs, scripted_stylus
     from dhg.xray import auto_windows, render_views, write_views
 
     t0 = time.perf_counter()
@@ -90,37 +94,42 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if path is None:
         print("error: this volume has no planned path; use the phantom or a volume saved with one", file=sys.stderr)
         return EXIT_BAD_INPUT
-    t_build = time.perf_counter() - t0
-    print(f"volume   {vol}  built in {t_build:.2f} s, {vol.memory_bytes / 1e6:.1f} MB shared")
+    print(f"volume   {vol}  built in {time.perf_counter() - t0:.2f} s, {vol.memory_bytes / 1e6:.1f} MB shared")
     print(f"path     A = {_mm(path.entry_m)} mm  →  B = {_mm(path.target_m)} mm  ({path.length_m * 1e3:.1f} mm)")
-    bone = vol.drill()
+    session = DrillingSession(vol, path, SessionConfig(burr_radius_m=args.burr_mm * 1e-3 / 2))
     windows = auto_windows(vol.xray())
-    prog, update = _progress("drilling A→B")
+    duration_s = (path.length_m + 5e-3) / (args.feed_mm_s * 1e-3) + 5.0
+    rows = scripted_stylus(path, duration_s, feed_m_s=args.feed_mm_s * 1e-3, spindle_rpm=args.rpm)
+    prog, update = _progress("drilling A→B at 1 kHz")
     t1 = time.perf_counter()
+    chunks = []
     with prog:
-        run = straight_line_drill(
-            bone,
-            path,
-            radius_m=args.burr_mm * 1e-3 / 2,
-            feed_m_s=args.feed_mm_s * 1e-3,
-            spindle_rpm=args.rpm,
-            progress=update,
-        )
-    t_drill = time.perf_counter() - t1
+        for start in range(0, len(rows), 1000):
+            chunks.append(session.step(rows[start : start + 1000]))
+            update(min(start + 1000, len(rows)), len(rows))
+    result = StepResult(np.concatenate([c.forces_n for c in chunks]), np.concatenate([c.records for c in chunks]))
+    st = session.state
+    wall_s = time.perf_counter() - t1
     print(
-        f"drilled  {run.ticks} ticks of 1 ms ({run.duration_s:.1f} s simulated) in {t_drill:.2f} s wall; "
-        f"removed {run.mass_removed_kg * 1e6:.1f} mg, {run.voxels_removed} voxels; "
-        f"session holds {bone.drilled_bricks} bricks, {bone.memory_bytes / 1e3:.0f} kB"
+        f"drilled  {len(rows)} ticks of 1 ms ({len(rows) / 1000:.1f} s simulated) in {wall_s:.2f} s wall; "
+        f"tip at {st.depth_m * 1e3:.1f} mm of {path.length_m * 1e3:.1f} mm, {st.deviation_m * 1e3:.2f} mm off the path"
+    )
+    print(
+        f"felt     device force up to {np.linalg.norm(result.forces_n, axis=1).max():.2f} N; "
+        f"peak tip temperature {st.peak_temperature_c:.1f} °C, {st.time_above_47_s:.1f} s above 47 °C; "
+        f"removed {st.removed_mass_kg * 1e6:.0f} mg; breakthroughs {st.breakthroughs}"
     )
     print("layers along A→B:")
-    for name, start, end in run.layers:
-        if name == "outside" and end - start < 0.5e-3:
+    for name, lo, hi in layer_runs(vol.drill(), path):
+        if name == "outside" and hi - lo < 0.5e-3:
             continue  # A sits on the bone surface: the first sample is just outside
-        print(f"  {name:10s} {start * 1e3:6.1f} – {end * 1e3:6.1f} mm")
+        print(f"  {name:10s} {lo * 1e3:6.1f} – {hi * 1e3:6.1f} mm")
     out = Path(args.out)
-    images = render_views(vol, bone.xray(), path, tip_m=run.tip_m, windows=windows)
+    images = render_views(vol, session.xray(), path, tip_m=st.tip_m, windows=windows)
     for name, p in write_views(images, out).items():
         print(f"{name:5s} {p}")
+    plot = plot_drilling(result, out / "drilling.png", title="Scripted drill along the planned path (phantom femur)")
+    print(f"plot  {plot}")
     return EXIT_OK
 
 
@@ -191,9 +200,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "demo",
         help="drill the planned path with a scripted straight-line drill and show the X-rays",
-        description="Builds the phantom femur (or loads --ct), drills the planned path A→B with a "
-        "scripted straight-line drill at 1 kHz, prints what was removed and the layers crossed, and "
-        "writes the X-ray views of the drilled bone with the tip and the path drawn in.",
+        description="Builds the phantom femur (or loads --ct) and drills the planned path A→B through the "
+        "1 kHz haptic session with a scripted stylus that pushes along the path. Prints what the drill felt "
+        "(force, temperature, breakthroughs) and the layers crossed, and writes the X-ray views of the drilled "
+        "bone (tip and path drawn in) and drilling.png (force, temperature and depth over time).",
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -90,3 +90,29 @@ def layer_runs(bone: DrilledVolume, path: PlannedPath, step_m: float = 0.25e-3) 
             runs.append((Layer(int(ids[start])).name.lower(), float(depths[start]), float(depths[i - 1])))
             start = i
     return runs
+
+
+def scripted_stylus(
+    path: PlannedPath,
+    duration_s: float,
+    feed_m_s: float = 1.5e-3,
+    lead_m: float = 4e-3,
+    start_before_m: float = 5e-3,
+    spindle_rpm: float = 1250.0,
+) -> np.ndarray:
+    """Pose rows (N, 9) for :meth:`dhg.DrillingSession.step`: a stylus commanded along the path at
+    ``feed_m_s`` (m/s), ``lead_m`` (m) ahead of the planned feed, that stops at B.
+
+    Against bone, the drill lags the command. The stylus then runs ahead of the tip, and the
+    coupling force (the push) grows until the cutting law lets the tip keep up. It is a
+    position-driven operator with no human behaviour (that comes with the virtual surgeons).
+    """
+    from dhg.session import poses
+
+    n = int(round(duration_s * 1000))
+    depth = np.minimum(-start_before_m + np.arange(n) * 1e-3 * feed_m_s + lead_m, path.length_m)
+    d = path.direction
+    z = np.array([0.0, 0.0, 1.0])
+    q = np.array([1.0 + z @ d, *np.cross(z, d)])
+    q = q / np.linalg.norm(q) if np.linalg.norm(q) > 1e-9 else np.array([0.0, 1.0, 0.0, 0.0])
+    return poses(path.point_at(depth), q, True, spindle_rpm)

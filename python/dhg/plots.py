@@ -1,0 +1,60 @@
+"""Pictures a person would rather look at than read: drilling runs over time."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from dhg.layers import Layer
+from dhg.session import StepResult
+
+__all__ = ["plot_drilling"]
+
+_LAYER_COLOURS = {
+    Layer.OUTSIDE: "#ffffff",
+    Layer.CORTICAL: "#d9c9a3",
+    Layer.CANCELLOUS: "#f1e6c8",
+    Layer.MARROW: "#f6d4c4",
+    Layer.NECROSIS: "#d6c2e0",
+}
+
+
+def plot_drilling(result: StepResult, out: str | os.PathLike[str], title: str = "") -> Path:
+    """Writes a PNG of a drilling run: device force (N, 1 kHz), drill-tip temperature (°C) and
+    penetration depth (mm) over time (s), with the layer at the tip shaded behind."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    t_ticks = np.arange(1, len(result.forces_n) + 1) * 1e-3
+    t_rec = result.times_s
+    feats = result.features
+    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True, constrained_layout=True)
+    for ax in axes:
+        for i in range(len(t_rec)):
+            layer = Layer(int(feats[i, 6]))
+            ax.axvspan(t_rec[i] - 0.1, t_rec[i], color=_LAYER_COLOURS[layer], lw=0)
+    axes[0].plot(t_ticks, np.linalg.norm(result.forces_n, axis=1), lw=0.8, color="#1f4e79")
+    axes[0].set_ylabel("device force |F| (N)")
+    axes[1].plot(t_rec, feats[:, 8], color="#c0392b")
+    axes[1].axhline(47.0, ls="--", lw=0.8, color="#c0392b")
+    axes[1].text(t_rec[0] if len(t_rec) else 0, 47.2, "47 °C necrosis threshold", fontsize=8, color="#c0392b")
+    axes[1].set_ylabel("tip temperature (°C)")
+    axes[2].plot(t_rec, feats[:, 7] * 1e3, color="#2d6a4f")
+    axes[2].set_ylabel("depth along A→B (mm)")
+    axes[2].set_xlabel("time (s)")
+    handles = [Patch(color=c, label=layer.name.lower()) for layer, c in _LAYER_COLOURS.items() if layer]
+    axes[0].legend(handles=handles, loc="upper right", fontsize=8, ncols=4, title="layer at the tip")
+    if title:
+        fig.suptitle(title)
+    path = Path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path
