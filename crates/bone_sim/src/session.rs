@@ -38,7 +38,17 @@ use crate::volume::Volume;
 /// Cutting-zone density (kg/m³) at or below which the cap counts as empty: any real bone or
 /// marrow in the cap engages the cutting law.
 const EMPTY_CAP_KG_M3: f64 = 2.0;
-/// Ticks of non-advancing motion that end a plunge.
+/// A breakthrough: the cutting cap's density falls below this fraction of the cortical density it
+/// was cutting (into softer bone, marrow or nothing).
+const BREAKTHROUGH_DENSITY_FRACTION: f64 = 0.4;
+/// Cutting density (kg/m³) the cortex must reach in the cutting cap before a breakthrough can
+/// be detected (a grazing first contact is not "in the cortex" yet).
+const BREAKTHROUGH_ARM_KG_M3: f64 = 400.0;
+/// A plunge is the uncontrolled advance after a breakthrough. It ends once the tip has moved
+/// slower than this for `PLUNGE_END_TICKS` ticks. Controlled feeds are 1–4 mm/s; plunges run at
+/// tens of mm/s.
+const PLUNGE_END_SPEED_M_S: f64 = 5e-3;
+/// Ticks below `PLUNGE_END_SPEED_M_S` that end a plunge.
 const PLUNGE_END_TICKS: u32 = 20;
 
 /// Everything configurable about a session.
@@ -209,7 +219,8 @@ pub struct SessionState {
     pub peak_temperature_c: f64,
     /// Time above 47 °C (s).
     pub time_above_47_s: f64,
-    /// Breakthroughs (exits of the burr from cortical bone into no bone) so far.
+    /// Breakthroughs so far: the drill point leaving cortical bone for something much softer
+    /// (cancellous bone, marrow, or no bone at all).
     pub breakthroughs: u32,
     /// Whether a plunge is under way.
     pub plunging: bool,
@@ -235,6 +246,8 @@ pub struct TickOutput {
 #[derive(Debug, Clone, Default)]
 struct Breakthrough {
     in_cortex: bool,
+    /// Highest cutting density seen while cutting this cortex (kg/m³).
+    cortex_density_kg_m3: f64,
     point_m: Point3<f64>,
     still_ticks: u32,
 }
@@ -543,11 +556,11 @@ impl DrillingSession {
     ) {
         let bt = &mut self.breakthrough;
         let s = &mut self.state;
-        if cutting {
-            bt.in_cortex = layer == Layer::Cortical;
-        }
-        if bt.in_cortex && rpm > 0.0 && density <= EMPTY_CAP_KG_M3 && push_ax > 0.0 {
-            // The cutting cap has left cortical bone for no bone at all: breakthrough.
+        if bt.in_cortex
+            && rpm > 0.0
+            && push_ax > 0.0
+            && density < BREAKTHROUGH_DENSITY_FRACTION * bt.cortex_density_kg_m3
+        {
             bt.in_cortex = false;
             bt.point_m = self.proxy_m;
             bt.still_ticks = 0;
@@ -555,11 +568,24 @@ impl DrillingSession {
             s.plunging = true;
             s.plunge_depth_m = 0.0;
         }
+        // Arm on real engagement with cortex, and not while the last plunge is still running
+        // (the rest of the same cortex giving way is the same breakthrough).
+        if cutting && layer == Layer::Cortical && !s.plunging && density >= BREAKTHROUGH_ARM_KG_M3 {
+            if !bt.in_cortex {
+                bt.cortex_density_kg_m3 = 0.0;
+            }
+            bt.in_cortex = true;
+            bt.cortex_density_kg_m3 = bt.cortex_density_kg_m3.max(density);
+        }
+        if rpm <= 0.0 {
+            bt.in_cortex = false;
+        }
         if s.plunging {
             s.plunge_depth_m = s.plunge_depth_m.max((self.proxy_m - bt.point_m).dot(axis));
-            bt.still_ticks = if advance_ax > 1e-9 { 0 } else { bt.still_ticks + 1 };
-            // The plunge ends when the drill stops, bites into bone again, or stops advancing.
-            if rpm <= 0.0 || cutting || bt.still_ticks >= PLUNGE_END_TICKS {
+            let fast = advance_ax > PLUNGE_END_SPEED_M_S * TICK_S;
+            bt.still_ticks = if fast { 0 } else { bt.still_ticks + 1 };
+            // The plunge ends when the drill stops or the tip is back under control.
+            if rpm <= 0.0 || bt.still_ticks >= PLUNGE_END_TICKS {
                 s.plunging = false;
             }
         }

@@ -334,3 +334,16 @@ fn reset_restores_bone_and_state() {
     assert_eq!(s.state().ticks, 0);
     assert_eq!(s.bone().overlay().owned_count(), 0);
 }
+
+#[test]
+fn leaving_the_cortex_for_cancellous_bone_is_a_breakthrough_but_cancellous_alone_is_not() {
+    // The hip-pinning case: the lateral cortex gives way to cancellous bone, the drill pops.
+    let (s, surface, _) = session(&[(Layer::Cortical, 1800.0, 3e-3), (Layer::Cancellous, 350.0, 6e-3)]);
+    let (_, s) = drill_until(s, surface, 1.5, 1250.0, surface + 6e-3, 20.0);
+    let st = s.state();
+    assert_eq!(st.breakthroughs, 1, "one pop from cortical into cancellous bone");
+    assert!(st.plunge_depth_m > 0.3e-3, "the pop advances the tip: {} m", st.plunge_depth_m);
+    let (s, surface, _) = session(&[(Layer::Cancellous, 350.0, 6e-3)]);
+    let (_, s) = drill_until(s, surface, 1.5, 1250.0, surface + 4e-3, 20.0);
+    assert_eq!(s.state().breakthroughs, 0);
+}
