@@ -87,3 +87,14 @@ def test_phantom_file_round_trip(tmp_path):
     vol = dhg.Volume.load(out)
     assert vol.meta["seed"] == 5 and vol.spacing_m == (2e-3, 2e-3, 2e-3)
     assert "planned_path" in vol.meta
+
+
+def test_synth_writes_a_dataset_and_refuses_to_overwrite(tmp_path):
+    out = tmp_path / "ds"
+    args = ["synth", "--out", str(out), "--subjects", "1", "--attempts", "1", "--novices", "0", "--voxel-mm", "1.0"]
+    r = run(*args)
+    assert r.returncode == 0, r.stderr
+    assert (out / "records.parquet").is_file() and (out / "card.json").is_file()
+    assert "completion time" in r.stdout
+    r = run(*args)
+    assert r.returncode == 3 and "--overwrite" in r.stderr

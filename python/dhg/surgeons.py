@@ -1,23 +1,410 @@
 """Operators that drive the drill through the simulator.
 
-For now the scripted straight-line drill: it advances the burr along the planned path at a
-constant feed, one 1 ms tick at a time, with no force feedback (the force model and the virtual
-surgeons with human motor behaviour come with the haptics and demonstrations work).
+Virtual surgeons (:func:`run_episode`): a human-like operator that drills the planned path through
+a session at 1 kHz. It models a hand holding the stylus: a mass with arm damping, driven by the
+push the surgeon intends and pushed back by the device force. At 1 kHz, what the surgeon *does*
+depends on what they *perceived* one reaction delay ago. The phases are:
+
+1. approach: a minimum-jerk reach (Flash & Hogan 1985) from a resting point to 3 mm before A;
+2. align and spin up the drill;
+3. feed: the push is regulated towards a preferred feed but never exceeds a layer-dependent
+   ceiling (firm in cortical bone, light in cancellous bone and marrow); experts ease off as the
+   cortex thins and stop to let the drill cool as the tip nears 47 °C; novices hesitate;
+4. breakthrough: once the surgeon feels the cortex give (after the reaction delay), they hold
+   and pull back. A late reaction and a loose arm make a deeper plunge;
+5. stop near B and switch the drill off.
+
+Human motor behaviour: physiological tremor of 8–12 Hz (Elble 1990), signal-dependent noise on
+the push (Harris & Wolpert 1998), a reaction delay to force changes, and lateral drift from
+limited steadiness. Styles are drawn per subject (:func:`sample_style`).
+
+Also here are two operators without human behaviour: :func:`straight_line_drill` erodes along
+the path without force feedback, and :func:`scripted_stylus` pushes a stylus along the path.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from typing import Literal
 
 import numpy as np
+import numpy.typing as npt
 
 from dhg.errors import InvalidInputError
 from dhg.layers import Layer
-from dhg.task import PlannedPath
+from dhg.session import DrillingSession
+from dhg.task import PlannedPath, TaskRules
 from dhg.volume import DrilledVolume
 
-__all__ = ["DrillRun", "straight_line_drill"]
+__all__ = [
+    "DrillRun",
+    "Episode",
+    "SurgeonStyle",
+    "layer_runs",
+    "run_episode",
+    "sample_style",
+    "scripted_stylus",
+    "skill_metrics",
+    "straight_line_drill",
+]
+
+Skill = Literal["expert", "novice"]
+
+HAND_MASS_KG = 0.4
+"""Effective mass of hand and stylus (kg)."""
+TRACK_STIFFNESS_N_PER_M = 300.0
+"""How stiffly the arm follows an intended position (N/m), for approach and holding."""
+LATERAL_STIFFNESS_N_PER_M = 250.0
+"""How stiffly the arm holds the drill on the path laterally (N/m)."""
+
+
+@dataclass(frozen=True)
+class SurgeonStyle:
+    """One subject's style and motor parameters (SI units; forces are device newtons)."""
+
+    skill: Skill
+    push_cortical_n: float
+    """Most the subject pushes in cortical bone (N on the device)."""
+    push_soft_n: float
+    """Most the subject pushes in cancellous bone and marrow (N)."""
+    feed_m_s: float
+    """Preferred feed rate where the bone allows it (m/s)."""
+    feed_gain: float
+    """How briskly the push is adjusted towards the preferred feed (1 = an expert's)."""
+    reaction_delay_s: float
+    """Delay between a change in what they feel and their response (s)."""
+    hand_damping_n_s_per_m: float
+    """Arm co-contraction: damping of sudden hand motion (N·s/m)."""
+    tremor_m: float
+    """Amplitude of physiological tremor (m)."""
+    tremor_hz: float
+    """Tremor frequency (Hz), 8–12."""
+    noise_fraction: float
+    """Signal-dependent noise: SD of the push as a fraction of the push."""
+    drift_m: float
+    """Lateral wander of the aim (SD, m): steadiness."""
+    anticipates_breakthrough: bool
+    """Eases off to the light push as the cortex thins (experts)."""
+    hesitations_per_s: float
+    """Rate of pauses while feeding (1/s)."""
+    hesitation_s: float
+    """Length of a pause (s)."""
+    caution_temp_c: float
+    """Above this tip temperature the subject stops feeding to let the drill cool (°C)."""
+    stop_margin_m: float
+    """How far before B the subject aims to stop (m; negative = past B)."""
+    spindle_rpm: float
+    """Spindle speed used (rpm)."""
+
+    def to_dict(self) -> dict[str, float | str | bool]:
+        """JSON-ready form."""
+        return asdict(self)
+
+
+def sample_style(skill: Skill, rng: np.random.Generator) -> SurgeonStyle:
+    """Draws a subject of the given skill. Experts push firmly in cortex and ease off before it
+    gives, react in 0.10–0.16 s and hold steady. Novices push timidly, do not anticipate the
+    breakthrough, react in 0.25–0.40 s with a loose arm, wander, hesitate and ignore heat."""
+    u = rng.uniform
+    if skill == "expert":
+        return SurgeonStyle(
+            skill="expert",
+            push_cortical_n=u(1.3, 1.7),
+            push_soft_n=u(0.25, 0.4),
+            feed_m_s=u(1.8e-3, 2.6e-3),
+            feed_gain=u(0.9, 1.1),
+            reaction_delay_s=u(0.10, 0.16),
+            hand_damping_n_s_per_m=u(22.0, 32.0),
+            tremor_m=u(0.05e-3, 0.12e-3),
+            tremor_hz=u(8.0, 12.0),
+            noise_fraction=u(0.04, 0.08),
+            drift_m=u(0.1e-3, 0.3e-3),
+            anticipates_breakthrough=True,
+            hesitations_per_s=0.0,
+            hesitation_s=0.0,
+            caution_temp_c=u(44.0, 46.0),
+            stop_margin_m=u(0.3e-3, 1.2e-3),
+            spindle_rpm=u(1100.0, 1400.0),
+        )
+    if skill == "novice":
+        return SurgeonStyle(
+            skill="novice",
+            push_cortical_n=u(0.9, 1.2),
+            push_soft_n=u(0.3, 0.45),
+            feed_m_s=u(0.7e-3, 1.1e-3),
+            feed_gain=u(0.3, 0.5),
+            reaction_delay_s=u(0.25, 0.40),
+            hand_damping_n_s_per_m=u(7.0, 11.0),
+            tremor_m=u(0.2e-3, 0.4e-3),
+            tremor_hz=u(8.0, 12.0),
+            noise_fraction=u(0.15, 0.30),
+            drift_m=u(0.8e-3, 1.6e-3),
+            anticipates_breakthrough=False,
+            hesitations_per_s=u(0.05, 0.10),
+            hesitation_s=u(1.5, 3.0),
+            caution_temp_c=u(55.0, 60.0),
+            stop_margin_m=u(-2.5e-3, 0.0),
+            spindle_rpm=u(900.0, 1600.0),
+        )
+    raise ValueError(f"skill must be 'expert' or 'novice', got {skill!r}")
+
+
+@dataclass
+class Episode:
+    """One drilling attempt: its 10 Hz records, optional 1 kHz stream, and skill metrics."""
+
+    subject: str
+    skill: Skill
+    attempt: int
+    style: SurgeonStyle
+    records: npt.NDArray[np.float64]
+    """(M, 11): columns :data:`dhg.features.RECORD_COLUMNS`."""
+    metrics: dict[str, float | bool]
+    raw_poses: npt.NDArray[np.float64] | None = None
+    """(N, 9) 1 kHz poses (:data:`dhg.features.POSE_COLUMNS`), if kept."""
+    raw_forces_n: npt.NDArray[np.float64] | None = None
+    """(N, 3) 1 kHz device forces (N), if kept."""
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+def _min_jerk(t: float, duration: float) -> float:
+    """Minimum-jerk position profile from 0 to 1 (Flash & Hogan 1985)."""
+    x = min(max(t / duration, 0.0), 1.0)
+    return x**3 * (10.0 - 15.0 * x + 6.0 * x * x)
+
+
+def _basis(d: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(d, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(d, e1)
+
+
+def _axis_quaternion(d: npt.NDArray[np.float64]) -> tuple[float, float, float, float]:
+    z = np.array([0.0, 0.0, 1.0])
+    q = np.array([1.0 + z @ d, *np.cross(z, d)])
+    n = np.linalg.norm(q)
+    q = q / n if n > 1e-9 else np.array([0.0, 1.0, 0.0, 0.0])
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+
+
+def run_episode(
+    session: DrillingSession,
+    style: SurgeonStyle,
+    rng: np.random.Generator,
+    subject: str = "s0",
+    attempt: int = 0,
+    rules: TaskRules | None = None,
+    keep_raw: bool = False,
+) -> Episode:
+    """Drills the session's planned path once with a surgeon of ``style``. The session is reset
+    first. Deterministic for the generator's state."""
+    rules = rules or TaskRules()
+    session.reset()
+    native = session._s
+    path: PlannedPath = session.path
+    a, d = path.entry_m, path.direction
+    e1, e2 = _basis(d)
+    q = _axis_quaternion(d)
+    length = path.length_m
+    dt = 1e-3
+    max_ticks = int(rules.max_duration_s / dt)
+    delay = max(1, int(round(style.reaction_delay_s / dt)))
+
+    # Hand state in path coordinates: s along A→B, (u, v) across.
+    start_s = -25e-3
+    u0, v0 = rng.normal(0.0, 3e-3, size=2)
+    s, u, v = start_s, float(u0), float(v0)
+    vs = vu = vv = 0.0
+    approach_s = float(rng.uniform(1.2, 2.0))
+    align_s = float(rng.uniform(0.3, 0.7))
+    tremor_phase = rng.uniform(0.0, 2 * math.pi, size=3)
+    w_tremor = 2 * math.pi * style.tremor_hz
+    drift_u = drift_v = 0.0
+    drift_tau = 1.5  # s: how slowly the aim wanders
+    noise_state = 0.0
+    push = 0.0
+    stop_s = 0.0
+    phase = "approach"
+    phase_t0 = 0.0
+    hold_s: float | None = None
+    pause_until = -1.0
+    cooling = False
+    retract_until = -1.0
+    seen_breakthroughs = 0
+    drill_on = False
+    drill_on_t = drill_off_t = None
+    max_plunge = 0.0
+    fb_hist: list[tuple] = []
+    records: list[npt.NDArray[np.float64]] = []
+    raw_poses = np.empty((max_ticks, 9)) if keep_raw else None
+    raw_forces = np.empty((max_ticks, 3)) if keep_raw else None
+    fx = fy = fz = 0.0
+    end_tick = max_ticks
+    for tick in range(max_ticks):
+        t = tick * dt
+        fb_hist.append(native.feedback())
+        seen = fb_hist[max(0, tick - delay)]
+        _, _, _, p_depth, _, p_temp, p_layer, _, p_bt, _, _ = seen
+        max_plunge = max(max_plunge, fb_hist[-1][10])
+        # Aim wander (Ornstein-Uhlenbeck) and signal-dependent push noise (low-passed ~5 Hz).
+        k_ou = dt / drift_tau
+        drift_u += -k_ou * drift_u + style.drift_m * math.sqrt(2 * k_ou) * rng.standard_normal()
+        drift_v += -k_ou * drift_v + style.drift_m * math.sqrt(2 * k_ou) * rng.standard_normal()
+        noise_state += 0.03 * (rng.standard_normal() - noise_state)
+
+        intent_s: float | None = None  # a position the arm tracks, or None: push with `push`
+        if phase == "approach":
+            intent_s = start_s + (-3e-3 - start_s) * _min_jerk(t - phase_t0, approach_s)
+            if t - phase_t0 >= approach_s:
+                phase, phase_t0 = "align", t
+        elif phase == "align":
+            intent_s = -3e-3
+            drill_on = True
+            if t - phase_t0 >= align_s:
+                phase, phase_t0, push = "feed", t, 0.0
+                drill_on_t = t
+        elif phase == "feed":
+            # Perceived tip speed over the last 50 ms (as of one reaction delay ago).
+            back = fb_hist[max(0, tick - delay - 50)]
+            speed = (p_depth - back[3]) / 0.05
+            ceiling = style.push_cortical_n if p_layer == Layer.CORTICAL else style.push_soft_n
+            if style.anticipates_breakthrough and p_layer == Layer.CORTICAL and p_depth > 2.2e-3:
+                ceiling = style.push_soft_n  # the cortex is thinning: ease off before it gives
+            if p_bt > seen_breakthroughs:
+                seen_breakthroughs = p_bt
+                retract_until = t + 0.25
+            if p_temp > style.caution_temp_c:
+                cooling = True
+            elif cooling and p_temp < style.caution_temp_c - 2.0:
+                cooling = False
+            if style.hesitations_per_s > 0 and t > pause_until and rng.random() < style.hesitations_per_s * dt:
+                pause_until = t + style.hesitation_s
+            if t < retract_until or cooling or t < pause_until:
+                # Hold still (pulled 1 mm back after a breakthrough): a pausing hand does not go limp.
+                if hold_s is None:
+                    hold_s = s - (1e-3 if t < retract_until else 0.0)
+                intent_s = hold_s
+                push = 0.0
+            else:
+                hold_s = None
+                # Integral control of the push towards the preferred feed, within the ceiling.
+                push += 2.4 * style.feed_gain * (style.feed_m_s - speed) / style.feed_m_s * dt * ceiling
+                push = min(max(push, 0.0), ceiling)
+            drill_on = not cooling
+            if p_depth >= length - style.stop_margin_m:
+                phase, phase_t0 = "stop", t
+                hold_s = s
+                stop_s = s
+        elif phase == "stop":
+            intent_s = stop_s
+            drill_on = False
+            if drill_off_t is None:
+                drill_off_t = t
+            if t - phase_t0 >= 0.5:
+                end_tick = tick
+                break
+
+        # Hand dynamics (semi-implicit Euler at 1 kHz).
+        f_ax = fx * d[0] + fy * d[1] + fz * d[2]
+        f_u = fx * e1[0] + fy * e1[1] + fz * e1[2]
+        f_v = fx * e2[0] + fy * e2[1] + fz * e2[2]
+        if intent_s is not None:
+            drive = TRACK_STIFFNESS_N_PER_M * (intent_s - s)
+        else:
+            drive = push * (1.0 + style.noise_fraction * noise_state * 5.0)
+        damping = style.hand_damping_n_s_per_m
+        vs += (drive + f_ax - damping * vs) / HAND_MASS_KG * dt
+        aim_u = drift_u + style.tremor_m * math.sin(w_tremor * t + tremor_phase[0])
+        aim_v = drift_v + style.tremor_m * math.sin(w_tremor * t + tremor_phase[1])
+        if phase == "approach":
+            frac = 1.0 - _min_jerk(t - phase_t0, approach_s)
+            aim_u += float(u0) * frac
+            aim_v += float(v0) * frac
+        vu += (LATERAL_STIFFNESS_N_PER_M * (aim_u - u) + f_u - damping * vu) / HAND_MASS_KG * dt
+        vv += (LATERAL_STIFFNESS_N_PER_M * (aim_v - v) + f_v - damping * vv) / HAND_MASS_KG * dt
+        s += vs * dt
+        u += vu * dt
+        v += vv * dt
+        s_axial = s + style.tremor_m * 0.3 * math.sin(w_tremor * t + tremor_phase[2])
+        x = a[0] + s_axial * d[0] + u * e1[0] + v * e2[0]
+        y = a[1] + s_axial * d[1] + u * e1[1] + v * e2[1]
+        z = a[2] + s_axial * d[2] + u * e1[2] + v * e2[2]
+        row = (x, y, z, *q, 1.0 if drill_on else 0.0, style.spindle_rpm if drill_on else 0.0)
+        force, record = native.tick(row)
+        fx, fy, fz = float(force[0]), float(force[1]), float(force[2])
+        if keep_raw:
+            raw_poses[tick] = row
+            raw_forces[tick] = (fx, fy, fz)
+        if record is not None:
+            records.append(record)
+    rec = np.array(records) if records else np.empty((0, 11))
+    st = session.state
+    metrics = skill_metrics(
+        rec,
+        path,
+        rules,
+        final_tip_m=st.tip_m,
+        drilling_s=((drill_off_t if drill_off_t is not None else end_tick * dt) - (drill_on_t or 0.0)),
+        plunge_depth_m=max_plunge,
+        peak_temperature_c=st.peak_temperature_c,
+        time_above_47_s=st.time_above_47_s,
+        forces_n=raw_forces[:end_tick] if keep_raw else None,
+    )
+    return Episode(
+        subject=subject,
+        skill=style.skill,
+        attempt=attempt,
+        style=style,
+        records=rec,
+        metrics=metrics,
+        raw_poses=raw_poses[:end_tick] if keep_raw else None,
+        raw_forces_n=raw_forces[:end_tick] if keep_raw else None,
+    )
+
+
+def skill_metrics(
+    records: npt.NDArray[np.float64],
+    path: PlannedPath,
+    rules: TaskRules,
+    final_tip_m: npt.ArrayLike,
+    drilling_s: float,
+    plunge_depth_m: float,
+    peak_temperature_c: float,
+    time_above_47_s: float,
+    forces_n: npt.NDArray[np.float64] | None = None,
+) -> dict[str, float | bool]:
+    """Skill metrics of a run (SI units). Force smoothness is the RMS rate of change of the device
+    force over the 10 Hz records (N/s), or over the 1 kHz stream when given."""
+    tips = records[:, 4:7] if len(records) else np.empty((0, 3))
+    depth = records[:, 8] if len(records) else np.empty(0)
+    inside = depth > 0
+    dev = path.lateral_deviation(tips[inside]) if inside.any() else np.zeros(1)
+    target_dist = float(np.linalg.norm(np.asarray(final_tip_m, float) - path.target_m))
+    if forces_n is not None and len(forces_n) > 1:
+        dF = np.diff(forces_n, axis=0) / 1e-3
+    elif len(records) > 1:
+        dF = np.diff(records[:, 1:4], axis=0) / 0.1
+    else:
+        dF = np.zeros((1, 3))
+    metrics: dict[str, float | bool] = {
+        "completion_time_s": float(drilling_s),
+        "mean_deviation_m": float(dev.mean()),
+        "max_deviation_m": float(dev.max()),
+        "target_distance_m": target_dist,
+        "plunge_depth_m": float(plunge_depth_m),
+        "peak_temperature_c": float(peak_temperature_c),
+        "time_above_47_s": float(time_above_47_s),
+        "force_jerk_n_per_s": float(np.sqrt(np.mean(np.sum(dF * dF, axis=1)))),
+    }
+    metrics["completed"] = bool(
+        target_dist <= rules.max_target_distance_m
+        and metrics["max_deviation_m"] <= rules.max_deviation_m
+        and drilling_s <= rules.max_duration_s
+    )
+    return metrics
 
 
 @dataclass

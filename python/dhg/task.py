@@ -10,7 +10,19 @@ import numpy.typing as npt
 
 from dhg.errors import InvalidInputError
 
-__all__ = ["PlannedPath"]
+__all__ = ["PlannedPath", "TaskRules"]
+
+
+@dataclass(frozen=True)
+class TaskRules:
+    """What counts as completing the drilling task A → B."""
+
+    max_target_distance_m: float = 3e-3
+    """The final tip must be this close to B (m)."""
+    max_deviation_m: float = 3e-3
+    """The tip may stray at most this far from the planned segment while in bone (m)."""
+    max_duration_s: float = 240.0
+    """The attempt must finish within this time (s)."""
 
 
 @dataclass(frozen=True)
@@ -56,10 +68,12 @@ class PlannedPath:
         return (p - self.entry_m) @ self.direction
 
     def lateral_deviation(self, points_m: npt.ArrayLike) -> npt.NDArray[np.float64]:
-        """Distance (m) of points from the infinite line through A and B."""
+        """Distance (m) of points from the segment AB: the perpendicular distance to the path while
+        between A and B, the distance to A or B beyond them (the same definition as the core's)."""
         p = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
         rel = p - self.entry_m
-        return np.linalg.norm(rel - np.outer(rel @ self.direction, self.direction), axis=1)
+        t = np.clip(rel @ self.direction, 0.0, self.length_m)
+        return np.linalg.norm(rel - np.outer(t, self.direction), axis=1)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form (m)."""

@@ -196,6 +196,26 @@ impl PySession {
         ))
     }
 
+    /// What an operator perceives, cheaply, as a tuple: (tip x, y, z (m), depth (m), deviation (m),
+    /// temperature (°C), layer id, cutting, breakthroughs, plunging, plunge depth (m)).
+    #[allow(clippy::type_complexity)] // a flat tuple is the cheap thing to hand Python per tick
+    fn feedback(&self) -> (f64, f64, f64, f64, f64, f64, u8, bool, u32, bool, f64) {
+        let s = self.inner.state();
+        (
+            s.tip_m.x,
+            s.tip_m.y,
+            s.tip_m.z,
+            s.depth_m,
+            s.deviation_m,
+            s.temperature_c,
+            s.layer.id(),
+            s.cutting,
+            s.breakthroughs,
+            s.plunging,
+            s.plunge_depth_m,
+        )
+    }
+
     /// The current state as a dict (SI units).
     fn state<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         state_dict(py, self.inner.state())

@@ -1,0 +1,344 @@
+"""Demonstration datasets: the paper's 10 Hz records in Parquet, with a JSON dataset card.
+
+A dataset is a folder:
+
+- ``records.parquet``: one row per 10 Hz record, in episode order; an episode's rows are
+  contiguous and time-ordered. Columns are ``episode_id``, ``subject_id``, ``skill``, ``attempt``,
+  ``time_s``, the nine features in :data:`dhg.features.FEATURE_NAMES` order, and ``drill_on``.
+  Each column carries its unit in the Parquet field metadata.
+- ``raw.parquet`` (optional): the 1 kHz stream, one row per tick: ``episode_id``, ``tick``, the
+  pose columns (:data:`dhg.features.POSE_COLUMNS`) and the device force, for replay.
+- ``card.json``: format and version, units, feature order, sampling rate, frame, the volume and
+  planned path used, the generator's version and seed, per-episode styles and skill metrics, and
+  each file's row count and SHA-256.
+
+Virtual surgeons (``dhg synth``) and recordings of real people (``dhg record``) share this format.
+:func:`load_dataset` refuses anything that does not match it, and says why.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from dhg.errors import DhgError
+from dhg.features import FEATURE_NAMES, FEATURE_UNITS, POSE_COLUMNS, RECORD_PERIOD_S
+from dhg.layers import Layer
+
+__all__ = [
+    "DATASET_FORMAT",
+    "DATASET_VERSION",
+    "DatasetError",
+    "Dataset",
+    "EpisodeData",
+    "load_dataset",
+    "records_schema",
+    "EpisodeInput",
+    "write_dataset",
+]
+
+DATASET_FORMAT = "dhg-demonstrations"
+DATASET_VERSION = 1
+RECORDS_FILE = "records.parquet"
+RAW_FILE = "raw.parquet"
+CARD_FILE = "card.json"
+
+
+class DatasetError(DhgError, ValueError):
+    """A dataset folder that is missing, corrupt, truncated, or not in the documented format."""
+
+
+def _pa():
+    import pyarrow as pa
+
+    return pa
+
+
+def records_schema():
+    """The exact Arrow schema of ``records.parquet`` (units in the field metadata)."""
+    pa = _pa()
+    fields = [
+        pa.field("episode_id", pa.int32(), nullable=False),
+        pa.field("subject_id", pa.string(), nullable=False),
+        pa.field("skill", pa.string(), nullable=False),
+        pa.field("attempt", pa.int32(), nullable=False),
+        pa.field("time_s", pa.float64(), nullable=False, metadata={"unit": "s"}),
+    ]
+    for name, unit in zip(FEATURE_NAMES, FEATURE_UNITS, strict=True):
+        kind = pa.int8() if name == "layer" else pa.float64()
+        fields.append(pa.field(name, kind, nullable=False, metadata={"unit": unit}))
+    fields.append(pa.field("drill_on", pa.bool_(), nullable=False))
+    return pa.schema(fields)
+
+
+def raw_schema():
+    """The exact Arrow schema of ``raw.parquet``."""
+    pa = _pa()
+    fields = [pa.field("episode_id", pa.int32(), nullable=False), pa.field("tick", pa.int32(), nullable=False)]
+    units = {"x_m": "m", "y_m": "m", "z_m": "m", "spindle_rpm": "rpm"}
+    for name in POSE_COLUMNS:
+        fields.append(pa.field(name, pa.float64(), nullable=False, metadata={"unit": units.get(name, "1")}))
+    for name in ("force_x_n", "force_y_n", "force_z_n"):
+        fields.append(pa.field(name, pa.float64(), nullable=False, metadata={"unit": "N"}))
+    return pa.schema(fields)
+
+
+@dataclass
+class EpisodeData:
+    """One episode as numpy arrays (SI units)."""
+
+    episode_id: int
+    subject_id: str
+    skill: str
+    attempt: int
+    times_s: npt.NDArray[np.float64]
+    """(T,) record times (s)."""
+    features: npt.NDArray[np.float64]
+    """(T, 9) features in :data:`dhg.features.FEATURE_NAMES` order."""
+    drill_on: npt.NDArray[np.bool_]
+    """(T,) whether the drill ran."""
+    metrics: dict[str, Any] = field(default_factory=dict)
+    """Skill metrics from the card."""
+    best_of_subject: bool = False
+    """Whether this is the subject's best attempt (as the paper selected)."""
+
+
+@dataclass
+class Dataset:
+    """A loaded, validated dataset."""
+
+    path: Path
+    card: dict[str, Any]
+    episodes: list[EpisodeData]
+
+    @property
+    def n_records(self) -> int:
+        """Total records."""
+        return sum(len(e.times_s) for e in self.episodes)
+
+    def select(self, skill: str | None = None, best_only: bool = False) -> list[EpisodeData]:
+        """Episodes of one skill (``"expert"``/``"novice"``), optionally each subject's best only."""
+        return [
+            e for e in self.episodes if (skill is None or e.skill == skill) and (e.best_of_subject or not best_only)
+        ]
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+@dataclass
+class EpisodeInput:
+    """What the writer needs of an episode (the virtual surgeons' and the recorder's common form)."""
+
+    subject_id: str
+    skill: str
+    attempt: int
+    records: npt.NDArray[np.float64]
+    """(M, 11): time, nine features, drill_on."""
+    metrics: dict[str, Any] = field(default_factory=dict)
+    style: dict[str, Any] = field(default_factory=dict)
+    best_of_subject: bool = False
+    raw_poses: npt.NDArray[np.float64] | None = None
+    raw_forces_n: npt.NDArray[np.float64] | None = None
+
+
+def write_dataset(
+    out_dir: str | os.PathLike[str],
+    episodes: Sequence[EpisodeInput],
+    card_extra: dict[str, Any],
+    overwrite: bool = False,
+) -> Path:
+    """Writes a dataset folder atomically: everything goes to a temporary folder beside it, which
+    replaces ``out_dir`` only once complete. ``card_extra`` adds the volume, path and generator
+    sections of the card."""
+    pa = _pa()
+    import pyarrow.parquet as pq
+
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise DatasetError(f"{out} exists and is not empty (pass overwrite to replace it)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the dataset should not be
+    try:
+        cols: dict[str, list[Any]] = {name: [] for name in records_schema().names}
+        card_eps = []
+        for eid, ep in enumerate(episodes):
+            r = np.asarray(ep.records, dtype=np.float64)
+            if r.ndim != 2 or r.shape[1] != 11:
+                raise DatasetError(f"episode {eid}: records must be (M, 11), got {r.shape}")
+            if not np.all(np.isfinite(r)):
+                raise DatasetError(f"episode {eid}: records contain NaN or infinite values")
+            m = len(r)
+            cols["episode_id"] += [eid] * m
+            cols["subject_id"] += [ep.subject_id] * m
+            cols["skill"] += [ep.skill] * m
+            cols["attempt"] += [int(ep.attempt)] * m
+            cols["time_s"] += r[:, 0].tolist()
+            for i, name in enumerate(FEATURE_NAMES):
+                cols[name] += (r[:, 1 + i].astype(np.int8) if name == "layer" else r[:, 1 + i]).tolist()
+            cols["drill_on"] += (r[:, 10] > 0.5).tolist()
+            card_eps.append(
+                {
+                    "episode_id": eid,
+                    "subject_id": ep.subject_id,
+                    "skill": ep.skill,
+                    "attempt": int(ep.attempt),
+                    "records": m,
+                    "best_of_subject": bool(ep.best_of_subject),
+                    "metrics": ep.metrics,
+                    "style": ep.style,
+                }
+            )
+        table = pa.Table.from_pydict(cols, schema=records_schema())
+        pq.write_table(table, tmp / RECORDS_FILE)
+        files = {RECORDS_FILE: {"rows": table.num_rows, "sha256": _sha256(tmp / RECORDS_FILE)}}
+        if any(ep.raw_poses is not None for ep in episodes):
+            raw: dict[str, list[Any]] = {name: [] for name in raw_schema().names}
+            for eid, ep in enumerate(episodes):
+                if ep.raw_poses is None or ep.raw_forces_n is None:
+                    continue
+                n = len(ep.raw_poses)
+                raw["episode_id"] += [eid] * n
+                raw["tick"] += list(range(n))
+                for i, name in enumerate(POSE_COLUMNS):
+                    raw[name] += ep.raw_poses[:, i].tolist()
+                for i, name in enumerate(("force_x_n", "force_y_n", "force_z_n")):
+                    raw[name] += ep.raw_forces_n[:, i].tolist()
+            raw_table = pa.Table.from_pydict(raw, schema=raw_schema())
+            pq.write_table(raw_table, tmp / RAW_FILE)
+            files[RAW_FILE] = {"rows": raw_table.num_rows, "sha256": _sha256(tmp / RAW_FILE)}
+        card = {
+            "format": DATASET_FORMAT,
+            "version": DATASET_VERSION,
+            "sampling_rate_hz": round(1.0 / RECORD_PERIOD_S, 9),
+            "features": [{"name": n, "unit": u} for n, u in zip(FEATURE_NAMES, FEATURE_UNITS, strict=True)],
+            "layers": {str(int(layer)): layer.name.lower() for layer in Layer},
+            "frame": "world frame LPS, metres; see docs/frames.md",
+            **card_extra,
+            "episodes": card_eps,
+            "files": files,
+        }
+        (tmp / CARD_FILE).write_text(json.dumps(card, indent=1))
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def _fail(path: Path, what: str) -> DatasetError:
+    return DatasetError(f"{path}: {what}")
+
+
+def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Dataset:
+    """Loads and validates a dataset folder.
+
+    Raises:
+        DatasetError: missing files, a card of another format/version, feature order or units that
+            differ from :mod:`dhg.features`, a records table whose columns or types differ from
+            :func:`records_schema`, rows that disagree with the card, interleaved or unordered
+            episodes, or a file whose hash does not match the card (truncated or corrupt).
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    root = Path(path)
+    card_path = root / CARD_FILE
+    if not card_path.is_file():
+        raise _fail(root, f"no {CARD_FILE}: not a DHG dataset folder")
+    try:
+        card = json.loads(card_path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise _fail(card_path, f"unreadable dataset card ({exc})") from None
+    if card.get("format") != DATASET_FORMAT:
+        raise _fail(card_path, f"format {card.get('format')!r}, expected {DATASET_FORMAT!r}")
+    if card.get("version") != DATASET_VERSION:
+        raise _fail(card_path, f"version {card.get('version')} is not supported (this DHG reads {DATASET_VERSION})")
+    names = [f.get("name") for f in card.get("features", [])]
+    units = [f.get("unit") for f in card.get("features", [])]
+    if names != list(FEATURE_NAMES):
+        raise _fail(card_path, f"feature order {names} differs from {list(FEATURE_NAMES)}")
+    if units != list(FEATURE_UNITS):
+        raise _fail(card_path, f"feature units {units} differ from {list(FEATURE_UNITS)}")
+    if abs(float(card.get("sampling_rate_hz", 0)) - 1.0 / RECORD_PERIOD_S) > 1e-6:
+        raise _fail(card_path, f"sampling rate {card.get('sampling_rate_hz')} Hz, expected {1.0 / RECORD_PERIOD_S}")
+    rec_path = root / RECORDS_FILE
+    if not rec_path.is_file():
+        raise _fail(root, f"no {RECORDS_FILE}")
+    expected = card.get("files", {}).get(RECORDS_FILE, {})
+    if verify_hashes and expected.get("sha256") != _sha256(rec_path):
+        raise _fail(rec_path, "SHA-256 differs from the card: the file is truncated, corrupt or was changed")
+    try:
+        table = pq.read_table(rec_path)
+    except (OSError, pa.ArrowException) as exc:
+        raise _fail(rec_path, f"unreadable Parquet ({exc})") from None
+    want = records_schema()
+    if table.schema.names != want.names:
+        raise _fail(rec_path, f"columns {table.schema.names} differ from {want.names}")
+    for f in want:
+        got = table.schema.field(f.name)
+        if got.type != f.type:
+            raise _fail(rec_path, f"column {f.name!r} has type {got.type}, expected {f.type}")
+        if f.metadata and (got.metadata or {}).get(b"unit") != f.metadata.get(b"unit"):
+            raise _fail(
+                rec_path,
+                f"column {f.name!r} has unit {(got.metadata or {}).get(b'unit')}, expected {f.metadata[b'unit']}",
+            )
+    if table.num_rows != expected.get("rows"):
+        raise _fail(rec_path, f"{table.num_rows} rows, the card says {expected.get('rows')}")
+    cols = table.to_pydict()
+    ids = np.asarray(cols["episode_id"], dtype=np.int64)
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    if len(np.unique(ids)) != len(starts):
+        raise _fail(rec_path, "episodes are interleaved: an episode's rows must be contiguous")
+    times = np.asarray(cols["time_s"], dtype=np.float64)
+    feats = np.column_stack([np.asarray(cols[n], dtype=np.float64) for n in FEATURE_NAMES])
+    if not np.all(np.isfinite(feats)) or not np.all(np.isfinite(times)):
+        raise _fail(rec_path, "NaN or infinite values in the records")
+    drill = np.asarray(cols["drill_on"], dtype=bool)
+    card_eps = {int(e["episode_id"]): e for e in card.get("episodes", [])}
+    episodes = []
+    bounds = [*starts.tolist(), len(ids)]
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        eid = int(ids[lo])
+        if np.any(np.diff(times[lo:hi]) <= 0):
+            raise _fail(rec_path, f"episode {eid}: record times are not increasing")
+        meta = card_eps.get(eid)
+        if meta is None or int(meta.get("records", -1)) != hi - lo:
+            raise _fail(rec_path, f"episode {eid}: {hi - lo} rows do not match the card")
+        episodes.append(
+            EpisodeData(
+                episode_id=eid,
+                subject_id=str(cols["subject_id"][lo]),
+                skill=str(cols["skill"][lo]),
+                attempt=int(cols["attempt"][lo]),
+                times_s=times[lo:hi],
+                features=feats[lo:hi],
+                drill_on=drill[lo:hi],
+                metrics=dict(meta.get("metrics", {})),
+                best_of_subject=bool(meta.get("best_of_subject", False)),
+            )
+        )
+    if len(episodes) != len(card_eps):
+        raise _fail(rec_path, f"{len(episodes)} episodes in the records, {len(card_eps)} in the card")
+    return Dataset(root, card, episodes)

@@ -1,0 +1,168 @@
+"""Demonstrations: the dataset format, determinism, the loader's refusals, and experts vs novices."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from dhg.dataset import DatasetError, load_dataset, records_schema, write_dataset
+from dhg.features import FEATURE_NAMES, FEATURE_UNITS
+from dhg.synth import synthesize
+
+
+@pytest.fixture(scope="module")
+def small(coarse_phantom, tmp_path_factory):
+    episodes, card = synthesize(
+        coarse_phantom.volume, coarse_phantom.path, subjects=2, attempts=1, novices=1, seed=3, keep_raw=True
+    )
+    out = write_dataset(tmp_path_factory.mktemp("ds") / "demo", episodes, card)
+    return out, episodes
+
+
+def test_schema_units_and_card(small, coarse_phantom):
+    out, episodes = small
+    schema = pq.read_schema(out / "records.parquet")
+    assert schema.names == ["episode_id", "subject_id", "skill", "attempt", "time_s", *FEATURE_NAMES, "drill_on"]
+    assert schema.field("layer").type == pa.int8() and schema.field("force_x_n").type == pa.float64()
+    for name, unit in zip(FEATURE_NAMES, FEATURE_UNITS, strict=True):
+        assert schema.field(name).metadata[b"unit"] == unit.encode()
+    card = json.loads((out / "card.json").read_text())
+    assert card["format"] == "dhg-demonstrations" and card["version"] == 1
+    assert card["sampling_rate_hz"] == 10.0
+    assert [f["name"] for f in card["features"]] == list(FEATURE_NAMES)
+    assert card["planned_path"] == coarse_phantom.path.to_dict()
+    assert card["generator"]["seed"] == 3 and card["volume"]["source"] == "dhg.phantom.femur"
+    assert len(card["episodes"]) == 3 and "completion_time_s" in card["episodes"][0]["metrics"]
+    raw = pq.read_table(out / "raw.parquet")
+    assert raw.num_rows == sum(len(e.raw_poses) for e in episodes)
+    ds = load_dataset(out)
+    assert [e.skill for e in ds.episodes] == ["expert", "expert", "novice"]
+    e = ds.episodes[0]
+    assert e.features.shape == (len(e.times_s), 9) and e.features.dtype == np.float64
+    np.testing.assert_allclose(np.diff(e.times_s), 0.1, atol=1e-9)
+    np.testing.assert_array_equal(e.features, episodes[0].records[:, 1:10])
+    assert all(e.best_of_subject for e in ds.episodes), "one attempt each: each is the best"
+
+
+def test_deterministic_for_a_seed(coarse_phantom):
+    def run(seed):
+        eps, _ = synthesize(coarse_phantom.volume, coarse_phantom.path, subjects=1, attempts=1, novices=0, seed=seed)
+        return eps[0].records
+
+    a, b, c = run(7), run(7), run(8)
+    np.testing.assert_array_equal(a, b)
+    assert a.shape != c.shape or not np.array_equal(a, c)
+
+
+def _rewrite(out, table, card_change=None):
+    """Writes a modified records table (and card) back, keeping the card's hash consistent."""
+    import hashlib
+
+    pq.write_table(table, out / "records.parquet")
+    card = json.loads((out / "card.json").read_text())
+    card["files"]["records.parquet"]["sha256"] = hashlib.sha256((out / "records.parquet").read_bytes()).hexdigest()
+    card["files"]["records.parquet"]["rows"] = table.num_rows
+    if card_change:
+        card_change(card)
+    (out / "card.json").write_text(json.dumps(card))
+
+
+@pytest.fixture
+def copy(small, tmp_path):
+    import shutil
+
+    dst = tmp_path / "copy"
+    shutil.copytree(small[0], dst)
+    return dst
+
+
+def test_refuses_a_renamed_column(copy):
+    t = pq.read_table(copy / "records.parquet")
+    _rewrite(copy, t.rename_columns([("force_x" if n == "force_x_n" else n) for n in t.schema.names]))
+    with pytest.raises(DatasetError, match="columns"):
+        load_dataset(copy)
+
+
+def test_refuses_a_wrong_type(copy):
+    t = pq.read_table(copy / "records.parquet")
+    i = t.schema.get_field_index("layer")
+    t = t.set_column(i, pa.field("layer", pa.float64(), metadata={"unit": "1"}), t.column(i).cast(pa.float64()))
+    _rewrite(copy, t)
+    with pytest.raises(DatasetError, match="'layer' has type double"):
+        load_dataset(copy)
+
+
+def test_refuses_wrong_feature_order_or_units_in_the_card(copy):
+    _rewrite(copy, pq.read_table(copy / "records.parquet"), lambda c: c["features"].reverse())
+    with pytest.raises(DatasetError, match="feature order"):
+        load_dataset(copy)
+    _rewrite(copy, pq.read_table(copy / "records.parquet"), lambda c: c["features"].reverse())
+    _rewrite(copy, pq.read_table(copy / "records.parquet"), lambda c: c["features"][3].update(unit="mm"))
+    with pytest.raises(DatasetError, match="units"):
+        load_dataset(copy)
+
+
+def test_refuses_interleaved_episodes(copy):
+    t = pq.read_table(copy / "records.parquet")
+    order = np.argsort(np.arange(t.num_rows) % 7, kind="stable")  # shuffle episodes together
+    _rewrite(copy, t.take(pa.array(order)))
+    with pytest.raises(DatasetError, match="interleaved|not increasing"):
+        load_dataset(copy)
+
+
+def test_refuses_truncated_and_corrupt_files(copy):
+    data = (copy / "records.parquet").read_bytes()
+    (copy / "records.parquet").write_bytes(data[: len(data) // 2])
+    with pytest.raises(DatasetError, match="SHA-256"):
+        load_dataset(copy)
+    with pytest.raises(DatasetError, match="unreadable Parquet"):
+        load_dataset(copy, verify_hashes=False)
+    (copy / "card.json").write_text("{not json")
+    with pytest.raises(DatasetError, match="unreadable dataset card"):
+        load_dataset(copy)
+    with pytest.raises(DatasetError, match="not a DHG dataset"):
+        load_dataset(copy / "nowhere")
+
+
+def test_writer_refuses_bad_episodes_and_leaves_nothing(tmp_path, small):
+    from dhg.dataset import EpisodeInput
+
+    bad = EpisodeInput("e0", "expert", 0, np.full((3, 11), np.nan))
+    with pytest.raises(DatasetError, match="NaN"):
+        write_dataset(tmp_path / "x", [bad], {})
+    assert not (tmp_path / "x").exists() and not list(tmp_path.glob(".x.*")), "nothing half-written"
+    with pytest.raises(DatasetError, match="not empty"):
+        write_dataset(small[0], [bad], {})
+    assert records_schema().names[0] == "episode_id"
+
+
+METRICS_LOWER_IS_BETTER = [
+    "completion_time_s",
+    "mean_deviation_m",
+    "max_deviation_m",
+    "target_distance_m",
+    "plunge_depth_m",
+    "peak_temperature_c",
+    "time_above_47_s",
+    "force_jerk_n_per_s",
+]
+
+
+def test_experts_beat_novices_on_every_metric(phantom):
+    """Two dozen runs on the default phantom (0.5 mm): 12 expert and 12 novice attempts."""
+    episodes, _ = synthesize(phantom.volume, phantom.path, subjects=4, attempts=3, novices=4, seed=11)
+    experts = [e.metrics for e in episodes if e.skill == "expert"]
+    novices = [e.metrics for e in episodes if e.skill == "novice"]
+    assert len(experts) == 12 and len(novices) == 12
+    for key in METRICS_LOWER_IS_BETTER:
+        e, n = np.mean([m[key] for m in experts]), np.mean([m[key] for m in novices])
+        assert e < n, f"{key}: experts {e:.4g} vs novices {n:.4g}"
+    assert all(m["completed"] for m in experts), "every expert attempt completes A→B within the rules"
+    assert np.mean([m["completed"] for m in novices]) < 0.5
+    # Plunge in distribution: experienced ≈ 1–5 mm, novices ≈ 5–12 mm.
+    assert np.median([m["plunge_depth_m"] for m in experts]) < 5e-3
+    assert np.median([m["plunge_depth_m"] for m in novices]) > 5e-3
