@@ -17,6 +17,8 @@ import numpy as np
 
 from dhg.errors import DhgError, NotBuiltYetError
 
+PRESET_NAMES = ("fusion-1x128", "fusion-2x256", "force-only-2x256", "all-2x256", "tiny")
+
 EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_USAGE = 2
@@ -176,6 +178,86 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _train_config(args: argparse.Namespace):
+    from dhg.train import TrainConfig
+
+    return TrainConfig(
+        learning_rate=args.lr,
+        batch_size=args.batch,
+        max_epochs=args.epochs,
+        patience=args.patience,
+        seed=args.seed,
+        device=args.device,
+        best_only=args.best_only,
+    )
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from dhg.train import train
+
+    prog, update = _progress(f"training {args.preset}")
+    task_desc = {"loss": ""}
+
+    def progress(epoch: int, total: int, train_rmse: float, val_rmse: float) -> None:
+        task_desc["loss"] = f"train {train_rmse:.4f} val {val_rmse:.4f}"
+        update(epoch, total)
+        prog.update(prog.task_ids[0], description=f"training {args.preset}: {task_desc['loss']}")
+
+    with prog:
+        result = train(args.data, args.out, args.preset, _train_config(args), resume=args.resume, progress=progress)
+    m = result.metrics
+    best = m["best_epoch"] + 1
+    print(f"trained {args.preset} for {m['epochs']} epochs in {m['train_time_s']:.0f} s (best epoch {best})")
+    for split in ("train", "val", "test"):
+        axes = ", ".join(f"{v:.4f}" for v in m[split]["rmse_n_per_axis"])
+        r = m[split]
+        print(f"  {split:5s} RMSE {r['rmse_n']:.4f} N (x, y, z: {axes}), normalised {r['rmse_normalized']:.4f}")
+    for name in ("model.ts", "metrics.json", "loss.png", "forces.png", "checkpoint.pt"):
+        print(f"  {Path(args.out) / name}")
+    return EXIT_OK
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from dhg.dataset import load_dataset
+    from dhg.export import load_model
+    from dhg.train import make_windows
+
+    model = load_model(args.model)
+    ds = load_dataset(args.data)
+    x, y, _ = make_windows(ds, model.window, None if args.skill == "all" else args.skill)
+    pred = np.concatenate([model.predict(x[b : b + 2048]) for b in range(0, len(x), 2048)])
+    err = pred - y[:, 0:3]
+    per_axis = np.sqrt(np.mean(err**2, axis=0))
+    result = {
+        "model": str(args.model),
+        "preset": model.meta.get("preset"),
+        "data": str(args.data),
+        "windows": int(len(x)),
+        "rmse_n": float(np.sqrt(np.mean(err**2))),
+        "rmse_n_per_axis": per_axis.tolist(),
+    }
+    print(json.dumps(result, indent=1))
+    return EXIT_OK
+
+
+def cmd_ablate(args: argparse.Namespace) -> int:
+    from dhg.ablation import ablate, markdown_table
+
+    seeds = tuple(range(args.seed, args.seed + args.seeds))
+    results = ablate(
+        args.data,
+        args.out,
+        _train_config(args),
+        seeds=seeds,
+        on_start=lambda name, seed: print(f"training {name} (seed {seed}) ...", flush=True),
+    )
+    print(markdown_table(results))
+    print(f"wrote {Path(args.out) / 'table.md'} and {Path(args.out) / 'results.json'}")
+    return EXIT_OK
+
+
 def cmd_ct_import(args: argparse.Namespace) -> int:
     from dhg import ct
 
@@ -277,6 +359,63 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
     add_source(p)
     p.set_defaults(func=cmd_synth)
+
+    def add_training(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--data", required=True, metavar="DIR", help="dataset folder (from 'dhg synth' or 'dhg record')")
+        p.add_argument("--epochs", type=int, default=60, help="most epochs (early stopping usually ends sooner; 60)")
+        p.add_argument(
+            "--patience", type=int, default=8, help="epochs without a better validation RMSE before stopping"
+        )
+        p.add_argument("--lr", type=float, default=0.004, help="Adam learning rate (paper: 0.004)")
+        p.add_argument("--batch", type=int, default=50, help="batch size (paper: 50)")
+        p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+        p.add_argument("--device", choices=["cpu", "cuda", "auto"], default="cpu", help="where to train (default cpu)")
+        p.add_argument("--best-only", action="store_true", help="only each subject's best attempt, as the paper did")
+
+    p = sub.add_parser(
+        "train",
+        help="train the DHG model on a dataset and export model.ts",
+        description="Trains an LSTM (a preset of the paper's Table 1) to predict the expert's next force from "
+        "windows of 20 records (the nine features at 10 Hz), with the paper's defaults: Adam, learning rate 0.004, "
+        "batch 50, RMSE loss, min-max scaling fitted on the training data, a chronological split (the last 13.5 %% of "
+        "windows for test). Writes RUN/model.ts (TorchScript: raw windows in, forces in N out), metrics.json, "
+        "loss.png, forces.png (reference vs predicted) and checkpoint.pt (resume with --resume). Runs under torchrun "
+        "for multi-GPU/multi-node (DistributedDataParallel).",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_training(p)
+    p.add_argument("--out", required=True, metavar="RUN", help="run folder to write")
+    p.add_argument("--preset", default="fusion-2x256", choices=sorted(PRESET_NAMES), help="model preset")
+    p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser(
+        "evaluate",
+        help="RMSE of an exported model on a dataset",
+        description="Runs an exported model.ts over every window of a dataset's episodes and prints the RMSE of the "
+        "predicted force (N, overall and per axis) as JSON.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--model", required=True, metavar="MODEL.ts", help="exported model")
+    p.add_argument("--data", required=True, metavar="DIR", help="dataset folder")
+    p.add_argument("--skill", choices=["expert", "novice", "all"], default="expert", help="episodes to score")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser(
+        "ablate",
+        help="train the paper's four configurations on one split; write Table 1",
+        description="Trains fusion-1x128, fusion-2x256, force-only-2x256 and all-2x256 on the same chronological "
+        "split (with --seeds N, N seeds each) and writes OUT/table.md (the paper's Table 1 layout, test RMSE as mean "
+        "± SD over seeds) and OUT/results.json. Finished runs (OUT/<preset>/seed-<s>/metrics.json) are reused.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_training(p)
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for the runs and the table")
+    p.add_argument("--seeds", type=int, default=1, help="seeds per preset, from --seed on (mean ± SD reported)")
+    p.set_defaults(func=cmd_ablate)
 
     p = sub.add_parser(
         "ct-import",

@@ -10,7 +10,7 @@ import numpy as np
 from dhg.layers import Layer
 from dhg.session import StepResult
 
-__all__ = ["plot_drilling"]
+__all__ = ["plot_drilling", "plot_forces", "plot_losses"]
 
 _LAYER_COLOURS = {
     Layer.OUTSIDE: "#ffffff",
@@ -51,6 +51,13 @@ def plot_drilling(result: StepResult, out: str | os.PathLike[str], title: str = 
     axes[0].legend(handles=handles, loc="upper right", fontsize=8, ncols=4, title="layer at the tip")
     if title:
         fig.suptitle(title)
+    return _save(fig, out)
+
+
+def _save(fig, out: str | os.PathLike[str]) -> Path:
+    """Writes a figure as PNG atomically and closes it."""
+    import matplotlib.pyplot as plt
+
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
@@ -58,3 +65,40 @@ def plot_drilling(result: StepResult, out: str | os.PathLike[str], title: str = 
     plt.close(fig)
     os.replace(tmp, path)
     return path
+
+
+def plot_losses(history: list[dict[str, float]], out: str | os.PathLike[str], title: str = "") -> Path:
+    """Training and validation RMSE (normalised) per epoch, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    epochs = [h["epoch"] + 1 for h in history]
+    ax.plot(epochs, [h["train_rmse"] for h in history], label="train")
+    ax.plot(epochs, [h["val_rmse"] for h in history], label="validation")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("RMSE (normalised)")
+    ax.legend()
+    ax.set_title(title)
+    return _save(fig, out)
+
+
+def plot_forces(reference: np.ndarray, predicted: np.ndarray, out: str | os.PathLike[str], title: str = "") -> Path:
+    """Reference vs predicted force per axis over a test window (the paper's Figure 9), as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(9, 6.5), sharex=True, constrained_layout=True)
+    for i, (ax, name) in enumerate(zip(axes, ("x", "y", "z"), strict=True)):
+        ax.plot(reference[:, i], lw=1.0, label="reference (expert)")
+        ax.plot(predicted[:, i], lw=1.0, label="predicted")
+        ax.set_ylabel(f"force {name} (N)")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("test record (10 Hz)")
+    if title:
+        fig.suptitle(title)
+    return _save(fig, out)

@@ -1,0 +1,199 @@
+"""The model's data, training, export and CLI contract (tiny preset on a tiny dataset)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dhg import InvalidInputError, ShapeError
+from dhg.dataset import load_dataset, write_dataset
+from dhg.export import ModelFileError, export_model, load_model, read_model_meta
+from dhg.model import ForcePredictor, LSTMRegressor, MinMaxScaler, ModelConfig, preset
+from dhg.synth import synthesize
+from dhg.train import TrainConfig, make_windows, split_windows, train
+
+BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(scope="module")
+def data(coarse_phantom, tmp_path_factory):
+    episodes, card = synthesize(coarse_phantom.volume, coarse_phantom.path, subjects=2, attempts=1, novices=0, seed=5)
+    return write_dataset(tmp_path_factory.mktemp("data") / "ds", episodes, card)
+
+
+@pytest.fixture(scope="module")
+def run(data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "tiny"
+    result = train(data, out, "tiny", TrainConfig(max_epochs=2))
+    return out, result
+
+
+def test_windows_never_straddle_episodes(data):
+    ds = load_dataset(data)
+    x, y, ids = make_windows(ds, 20)
+    assert x.shape[1:] == (20, 9) and y.shape == (len(x), 9)
+    for ep in ds.episodes:
+        rows = np.flatnonzero(ids == ep.episode_id)
+        assert len(rows) == len(ep.times_s) - 20
+        np.testing.assert_array_equal(x[rows[0]], ep.features[:20])
+        np.testing.assert_array_equal(y[rows[-1]], ep.features[-1])
+    same = ids[1:] == ids[:-1]
+    np.testing.assert_array_equal(x[1:][same][:, :-1], x[:-1][same][:, 1:])
+
+
+def test_chronological_split_with_gaps():
+    s = split_windows(1000, 20, 0.135, 0.1)
+    assert s.train.start == 0 and s.train.stop + 20 == s.val.start and s.val.stop + 20 == s.test.start
+    assert s.test.stop == 1000 and s.sizes()["test"] == 135
+    with pytest.raises(InvalidInputError, match="too few"):
+        split_windows(30, 20, 0.135, 0.1)
+
+
+def test_training_outputs_and_scaler_fitted_on_train_only(run, data):
+    out, result = run
+    for name in ("model.ts", "metrics.json", "loss.png", "forces.png", "checkpoint.pt"):
+        assert (out / name).is_file(), name
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["preset"] == "tiny" and m["epochs"] == 2
+    assert len(m["test"]["rmse_n_per_axis"]) == 3 and m["test"]["rmse_n"] > 0
+    assert m["samples"]["test"] > 0 and m["train_config"]["learning_rate"] == 0.004
+    ds = load_dataset(data)
+    x, y, _ = make_windows(ds, 20)
+    split = split_windows(len(x), 20, 0.135, 0.1)
+    train_force = np.concatenate([x[split.train].reshape(-1, 9), y[split.train]])[:, 0:3]
+    model = load_model(out / "model.ts")
+    np.testing.assert_allclose(model.module.force_lo.numpy(), train_force.min(axis=0), rtol=1e-6)
+    assert not np.allclose(model.module.force_lo.numpy(), np.concatenate([x.reshape(-1, 9), y])[:, 0:3].min(axis=0))
+
+
+def test_resume_continues_from_the_checkpoint(run, data, tmp_path):
+    import shutil
+
+    out = tmp_path / "resumed"
+    shutil.copytree(run[0], out)
+    result = train(data, out, "tiny", TrainConfig(max_epochs=4), resume=True)
+    assert [h["epoch"] for h in result.history] == [0, 1, 2, 3]
+    assert result.history[:2] == run[1].history
+    fresh = train(data, tmp_path / "fresh", "tiny", TrainConfig(max_epochs=4))
+    np.testing.assert_allclose(
+        [h["val_rmse"] for h in fresh.history], [h["val_rmse"] for h in result.history], rtol=1e-5
+    )
+    with pytest.raises(InvalidInputError, match="was trained with"):
+        train(data, out, "fusion-1x128", TrainConfig(max_epochs=5), resume=True)
+
+
+def test_eager_and_torchscript_agree(tmp_path):
+    torch.manual_seed(0)
+    for name in ("tiny", "force-only-2x256", "all-2x256"):
+        cfg = preset(name)
+        scaler = MinMaxScaler().fit(torch.rand(100, 9) * torch.tensor([3, 3, 3, 0.1, 0.1, 0.1, 4, 0.09, 60]))
+        eager = ForcePredictor(LSTMRegressor(cfg), scaler, cfg).eval()
+        path = export_model(eager, cfg, {}, tmp_path / f"{name}.ts")
+        loaded = load_model(path)
+        windows = np.random.default_rng(1).normal(size=(8, 20, 9)).astype(np.float32)
+        with torch.no_grad():
+            ref = eager(torch.from_numpy(windows)).numpy()
+        got = loaded.predict(windows)
+        assert got.shape == (8, 3)
+        np.testing.assert_allclose(got, ref, atol=1e-5)
+
+
+def test_loader_refuses_bad_windows_and_files(run, tmp_path):
+    model = load_model(run[0] / "model.ts")
+    assert model.predict(np.zeros((20, 9))).shape == (1, 3)
+    with pytest.raises(ShapeError, match=r"\(batch, 20, 9\)"):
+        model.predict(np.zeros((4, 19, 9)))
+    with pytest.raises(ShapeError):
+        model.predict(np.zeros((4, 20, 3)))
+    bad = np.zeros((2, 20, 9))
+    bad[1, 5, 8] = np.nan
+    with pytest.raises(InvalidInputError, match="NaN"):
+        model.predict(bad)
+    with pytest.raises(ModelFileError, match="no such"):
+        load_model(tmp_path / "absent.ts")
+    (tmp_path / "junk.ts").write_bytes(b"not a zip")
+    with pytest.raises(ModelFileError, match="unreadable"):
+        load_model(tmp_path / "junk.ts")
+
+
+def test_metadata_is_readable_without_torch(run):
+    meta = read_model_meta(run[0] / "model.ts")
+    assert meta["format"] == "dhg-model" and meta["window"] == 20 and meta["preset"] == "tiny"
+    assert meta["input"]["units"][8] == "°C" and meta["output"]["units"] == ["N", "N", "N"]
+    assert "records_sha256" in meta["data"] and "test" in meta["metrics"]
+    with zipfile.ZipFile(run[0] / "model.ts") as z:
+        assert any(n.endswith("/extra/dhg.json") for n in z.namelist())
+
+
+def test_model_config_validation():
+    with pytest.raises(InvalidInputError, match="unknown preset"):
+        preset("huge")
+    with pytest.raises(InvalidInputError, match="input_features"):
+        ModelConfig("x", input_features=("bogus",))
+    with pytest.raises(InvalidInputError, match="forces"):
+        ModelConfig("x", output_features=("depth_m",))
+    with pytest.raises(InvalidInputError, match="window"):
+        ModelConfig("x", window=1)
+    with pytest.raises(InvalidInputError, match="device"):
+        TrainConfig(device="tpu")
+
+
+def _cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [str(BIN / "dhg"), *args], capture_output=True, text=True, timeout=600, env={**os.environ, **(env or {})}
+    )
+
+
+def test_cli_train_evaluate_and_ablate(data, tmp_path):
+    r = _cli("train", "--data", str(data), "--out", str(tmp_path / "r"), "--preset", "tiny", "--epochs", "1")
+    assert r.returncode == 0, r.stderr
+    assert "RMSE" in r.stdout and (tmp_path / "r" / "model.ts").is_file()
+    r = _cli("evaluate", "--model", str(tmp_path / "r" / "model.ts"), "--data", str(data))
+    assert r.returncode == 0, r.stderr
+    result = json.loads(r.stdout)
+    assert result["windows"] > 100 and len(result["rmse_n_per_axis"]) == 3
+    r = _cli("evaluate", "--model", str(tmp_path / "nothing.ts"), "--data", str(data))
+    assert r.returncode == 3 and "no such model file" in r.stderr
+    from dhg.ablation import ablate
+
+    results = ablate(data, tmp_path / "ab", TrainConfig(max_epochs=1), presets=("tiny",), seeds=(0, 1))
+    table = (tmp_path / "ab" / "table.md").read_text()
+    assert "| configuration | input | output | time steps |" in table and "| tiny | 9 | 3 | 20 | 1 | 16 |" in table
+    assert "| 2 |" in table and " ± " in table
+    assert len(json.loads((tmp_path / "ab" / "results.json").read_text())["tiny"]) == 2
+    assert results["tiny"][0]["train_config"]["seed"] == 0 and results["tiny"][1]["train_config"]["seed"] == 1
+
+
+def test_distributed_training_with_two_cpu_processes(data, tmp_path):
+    """torchrun with 2 processes and the gloo backend on CPU (DistributedDataParallel)."""
+    out = tmp_path / "ddp"
+    cmd = [
+        str(BIN / "torchrun"),
+        "--standalone",
+        "--nproc_per_node",
+        "2",
+        "-m",
+        "dhg.cli",
+        "train",
+        "--data",
+        str(data),
+        "--out",
+        str(out),
+        "--preset",
+        "tiny",
+        "--epochs",
+        "2",
+    ]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["epochs"] == 2 and (out / "model.ts").is_file()
+    load_model(out / "model.ts").predict(np.zeros((1, 20, 9)))
