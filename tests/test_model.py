@@ -168,7 +168,9 @@ def test_cli_train_evaluate_and_ablate(data, tmp_path):
     table = (tmp_path / "ab" / "table.md").read_text()
     assert "| configuration | input | output | time steps |" in table and "| tiny | 9 | 3 | 20 | 1 | 16 |" in table
     assert "| 2 |" in table and " ± " in table
-    assert len(json.loads((tmp_path / "ab" / "results.json").read_text())["tiny"]) == 2
+    saved = json.loads((tmp_path / "ab" / "results.json").read_text())
+    assert len(saved["runs"]["tiny"]) == 2 and saved["persistence_baseline"]["rmse_n"] > 0
+    assert "Persistence baseline" in table
     assert results["tiny"][0]["train_config"]["seed"] == 0 and results["tiny"][1]["train_config"]["seed"] == 1
 
 

@@ -14,9 +14,23 @@ import numpy as np
 from dhg.model import PRESETS
 from dhg.train import TrainConfig, train
 
-__all__ = ["TABLE1_PRESETS", "ablate", "markdown_table"]
+__all__ = ["TABLE1_PRESETS", "ablate", "markdown_table", "persistence_baseline"]
 
 TABLE1_PRESETS = ("fusion-1x128", "fusion-2x256", "force-only-2x256", "all-2x256")
+
+
+def persistence_baseline(data_dir: str | os.PathLike[str], cfg: TrainConfig | None = None, window: int = 20) -> dict:
+    """Test RMSE (N) of predicting that the next force equals the last one, on the same split the
+    models are scored on. The yardstick that shows how much the models learn beyond the force's
+    autocorrelation."""
+    from dhg.dataset import load_dataset
+    from dhg.train import make_windows, split_windows
+
+    cfg = cfg or TrainConfig()
+    x, y, _ = make_windows(load_dataset(data_dir), window, cfg.skill, cfg.best_only)
+    split = split_windows(len(x), window, cfg.test_fraction, cfg.val_fraction)
+    err = x[split.test][:, -1, 0:3] - y[split.test][:, 0:3]
+    return {"rmse_n": float(np.sqrt(np.mean(err**2))), "test_samples": int(len(err))}
 
 
 def markdown_table(results: dict[str, list[dict[str, Any]]]) -> str:
@@ -64,6 +78,10 @@ def ablate(
             if on_start is not None:
                 on_start(name, seed)
             results.setdefault(name, []).append(train(data_dir, run, PRESETS[name], replace(cfg, seed=seed)).metrics)
-    (out / "results.json").write_text(json.dumps(results, indent=1))
-    (out / "table.md").write_text(markdown_table(results))
+    baseline = persistence_baseline(data_dir, cfg, PRESETS[presets[0]].window)
+    (out / "results.json").write_text(json.dumps({"runs": results, "persistence_baseline": baseline}, indent=1))
+    (out / "table.md").write_text(
+        markdown_table(results) + f"\nPersistence baseline (next force = last force) on the same test windows: "
+        f"RMSE {baseline['rmse_n']:.4f} N.\n"
+    )
     return results
