@@ -18,6 +18,39 @@ pub(crate) const POSE_COLUMNS: usize = 9;
 /// Columns of a record row: time (s), the nine features, `drill_on` (0/1).
 pub(crate) const RECORD_COLUMNS: usize = FEATURE_COUNT + 2;
 
+/// Every configurable number of a session, by its flat key (nested ones as `device.x`, ...): the
+/// one list both directions of the dict conversion use.
+fn config_fields(c: &mut SessionConfig) -> [(&'static str, &mut f64); 26] {
+    [
+        ("burr_radius_m", &mut c.burr_radius_m),
+        ("coupling_stiffness_n_per_m", &mut c.coupling_stiffness_n_per_m),
+        ("coupling_damping_n_s_per_m", &mut c.coupling_damping_n_s_per_m),
+        ("physical_full_scale_n", &mut c.physical_full_scale_n),
+        ("lateral_cut_reference_n", &mut c.lateral_cut_reference_n),
+        ("max_proxy_speed_m_s", &mut c.max_proxy_speed_m_s),
+        ("device.peak_force_n", &mut c.device.peak_force_n),
+        ("device.continuous_force_n", &mut c.device.continuous_force_n),
+        ("device.peak_duration_s", &mut c.device.peak_duration_s),
+        ("device.max_stiffness_n_per_m", &mut c.device.max_stiffness_n_per_m),
+        ("device.max_force_rate_n_per_s", &mut c.device.max_force_rate_n_per_s),
+        ("device.stale_after_s", &mut c.device.stale_after_s),
+        ("cutting.thrust_ref_n", &mut c.cutting.thrust_ref_n),
+        ("cutting.torque_ref_n_m", &mut c.cutting.torque_ref_n_m),
+        ("cutting.reference_rpm", &mut c.cutting.reference_rpm),
+        ("cutting.reference_feed_m_s", &mut c.cutting.reference_feed_m_s),
+        ("cutting.reference_density_kg_m3", &mut c.cutting.reference_density_kg_m3),
+        ("cutting.speed_exponent", &mut c.cutting.speed_exponent),
+        ("cutting.feed_exponent", &mut c.cutting.feed_exponent),
+        ("cutting.density_exponent", &mut c.cutting.density_exponent),
+        ("cutting.max_feed_m_s", &mut c.cutting.max_feed_m_s),
+        ("thermal.heat_capacity_j_per_k", &mut c.thermal.heat_capacity_j_per_k),
+        ("thermal.thermal_resistance_k_per_w", &mut c.thermal.thermal_resistance_k_per_w),
+        ("thermal.heat_fraction", &mut c.thermal.heat_fraction),
+        ("thermal.body_temperature_c", &mut c.thermal.body_temperature_c),
+        ("thermal.necrosis_threshold_c", &mut c.thermal.necrosis_threshold_c),
+    ]
+}
+
 fn config_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<SessionConfig> {
     let mut c = SessionConfig::default();
     let Some(dict) = dict else { return Ok(c) };
@@ -25,48 +58,20 @@ fn config_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<SessionConfig>
     for (key, value) in dict.iter() {
         let key: String = key.extract()?;
         let value: f64 = value.extract()?;
-        let slot = match key.as_str() {
-            "burr_radius_m" => &mut c.burr_radius_m,
-            "coupling_stiffness_n_per_m" => {
-                stiffness_given = true;
-                &mut c.coupling_stiffness_n_per_m
-            }
-            "coupling_damping_n_s_per_m" => &mut c.coupling_damping_n_s_per_m,
-            "physical_full_scale_n" => &mut c.physical_full_scale_n,
-            "lateral_cut_reference_n" => &mut c.lateral_cut_reference_n,
-            "max_proxy_speed_m_s" => &mut c.max_proxy_speed_m_s,
-            "device.peak_force_n" => &mut c.device.peak_force_n,
-            "device.continuous_force_n" => &mut c.device.continuous_force_n,
-            "device.peak_duration_s" => &mut c.device.peak_duration_s,
-            "device.max_stiffness_n_per_m" => &mut c.device.max_stiffness_n_per_m,
-            "device.max_force_rate_n_per_s" => &mut c.device.max_force_rate_n_per_s,
-            "device.stale_after_s" => &mut c.device.stale_after_s,
-            "cutting.thrust_ref_n" => &mut c.cutting.thrust_ref_n,
-            "cutting.torque_ref_n_m" => &mut c.cutting.torque_ref_n_m,
-            "cutting.reference_rpm" => &mut c.cutting.reference_rpm,
-            "cutting.reference_feed_m_s" => &mut c.cutting.reference_feed_m_s,
-            "cutting.reference_density_kg_m3" => &mut c.cutting.reference_density_kg_m3,
-            "cutting.speed_exponent" => &mut c.cutting.speed_exponent,
-            "cutting.feed_exponent" => &mut c.cutting.feed_exponent,
-            "cutting.density_exponent" => &mut c.cutting.density_exponent,
-            "cutting.max_feed_m_s" => &mut c.cutting.max_feed_m_s,
-            "thermal.heat_capacity_j_per_k" => &mut c.thermal.heat_capacity_j_per_k,
-            "thermal.thermal_resistance_k_per_w" => &mut c.thermal.thermal_resistance_k_per_w,
-            "thermal.heat_fraction" => &mut c.thermal.heat_fraction,
-            "thermal.body_temperature_c" => &mut c.thermal.body_temperature_c,
-            "thermal.necrosis_threshold_c" => &mut c.thermal.necrosis_threshold_c,
-            _ => {
-                return Err(SimError::InvalidOption {
-                    name: "session config key",
-                    value: key,
-                    allowed: "the fields of dhg.SessionConfig (nested ones as 'device.x', 'cutting.x', 'thermal.x')",
-                })
-                .py()
-            }
+        stiffness_given |= key == "coupling_stiffness_n_per_m";
+        let mut fields = config_fields(&mut c);
+        let Some((_, slot)) = fields.iter_mut().find(|(name, _)| *name == key) else {
+            return Err(SimError::InvalidOption {
+                name: "session config key",
+                value: key,
+                allowed: "the fields of dhg.SessionConfig (nested ones as 'device.x', 'cutting.x', 'thermal.x')",
+            })
+            .py();
         };
-        *slot = value;
+        **slot = value;
     }
     if !stiffness_given {
+        // Unless given, the coupling is as stiff as the (possibly changed) device allows.
         c.coupling_stiffness_n_per_m = c.device.max_stiffness_n_per_m;
     }
     Ok(c)
@@ -253,37 +258,10 @@ impl PySession {
 
     /// The configuration in use, as a flat dict.
     fn config<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let c = self.inner.config();
+        let mut c = self.inner.config().clone();
         let d = PyDict::new(py);
-        for (k, v) in [
-            ("burr_radius_m", c.burr_radius_m),
-            ("coupling_stiffness_n_per_m", c.coupling_stiffness_n_per_m),
-            ("coupling_damping_n_s_per_m", c.coupling_damping_n_s_per_m),
-            ("physical_full_scale_n", c.physical_full_scale_n),
-            ("lateral_cut_reference_n", c.lateral_cut_reference_n),
-            ("max_proxy_speed_m_s", c.max_proxy_speed_m_s),
-            ("device.peak_force_n", c.device.peak_force_n),
-            ("device.continuous_force_n", c.device.continuous_force_n),
-            ("device.peak_duration_s", c.device.peak_duration_s),
-            ("device.max_stiffness_n_per_m", c.device.max_stiffness_n_per_m),
-            ("device.max_force_rate_n_per_s", c.device.max_force_rate_n_per_s),
-            ("device.stale_after_s", c.device.stale_after_s),
-            ("cutting.thrust_ref_n", c.cutting.thrust_ref_n),
-            ("cutting.torque_ref_n_m", c.cutting.torque_ref_n_m),
-            ("cutting.reference_rpm", c.cutting.reference_rpm),
-            ("cutting.reference_feed_m_s", c.cutting.reference_feed_m_s),
-            ("cutting.reference_density_kg_m3", c.cutting.reference_density_kg_m3),
-            ("cutting.speed_exponent", c.cutting.speed_exponent),
-            ("cutting.feed_exponent", c.cutting.feed_exponent),
-            ("cutting.density_exponent", c.cutting.density_exponent),
-            ("cutting.max_feed_m_s", c.cutting.max_feed_m_s),
-            ("thermal.heat_capacity_j_per_k", c.thermal.heat_capacity_j_per_k),
-            ("thermal.thermal_resistance_k_per_w", c.thermal.thermal_resistance_k_per_w),
-            ("thermal.heat_fraction", c.thermal.heat_fraction),
-            ("thermal.body_temperature_c", c.thermal.body_temperature_c),
-            ("thermal.necrosis_threshold_c", c.thermal.necrosis_threshold_c),
-        ] {
-            d.set_item(k, v)?;
+        for (k, v) in config_fields(&mut c) {
+            d.set_item(k, *v)?;
         }
         Ok(d)
     }

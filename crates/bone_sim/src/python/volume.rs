@@ -24,64 +24,53 @@ pub struct PyVolume {
     pub(crate) inner: Arc<Volume>,
 }
 
+/// Every field of the HU mapping by name: the one list both directions of the dict conversion use.
+fn mapping_fields(m: &mut HuMapping) -> [(&'static str, &mut f64); 16] {
+    [
+        ("cortical_min_hu", &mut m.cortical_min_hu),
+        ("cancellous_min_hu", &mut m.cancellous_min_hu),
+        ("density_intercept_kg_m3", &mut m.density_intercept_kg_m3),
+        ("density_slope_kg_m3_per_hu", &mut m.density_slope_kg_m3_per_hu),
+        ("min_bone_density_kg_m3", &mut m.min_bone_density_kg_m3),
+        ("marrow_density_kg_m3", &mut m.marrow_density_kg_m3),
+        ("marrow_cutting_density_kg_m3", &mut m.marrow_cutting_density_kg_m3),
+        ("modulus_coeff_pa", &mut m.modulus_coeff_pa),
+        ("modulus_exponent", &mut m.modulus_exponent),
+        ("erosion_reference_density_kg_m3", &mut m.erosion_reference_density_kg_m3),
+        ("erosion_rate_ref_per_s", &mut m.erosion_rate_ref_per_s),
+        ("erosion_reference_rpm", &mut m.erosion_reference_rpm),
+        ("erosion_speed_exponent", &mut m.erosion_speed_exponent),
+        ("marrow_erosion_rate_per_s", &mut m.marrow_erosion_rate_per_s),
+        ("max_erosion_rate_per_s", &mut m.max_erosion_rate_per_s),
+        ("water_attenuation_per_m", &mut m.water_attenuation_per_m),
+    ]
+}
+
 fn mapping_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<HuMapping> {
     let mut m = HuMapping::default();
     let Some(dict) = dict else { return Ok(m) };
     for (key, value) in dict.iter() {
         let key: String = key.extract()?;
         let value: f64 = value.extract()?;
-        let slot = match key.as_str() {
-            "cortical_min_hu" => &mut m.cortical_min_hu,
-            "cancellous_min_hu" => &mut m.cancellous_min_hu,
-            "density_intercept_kg_m3" => &mut m.density_intercept_kg_m3,
-            "density_slope_kg_m3_per_hu" => &mut m.density_slope_kg_m3_per_hu,
-            "min_bone_density_kg_m3" => &mut m.min_bone_density_kg_m3,
-            "marrow_density_kg_m3" => &mut m.marrow_density_kg_m3,
-            "marrow_cutting_density_kg_m3" => &mut m.marrow_cutting_density_kg_m3,
-            "modulus_coeff_pa" => &mut m.modulus_coeff_pa,
-            "modulus_exponent" => &mut m.modulus_exponent,
-            "erosion_reference_density_kg_m3" => &mut m.erosion_reference_density_kg_m3,
-            "erosion_rate_ref_per_s" => &mut m.erosion_rate_ref_per_s,
-            "erosion_reference_rpm" => &mut m.erosion_reference_rpm,
-            "erosion_speed_exponent" => &mut m.erosion_speed_exponent,
-            "marrow_erosion_rate_per_s" => &mut m.marrow_erosion_rate_per_s,
-            "max_erosion_rate_per_s" => &mut m.max_erosion_rate_per_s,
-            "water_attenuation_per_m" => &mut m.water_attenuation_per_m,
-            _ => {
-                return Err(SimError::InvalidOption {
-                    name: "mapping key",
-                    value: key,
-                    allowed: "the fields of dhg.HuMapping",
-                })
-                .py()
-            }
+        let mut fields = mapping_fields(&mut m);
+        let Some((_, slot)) = fields.iter_mut().find(|(name, _)| *name == key) else {
+            return Err(SimError::InvalidOption {
+                name: "mapping key",
+                value: key,
+                allowed: "the fields of dhg.HuMapping",
+            })
+            .py();
         };
-        *slot = value;
+        **slot = value;
     }
     Ok(m)
 }
 
 fn mapping_to_dict<'py>(py: Python<'py>, m: &HuMapping) -> PyResult<Bound<'py, PyDict>> {
+    let mut m = m.clone();
     let d = PyDict::new(py);
-    for (k, v) in [
-        ("cortical_min_hu", m.cortical_min_hu),
-        ("cancellous_min_hu", m.cancellous_min_hu),
-        ("density_intercept_kg_m3", m.density_intercept_kg_m3),
-        ("density_slope_kg_m3_per_hu", m.density_slope_kg_m3_per_hu),
-        ("min_bone_density_kg_m3", m.min_bone_density_kg_m3),
-        ("marrow_density_kg_m3", m.marrow_density_kg_m3),
-        ("marrow_cutting_density_kg_m3", m.marrow_cutting_density_kg_m3),
-        ("modulus_coeff_pa", m.modulus_coeff_pa),
-        ("modulus_exponent", m.modulus_exponent),
-        ("erosion_reference_density_kg_m3", m.erosion_reference_density_kg_m3),
-        ("erosion_rate_ref_per_s", m.erosion_rate_ref_per_s),
-        ("erosion_reference_rpm", m.erosion_reference_rpm),
-        ("erosion_speed_exponent", m.erosion_speed_exponent),
-        ("marrow_erosion_rate_per_s", m.marrow_erosion_rate_per_s),
-        ("max_erosion_rate_per_s", m.max_erosion_rate_per_s),
-        ("water_attenuation_per_m", m.water_attenuation_per_m),
-    ] {
-        d.set_item(k, v)?;
+    for (k, v) in mapping_fields(&mut m) {
+        d.set_item(k, *v)?;
     }
     Ok(d)
 }
