@@ -498,8 +498,4 @@ def scripted_stylus(
 
     n = int(round(duration_s * 1000))
     depth = np.minimum(-start_before_m + np.arange(n) * 1e-3 * feed_m_s + lead_m, path.length_m)
-    d = path.direction
-    z = np.array([0.0, 0.0, 1.0])
-    q = np.array([1.0 + z @ d, *np.cross(z, d)])
-    q = q / np.linalg.norm(q) if np.linalg.norm(q) > 1e-9 else np.array([0.0, 1.0, 0.0, 0.0])
-    return poses(path.point_at(depth), q, True, spindle_rpm)
+    return poses(path.point_at(depth), _axis_quaternion(path.direction), True, spindle_rpm)
