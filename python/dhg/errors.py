@@ -10,9 +10,11 @@ from __future__ import annotations
 __all__ = [
     "CTImportError",
     "DhgError",
+    "EngineError",
     "InvalidInputError",
     "NotBuiltYetError",
     "ShapeError",
+    "TransportError",
     "VolumeFileError",
 ]
 
@@ -39,3 +41,11 @@ class VolumeFileError(DhgError, ValueError):
 
 class NotBuiltYetError(DhgError, NotImplementedError):
     """A feature whose implementation has not landed yet (the message names the issue)."""
+
+
+class TransportError(DhgError, RuntimeError):
+    """Zenoh could not open a session, bind an endpoint (e.g. the port is in use) or declare a key."""
+
+
+class EngineError(DhgError, RuntimeError):
+    """The real-time engine refused a request: not running, unknown session, or no free slot."""

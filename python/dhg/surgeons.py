@@ -41,6 +41,7 @@ from dhg.volume import DrilledVolume
 __all__ = [
     "DrillRun",
     "Episode",
+    "SurgeonController",
     "SurgeonStyle",
     "layer_runs",
     "run_episode",
@@ -190,6 +191,169 @@ def _axis_quaternion(d: npt.NDArray[np.float64]) -> tuple[float, float, float, f
     return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
+class SurgeonController:
+    """The virtual surgeon's decisions and hand, one 1 kHz tick at a time.
+
+    :meth:`step` takes what the stylus reports this tick (the session feedback tuple: tip x, y, z
+    (m), depth (m), deviation (m), temperature (°C), layer id, cutting, breakthroughs, plunging,
+    plunge depth (m)) and the force felt (N), and returns the next pose row, or ``None`` once the
+    surgeon has finished. The surgeon acts on what it perceived one reaction delay ago. It drives a
+    local session (:func:`run_episode`) and a remote server (``dhg trainee``) alike.
+    """
+
+    def __init__(
+        self, path: PlannedPath, style: SurgeonStyle, rng: np.random.Generator, rules: TaskRules | None = None
+    ) -> None:
+        self.style, self.rng, self.path = style, rng, path
+        self.rules = rules or TaskRules()
+        self.a, self.d = path.entry_m, path.direction
+        self.e1, self.e2 = _basis(self.d)
+        self.q = _axis_quaternion(self.d)
+        self.length = path.length_m
+        self.dt = 1e-3
+        self.max_ticks = int(self.rules.max_duration_s / self.dt)
+        self.delay = max(1, int(round(style.reaction_delay_s / self.dt)))
+        # Hand state in path coordinates: s along A→B, (u, v) across.
+        self.start_s = -25e-3
+        u0, v0 = rng.normal(0.0, 3e-3, size=2)
+        self.u0, self.v0 = float(u0), float(v0)
+        self.s, self.u, self.v = self.start_s, self.u0, self.v0
+        self.vs = self.vu = self.vv = 0.0
+        self.approach_s = float(rng.uniform(1.2, 2.0))
+        self.align_s = float(rng.uniform(0.3, 0.7))
+        self.tremor_phase = rng.uniform(0.0, 2 * math.pi, size=3)
+        self.w_tremor = 2 * math.pi * style.tremor_hz
+        self.drift_u = self.drift_v = 0.0
+        self.drift_tau = 1.5  # s: how slowly the aim wanders
+        self.noise_state = 0.0
+        self.push = 0.0
+        self.stop_s = 0.0
+        self.phase = "approach"
+        self.phase_t0 = 0.0
+        self.hold_s: float | None = None
+        self.pause_until = -1.0
+        self.cooling = False
+        self.retract_until = -1.0
+        self.seen_breakthroughs = 0
+        self.drill_on = False
+        self.drill_on_t: float | None = None
+        self.drill_off_t: float | None = None
+        self.max_plunge = 0.0
+        self.fb_hist: list[tuple] = []
+        self.tick = 0
+
+    @property
+    def done(self) -> bool:
+        """Whether the surgeon has finished (stopped at B, or ran out of time)."""
+        return self.phase == "done" or self.tick >= self.max_ticks
+
+    @property
+    def drilling_s(self) -> float:
+        """Time from drill start to drill stop (s), as far as the run has come."""
+        end = self.drill_off_t if self.drill_off_t is not None else self.tick * self.dt
+        return end - (self.drill_on_t or 0.0)
+
+    def step(self, feedback: tuple, force_n: tuple[float, float, float]) -> tuple[float, ...] | None:
+        """The pose row (x, y, z, qw, qx, qy, qz, drill_on, spindle_rpm) for this tick, or None."""
+        if self.done:
+            return None
+        style, rng, dt, tick = self.style, self.rng, self.dt, self.tick
+        d, e1, e2 = self.d, self.e1, self.e2
+        t = tick * dt
+        self.fb_hist.append(feedback)
+        seen = self.fb_hist[max(0, tick - self.delay)]
+        _, _, _, p_depth, _, p_temp, p_layer, _, p_bt, _, _ = seen
+        self.max_plunge = max(self.max_plunge, feedback[10])
+        # Aim wander (Ornstein-Uhlenbeck) and signal-dependent push noise (low-passed ~5 Hz).
+        k_ou = dt / self.drift_tau
+        self.drift_u += -k_ou * self.drift_u + style.drift_m * math.sqrt(2 * k_ou) * rng.standard_normal()
+        self.drift_v += -k_ou * self.drift_v + style.drift_m * math.sqrt(2 * k_ou) * rng.standard_normal()
+        self.noise_state += 0.03 * (rng.standard_normal() - self.noise_state)
+
+        intent_s: float | None = None  # a position the arm tracks, or None: push with `push`
+        if self.phase == "approach":
+            intent_s = self.start_s + (-3e-3 - self.start_s) * _min_jerk(t - self.phase_t0, self.approach_s)
+            if t - self.phase_t0 >= self.approach_s:
+                self.phase, self.phase_t0 = "align", t
+        elif self.phase == "align":
+            intent_s = -3e-3
+            self.drill_on = True
+            if t - self.phase_t0 >= self.align_s:
+                self.phase, self.phase_t0, self.push = "feed", t, 0.0
+                self.drill_on_t = t
+        elif self.phase == "feed":
+            # Perceived tip speed over the last 50 ms (as of one reaction delay ago).
+            back = self.fb_hist[max(0, tick - self.delay - 50)]
+            speed = (p_depth - back[3]) / 0.05
+            ceiling = style.push_cortical_n if p_layer == Layer.CORTICAL else style.push_soft_n
+            if style.anticipates_breakthrough and p_layer == Layer.CORTICAL and p_depth > 2.2e-3:
+                ceiling = style.push_soft_n  # the cortex is thinning: ease off before it gives
+            if p_bt > self.seen_breakthroughs:
+                self.seen_breakthroughs = p_bt
+                self.retract_until = t + 0.25
+            if p_temp > style.caution_temp_c:
+                self.cooling = True
+            elif self.cooling and p_temp < style.caution_temp_c - 2.0:
+                self.cooling = False
+            if style.hesitations_per_s > 0 and t > self.pause_until and rng.random() < style.hesitations_per_s * dt:
+                self.pause_until = t + style.hesitation_s
+            if t < self.retract_until or self.cooling or t < self.pause_until:
+                # Hold still (pulled 1 mm back after a breakthrough): a pausing hand does not go limp.
+                if self.hold_s is None:
+                    self.hold_s = self.s - (1e-3 if t < self.retract_until else 0.0)
+                intent_s = self.hold_s
+                self.push = 0.0
+            else:
+                self.hold_s = None
+                # Integral control of the push towards the preferred feed, within the ceiling.
+                self.push += 2.4 * style.feed_gain * (style.feed_m_s - speed) / style.feed_m_s * dt * ceiling
+                self.push = min(max(self.push, 0.0), ceiling)
+            self.drill_on = not self.cooling
+            if p_depth >= self.length - style.stop_margin_m:
+                self.phase, self.phase_t0 = "stop", t
+                self.hold_s = self.s
+                self.stop_s = self.s
+        elif self.phase == "stop":
+            intent_s = self.stop_s
+            self.drill_on = False
+            if self.drill_off_t is None:
+                self.drill_off_t = t
+            if t - self.phase_t0 >= 0.5:
+                self.phase = "done"
+                return None
+
+        # Hand dynamics (semi-implicit Euler at 1 kHz).
+        fx, fy, fz = force_n
+        f_ax = fx * d[0] + fy * d[1] + fz * d[2]
+        f_u = fx * e1[0] + fy * e1[1] + fz * e1[2]
+        f_v = fx * e2[0] + fy * e2[1] + fz * e2[2]
+        if intent_s is not None:
+            drive = TRACK_STIFFNESS_N_PER_M * (intent_s - self.s)
+        else:
+            drive = self.push * (1.0 + style.noise_fraction * self.noise_state * 5.0)
+        damping = style.hand_damping_n_s_per_m
+        self.vs += (drive + f_ax - damping * self.vs) / HAND_MASS_KG * dt
+        aim_u = self.drift_u + style.tremor_m * math.sin(self.w_tremor * t + self.tremor_phase[0])
+        aim_v = self.drift_v + style.tremor_m * math.sin(self.w_tremor * t + self.tremor_phase[1])
+        if self.phase == "approach":
+            frac = 1.0 - _min_jerk(t - self.phase_t0, self.approach_s)
+            aim_u += self.u0 * frac
+            aim_v += self.v0 * frac
+        self.vu += (LATERAL_STIFFNESS_N_PER_M * (aim_u - self.u) + f_u - damping * self.vu) / HAND_MASS_KG * dt
+        self.vv += (LATERAL_STIFFNESS_N_PER_M * (aim_v - self.v) + f_v - damping * self.vv) / HAND_MASS_KG * dt
+        self.s += self.vs * dt
+        self.u += self.vu * dt
+        self.v += self.vv * dt
+        s_axial = self.s + style.tremor_m * 0.3 * math.sin(self.w_tremor * t + self.tremor_phase[2])
+        a = self.a
+        x = a[0] + s_axial * d[0] + self.u * e1[0] + self.v * e2[0]
+        y = a[1] + s_axial * d[1] + self.u * e1[1] + self.v * e2[1]
+        z = a[2] + s_axial * d[2] + self.u * e1[2] + self.v * e2[2]
+        self.tick += 1
+        on = self.drill_on
+        return (x, y, z, *self.q, 1.0 if on else 0.0, style.spindle_rpm if on else 0.0)
+
+
 def run_episode(
     session: DrillingSession,
     style: SurgeonStyle,
@@ -205,139 +369,23 @@ def run_episode(
     session.reset()
     native = session._s
     path: PlannedPath = session.path
-    a, d = path.entry_m, path.direction
-    e1, e2 = _basis(d)
-    q = _axis_quaternion(d)
-    length = path.length_m
-    dt = 1e-3
-    max_ticks = int(rules.max_duration_s / dt)
-    delay = max(1, int(round(style.reaction_delay_s / dt)))
-
-    # Hand state in path coordinates: s along A→B, (u, v) across.
-    start_s = -25e-3
-    u0, v0 = rng.normal(0.0, 3e-3, size=2)
-    s, u, v = start_s, float(u0), float(v0)
-    vs = vu = vv = 0.0
-    approach_s = float(rng.uniform(1.2, 2.0))
-    align_s = float(rng.uniform(0.3, 0.7))
-    tremor_phase = rng.uniform(0.0, 2 * math.pi, size=3)
-    w_tremor = 2 * math.pi * style.tremor_hz
-    drift_u = drift_v = 0.0
-    drift_tau = 1.5  # s: how slowly the aim wanders
-    noise_state = 0.0
-    push = 0.0
-    stop_s = 0.0
-    phase = "approach"
-    phase_t0 = 0.0
-    hold_s: float | None = None
-    pause_until = -1.0
-    cooling = False
-    retract_until = -1.0
-    seen_breakthroughs = 0
-    drill_on = False
-    drill_on_t = drill_off_t = None
-    max_plunge = 0.0
-    fb_hist: list[tuple] = []
+    surgeon = SurgeonController(path, style, rng, rules)
+    max_ticks = surgeon.max_ticks
     records: list[npt.NDArray[np.float64]] = []
     raw_poses = np.empty((max_ticks, 9)) if keep_raw else None
     raw_forces = np.empty((max_ticks, 3)) if keep_raw else None
-    fx = fy = fz = 0.0
+    force = (0.0, 0.0, 0.0)
     end_tick = max_ticks
     for tick in range(max_ticks):
-        t = tick * dt
-        fb_hist.append(native.feedback())
-        seen = fb_hist[max(0, tick - delay)]
-        _, _, _, p_depth, _, p_temp, p_layer, _, p_bt, _, _ = seen
-        max_plunge = max(max_plunge, fb_hist[-1][10])
-        # Aim wander (Ornstein-Uhlenbeck) and signal-dependent push noise (low-passed ~5 Hz).
-        k_ou = dt / drift_tau
-        drift_u += -k_ou * drift_u + style.drift_m * math.sqrt(2 * k_ou) * rng.standard_normal()
-        drift_v += -k_ou * drift_v + style.drift_m * math.sqrt(2 * k_ou) * rng.standard_normal()
-        noise_state += 0.03 * (rng.standard_normal() - noise_state)
-
-        intent_s: float | None = None  # a position the arm tracks, or None: push with `push`
-        if phase == "approach":
-            intent_s = start_s + (-3e-3 - start_s) * _min_jerk(t - phase_t0, approach_s)
-            if t - phase_t0 >= approach_s:
-                phase, phase_t0 = "align", t
-        elif phase == "align":
-            intent_s = -3e-3
-            drill_on = True
-            if t - phase_t0 >= align_s:
-                phase, phase_t0, push = "feed", t, 0.0
-                drill_on_t = t
-        elif phase == "feed":
-            # Perceived tip speed over the last 50 ms (as of one reaction delay ago).
-            back = fb_hist[max(0, tick - delay - 50)]
-            speed = (p_depth - back[3]) / 0.05
-            ceiling = style.push_cortical_n if p_layer == Layer.CORTICAL else style.push_soft_n
-            if style.anticipates_breakthrough and p_layer == Layer.CORTICAL and p_depth > 2.2e-3:
-                ceiling = style.push_soft_n  # the cortex is thinning: ease off before it gives
-            if p_bt > seen_breakthroughs:
-                seen_breakthroughs = p_bt
-                retract_until = t + 0.25
-            if p_temp > style.caution_temp_c:
-                cooling = True
-            elif cooling and p_temp < style.caution_temp_c - 2.0:
-                cooling = False
-            if style.hesitations_per_s > 0 and t > pause_until and rng.random() < style.hesitations_per_s * dt:
-                pause_until = t + style.hesitation_s
-            if t < retract_until or cooling or t < pause_until:
-                # Hold still (pulled 1 mm back after a breakthrough): a pausing hand does not go limp.
-                if hold_s is None:
-                    hold_s = s - (1e-3 if t < retract_until else 0.0)
-                intent_s = hold_s
-                push = 0.0
-            else:
-                hold_s = None
-                # Integral control of the push towards the preferred feed, within the ceiling.
-                push += 2.4 * style.feed_gain * (style.feed_m_s - speed) / style.feed_m_s * dt * ceiling
-                push = min(max(push, 0.0), ceiling)
-            drill_on = not cooling
-            if p_depth >= length - style.stop_margin_m:
-                phase, phase_t0 = "stop", t
-                hold_s = s
-                stop_s = s
-        elif phase == "stop":
-            intent_s = stop_s
-            drill_on = False
-            if drill_off_t is None:
-                drill_off_t = t
-            if t - phase_t0 >= 0.5:
-                end_tick = tick
-                break
-
-        # Hand dynamics (semi-implicit Euler at 1 kHz).
-        f_ax = fx * d[0] + fy * d[1] + fz * d[2]
-        f_u = fx * e1[0] + fy * e1[1] + fz * e1[2]
-        f_v = fx * e2[0] + fy * e2[1] + fz * e2[2]
-        if intent_s is not None:
-            drive = TRACK_STIFFNESS_N_PER_M * (intent_s - s)
-        else:
-            drive = push * (1.0 + style.noise_fraction * noise_state * 5.0)
-        damping = style.hand_damping_n_s_per_m
-        vs += (drive + f_ax - damping * vs) / HAND_MASS_KG * dt
-        aim_u = drift_u + style.tremor_m * math.sin(w_tremor * t + tremor_phase[0])
-        aim_v = drift_v + style.tremor_m * math.sin(w_tremor * t + tremor_phase[1])
-        if phase == "approach":
-            frac = 1.0 - _min_jerk(t - phase_t0, approach_s)
-            aim_u += float(u0) * frac
-            aim_v += float(v0) * frac
-        vu += (LATERAL_STIFFNESS_N_PER_M * (aim_u - u) + f_u - damping * vu) / HAND_MASS_KG * dt
-        vv += (LATERAL_STIFFNESS_N_PER_M * (aim_v - v) + f_v - damping * vv) / HAND_MASS_KG * dt
-        s += vs * dt
-        u += vu * dt
-        v += vv * dt
-        s_axial = s + style.tremor_m * 0.3 * math.sin(w_tremor * t + tremor_phase[2])
-        x = a[0] + s_axial * d[0] + u * e1[0] + v * e2[0]
-        y = a[1] + s_axial * d[1] + u * e1[1] + v * e2[1]
-        z = a[2] + s_axial * d[2] + u * e1[2] + v * e2[2]
-        row = (x, y, z, *q, 1.0 if drill_on else 0.0, style.spindle_rpm if drill_on else 0.0)
-        force, record = native.tick(row)
-        fx, fy, fz = float(force[0]), float(force[1]), float(force[2])
+        row = surgeon.step(native.feedback(), force)
+        if row is None:
+            end_tick = tick
+            break
+        f, record = native.tick(row)
+        force = (float(f[0]), float(f[1]), float(f[2]))
         if keep_raw:
             raw_poses[tick] = row
-            raw_forces[tick] = (fx, fy, fz)
+            raw_forces[tick] = force
         if record is not None:
             records.append(record)
     rec = np.array(records) if records else np.empty((0, 11))
@@ -347,8 +395,8 @@ def run_episode(
         path,
         rules,
         final_tip_m=st.tip_m,
-        drilling_s=((drill_off_t if drill_off_t is not None else end_tick * dt) - (drill_on_t or 0.0)),
-        plunge_depth_m=max_plunge,
+        drilling_s=surgeon.drilling_s if surgeon.drill_off_t is not None else end_tick * 1e-3 - (surgeon.drill_on_t or 0.0),
+        plunge_depth_m=surgeon.max_plunge,
         peak_temperature_c=st.peak_temperature_c,
         time_above_47_s=st.time_above_47_s,
         forces_n=raw_forces[:end_tick] if keep_raw else None,

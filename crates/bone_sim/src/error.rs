@@ -50,6 +50,20 @@ pub enum SimError {
         /// The largest valid id.
         max: u8,
     },
+    /// A wire payload that does not follow its layout (see `docs/protocol.md`).
+    #[error("bad {message} payload: {reason}")]
+    Payload {
+        /// Which message (e.g. "pose").
+        message: &'static str,
+        /// What was wrong, with the sizes or values found.
+        reason: String,
+    },
+    /// The Zenoh transport failed (open, declare, endpoint in use).
+    #[error("zenoh: {0}")]
+    Transport(String),
+    /// The real-time engine refused a request (not running, no such session, full).
+    #[error("engine: {0}")]
+    Engine(String),
     /// A string option that is not one of the allowed values.
     #[error("{name} must be one of {allowed}, got {value:?}")]
     InvalidOption {

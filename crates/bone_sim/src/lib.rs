@@ -1,6 +1,8 @@
 //! # `bone_sim` — the Rust core of DHG (Deep Haptic Guidance)
 //!
-//! Voxel bone built from CT, layer lookup, material removal by a spherical burr and X-ray views.
+//! Voxel bone built from CT, layer lookup, material removal by a spherical burr, X-ray views,
+//! 1 kHz haptic sessions, and the real-time server: the tick [`engine`] and its Zenoh
+//! [`transport`] speaking the [`protocol`].
 //! Pure Rust: nothing here knows about Python; the optional `python` feature adds the thin pyo3
 //! binding layer in [`python`] (built by maturin as `dhg._bone_sim`).
 //!
@@ -10,12 +12,15 @@
 pub mod contact;
 pub mod cutting;
 pub mod device;
+pub mod engine;
 pub mod error;
 pub mod path;
+pub mod protocol;
 pub mod record;
 pub mod removal;
 pub mod session;
 pub mod thermal;
+pub mod transport;
 pub mod volume;
 pub mod xray;
 

@@ -353,6 +353,12 @@ impl DrillingSession {
         &self.path
     }
 
+    /// Reserves room for `bricks` drilled bricks (a fresh, undrilled bone), so that ticks do not
+    /// allocate until the session has drilled that much.
+    pub fn reserve_bricks(&mut self, bricks: usize) {
+        self.bone = DrilledVolume::with_reserve(self.bone.volume().clone(), bricks);
+    }
+
     /// Sets a new planned path (depth and deviation are measured against it from now on).
     pub fn set_path(&mut self, path: PlannedPath) {
         self.path = path;

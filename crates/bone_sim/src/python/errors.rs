@@ -17,7 +17,10 @@ pub(crate) fn to_py(err: SimError) -> PyErr {
         | SimError::InvalidParameter { .. }
         | SimError::UnknownLayer { .. }
         | SimError::InvalidOption { .. }
-        | SimError::InvalidGrid { .. } => "InvalidInputError",
+        | SimError::InvalidGrid { .. }
+        | SimError::Payload { .. } => "InvalidInputError",
+        SimError::Transport(_) => "TransportError",
+        SimError::Engine(_) => "EngineError",
     };
     let message = err.to_string();
     Python::attach(|py| {

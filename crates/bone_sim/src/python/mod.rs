@@ -6,6 +6,7 @@
 
 mod convert;
 mod errors;
+mod server;
 mod session;
 mod volume;
 
@@ -23,6 +24,11 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<volume::PyVolume>()?;
     m.add_class::<volume::PyDrilledVolume>()?;
     m.add_class::<session::PySession>()?;
+    m.add_class::<server::PyServer>()?;
+    m.add_function(wrap_pyfunction!(server::protocol_layouts, m)?)?;
+    m.add("PROTOCOL_VERSION", crate::protocol::VERSION)?;
+    m.add("WINDOW_RECORDS", crate::protocol::WINDOW_RECORDS)?;
+    m.add("MAX_PAYLOAD_BYTES", crate::protocol::MAX_PAYLOAD_BYTES)?;
     let features: Vec<&str> = FEATURES.iter().map(|f| f.name).collect();
     let units: Vec<&str> = FEATURES.iter().map(|f| f.unit).collect();
     m.add("FEATURE_NAMES", features)?;

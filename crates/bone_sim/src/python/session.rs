@@ -51,7 +51,7 @@ fn config_fields(c: &mut SessionConfig) -> [(&'static str, &mut f64); 26] {
     ]
 }
 
-fn config_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<SessionConfig> {
+pub(crate) fn config_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<SessionConfig> {
     let mut c = SessionConfig::default();
     let Some(dict) = dict else { return Ok(c) };
     let mut stiffness_given = false;

@@ -44,6 +44,17 @@ impl MaterialOverlay {
         }
     }
 
+    /// Makes this overlay a copy of `other` (same grid), reusing this one's buffers: no
+    /// allocation while `other` holds no more bricks than this overlay has reserved.
+    pub fn copy_from(&mut self, other: &Self) {
+        debug_assert_eq!(self.table.len(), other.table.len(), "overlays of different grids");
+        self.table.copy_from_slice(&other.table);
+        self.slots.clear();
+        self.slots.extend_from_slice(&other.slots);
+        self.slot_brick.clear();
+        self.slot_brick.extend_from_slice(&other.slot_brick);
+    }
+
     /// Brick id of voxel (i, j, k).
     #[inline]
     #[must_use]

@@ -8,7 +8,7 @@ use super::bricks::MaterialOverlay;
 use super::layer::Layer;
 use super::sample::{check_point, Interp};
 use super::{Volume, FULL_MATERIAL};
-use crate::error::SimResult;
+use crate::error::{SimError, SimResult};
 
 /// Bricks reserved up front for a new session (about 512 KiB); drilling the default planned path
 /// of the phantom with a 2.5 mm burr touches fewer, so the drilling loop does not allocate.
@@ -145,6 +145,22 @@ impl DrilledVolume {
     #[must_use]
     pub fn removed_voxels(&self) -> u64 {
         self.removed_voxels
+    }
+
+    /// Makes this a copy of `other`, a drilling of the same volume, without allocating while
+    /// `other` has no more drilled bricks than this one has reserved (snapshots for X-ray views
+    /// are taken this way on the tick thread).
+    ///
+    /// # Errors
+    /// `other` drills another volume.
+    pub fn copy_from(&mut self, other: &Self) -> SimResult<()> {
+        if !Arc::ptr_eq(&self.volume, &other.volume) {
+            return Err(SimError::Engine("copy_from: the two drillings are of different volumes".into()));
+        }
+        self.overlay.copy_from(&other.overlay);
+        self.removed_mass_kg = other.removed_mass_kg;
+        self.removed_voxels = other.removed_voxels;
+        Ok(())
     }
 
     /// Restores the pristine bone: O(drilled bricks).

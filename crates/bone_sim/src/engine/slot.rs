@@ -1,0 +1,189 @@
+//! One session slot as the tick thread sees it: the drilling session, its guidance mixer, and the
+//! device-limit stage that the rendered force (feedback + guidance) passes last.
+
+use nalgebra::Vector3;
+
+use super::guidance::{GuidanceMixer, GuidanceParams};
+use super::handoff::{Output, PoseSample};
+use crate::device::ForceLimiter;
+use crate::error::SimResult;
+use crate::path::PlannedPath;
+use crate::protocol::{flags, ForceMsg, GuidanceMsg, StateMsg};
+use crate::record::TICK_S;
+use crate::session::{DrillingSession, SessionState};
+
+/// A tick-side session slot.
+#[derive(Debug)]
+pub(crate) struct Slot {
+    pub(crate) active: bool,
+    pub(crate) generation: u32,
+    pub(crate) session: DrillingSession,
+    guidance: GuidanceMixer,
+    output: ForceLimiter,
+    poses: triple_buffer::Output<PoseSample>,
+    pose_seq: u32,
+    pose_time_ns: u64,
+    record_seq: u32,
+    voxel_m3: f64,
+}
+
+fn flags_of(s: &SessionState) -> u16 {
+    let mut f = 0;
+    for (on, bit) in [
+        (s.drill_on, flags::DRILL_ON),
+        (s.in_contact, flags::IN_CONTACT),
+        (s.cutting, flags::CUTTING),
+        (s.plunging, flags::PLUNGING),
+        (s.stale, flags::STALE),
+    ] {
+        if on {
+            f |= bit;
+        }
+    }
+    f
+}
+
+fn v3(p: &nalgebra::Point3<f64>) -> Vector3<f64> {
+    p.coords
+}
+
+impl Slot {
+    pub(crate) fn new(
+        session: DrillingSession,
+        guidance: GuidanceParams,
+        poses: triple_buffer::Output<PoseSample>,
+    ) -> SimResult<Self> {
+        let output = ForceLimiter::new(session.config().device.clone())?;
+        let voxel_m3 = session.bone().volume().grid().voxel_volume_m3();
+        Ok(Self {
+            active: false,
+            generation: 0,
+            session,
+            guidance: GuidanceMixer::new(guidance, 0.0),
+            output,
+            poses,
+            pose_seq: 0,
+            pose_time_ns: 0,
+            record_seq: 0,
+            voxel_m3,
+        })
+    }
+
+    /// Starts a fresh session: undrilled bone, new state, no guidance.
+    pub(crate) fn activate(&mut self, generation: u32, path: PlannedPath, gain: f64) {
+        self.session.set_path(path);
+        self.session.reset();
+        self.output.reset();
+        self.guidance.reset(gain);
+        self.generation = generation;
+        self.active = true;
+        (self.pose_seq, self.pose_time_ns, self.record_seq) = (0, 0, 0);
+    }
+
+    pub(crate) fn reset(&mut self) {
+        self.session.reset();
+        self.output.reset();
+        let gain = self.guidance.gain();
+        self.guidance.reset(gain);
+        self.record_seq = 0;
+    }
+
+    pub(crate) fn set_gain(&mut self, gain: f64) {
+        self.guidance.set_gain(gain);
+    }
+
+    /// Applies a model reply: guidance = predicted expert force − the current force feedback.
+    pub(crate) fn prediction(&mut self, idx: u16, window_seq: u32, predicted_n: [f64; 3], latency_s: f64, pose_time_ns: u64) -> Output {
+        let predicted = Vector3::from(predicted_n);
+        let guidance_n = predicted - self.session.state().force_n;
+        self.guidance.set_target(guidance_n);
+        let gain = self.guidance.gain();
+        Output::Guidance {
+            slot: idx,
+            generation: self.generation,
+            msg: GuidanceMsg {
+                flags: u16::from(gain > 0.0),
+                window_seq,
+                pose_client_time_ns: pose_time_ns,
+                tick: self.session.state().ticks,
+                predicted_force_n: predicted,
+                guidance_n,
+                model_latency_s: latency_s,
+                gain,
+            },
+        }
+    }
+
+    /// One 1 ms tick: newest pose in, force (and every 100th tick the state) out.
+    pub(crate) fn tick(&mut self, idx: u16, mut emit: impl FnMut(Output)) {
+        let mut fresh = None;
+        if self.poses.update() {
+            let s = *self.poses.peek_output_buffer();
+            if s.generation == self.generation {
+                if let Some(p) = s.pose {
+                    fresh = Some(p);
+                    (self.pose_seq, self.pose_time_ns) = (s.seq, s.client_time_ns);
+                }
+            }
+        }
+        let out = self.session.tick(fresh.as_ref());
+        if fresh.is_some_and(|p| p.is_valid()) {
+            self.output.pose_received();
+        }
+        let share = self.guidance.step(TICK_S);
+        let rendered = self.output.step(out.force_n + share, TICK_S);
+        let s = self.session.state();
+        let mut fl = flags_of(s);
+        let live = self.guidance.is_live();
+        if live {
+            fl |= flags::MODEL_AVAILABLE;
+        }
+        if share.norm() > 0.0 {
+            fl |= flags::GUIDANCE_ACTIVE;
+        }
+        emit(Output::Force {
+            slot: idx,
+            generation: self.generation,
+            msg: ForceMsg {
+                flags: fl,
+                pose_seq: self.pose_seq,
+                pose_client_time_ns: self.pose_time_ns,
+                tick: s.ticks,
+                force_n: rendered,
+                guidance_n: share,
+                tip_m: v3(&s.tip_m),
+                depth_m: s.depth_m,
+                deviation_m: s.deviation_m,
+                temperature_c: s.temperature_c,
+                plunge_depth_m: s.plunge_depth_m,
+                layer: s.layer.id(),
+                breakthroughs: s.breakthroughs.min(u32::from(u16::MAX)) as u16,
+            },
+        });
+        if let Some(record) = out.record {
+            self.record_seq += 1;
+            emit(Output::State {
+                slot: idx,
+                generation: self.generation,
+                record,
+                msg: StateMsg {
+                    flags: fl,
+                    record_seq: self.record_seq,
+                    time_s: record.time_s,
+                    features: record.features,
+                    removed_mass_kg: s.removed_mass_kg,
+                    removed_volume_m3: self.session.bone().removed_voxels() as f64 * self.voxel_m3,
+                    peak_temperature_c: s.peak_temperature_c,
+                    time_above_47_s: s.time_above_47_s,
+                    thrust_n: s.thrust_n,
+                    spindle_rpm: s.spindle_rpm,
+                    plunge_depth_m: s.plunge_depth_m,
+                    breakthroughs: s.breakthroughs.min(u32::from(u16::MAX)) as u16,
+                    rejected_poses: s.rejected_poses.min(u64::from(u32::MAX)) as u32,
+                    deviation_m: s.deviation_m,
+                    guidance_gain: self.guidance.gain(),
+                },
+            });
+        }
+    }
+}

@@ -1,0 +1,128 @@
+//! Tick statistics, written by the tick thread with relaxed atomics and read by anyone.
+
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+
+/// Buckets of a [`Histogram`]; the last one collects everything above the range.
+pub const BUCKETS: usize = 256;
+
+/// A fixed-width histogram of durations (lock-free, allocation-free to record).
+#[derive(Debug)]
+pub struct Histogram {
+    width_ns: u64,
+    counts: [AtomicU64; BUCKETS],
+}
+
+impl Histogram {
+    /// A histogram with buckets `width_ns` wide.
+    #[must_use]
+    pub fn new(width_ns: u64) -> Self {
+        Self { width_ns: width_ns.max(1), counts: std::array::from_fn(|_| AtomicU64::new(0)) }
+    }
+
+    /// Counts one duration (ns).
+    pub fn record(&self, ns: u64) {
+        let b = ((ns / self.width_ns) as usize).min(BUCKETS - 1);
+        self.counts[b].fetch_add(1, Relaxed);
+    }
+
+    /// The counts now.
+    #[must_use]
+    pub fn snapshot(&self) -> HistogramSnapshot {
+        HistogramSnapshot { width_ns: self.width_ns, counts: std::array::from_fn(|i| self.counts[i].load(Relaxed)) }
+    }
+}
+
+/// Counts of a [`Histogram`] at one moment; subtract two for an interval.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct HistogramSnapshot {
+    width_ns: u64,
+    counts: [u64; BUCKETS],
+}
+
+impl HistogramSnapshot {
+    /// Counts since `earlier`.
+    #[must_use]
+    pub fn since(&self, earlier: &Self) -> Self {
+        Self { width_ns: self.width_ns, counts: std::array::from_fn(|i| self.counts[i].saturating_sub(earlier.counts[i])) }
+    }
+
+    /// Number of samples.
+    #[must_use]
+    pub fn total(&self) -> u64 {
+        self.counts.iter().sum()
+    }
+
+    /// The `q` quantile (0..=1) as the upper edge of its bucket (s); 0 without samples. Values
+    /// above the range report the range's end.
+    #[must_use]
+    pub fn quantile_s(&self, q: f64) -> f64 {
+        let total = self.total();
+        if total == 0 {
+            return 0.0;
+        }
+        let rank = ((q.clamp(0.0, 1.0) * total as f64).ceil() as u64).max(1);
+        let mut seen = 0;
+        for (i, c) in self.counts.iter().enumerate() {
+            seen += c;
+            if seen >= rank {
+                return ((i as u64 + 1) * self.width_ns) as f64 * 1e-9;
+            }
+        }
+        (BUCKETS as u64 * self.width_ns) as f64 * 1e-9
+    }
+}
+
+/// What the tick thread reports.
+#[derive(Debug)]
+pub struct TickStats {
+    /// Ticks run.
+    pub ticks: AtomicU64,
+    /// Ticks skipped because the thread woke a whole period or more late.
+    pub missed: AtomicU64,
+    /// Wake-up lateness after each deadline (10 µs buckets).
+    pub lateness: Histogram,
+    /// Work time of each tick (2 µs buckets).
+    pub busy: Histogram,
+    /// Largest lateness seen (ns).
+    pub max_lateness_ns: AtomicU64,
+    /// Active sessions.
+    pub sessions: AtomicU64,
+    /// Outputs dropped because the outgoing ring was full (the comm side fell behind).
+    pub dropped_outputs: AtomicU64,
+}
+
+impl Default for TickStats {
+    fn default() -> Self {
+        Self {
+            ticks: AtomicU64::new(0),
+            missed: AtomicU64::new(0),
+            lateness: Histogram::new(10_000),
+            busy: Histogram::new(2_000),
+            max_lateness_ns: AtomicU64::new(0),
+            sessions: AtomicU64::new(0),
+            dropped_outputs: AtomicU64::new(0),
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::float_cmp)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles_come_from_bucket_edges() {
+        let h = Histogram::new(10_000);
+        for _ in 0..99 {
+            h.record(5_000);
+        }
+        h.record(1_000_000_000);
+        let s = h.snapshot();
+        assert_eq!(s.total(), 100);
+        assert_eq!(s.quantile_s(0.5), 10e-6);
+        assert_eq!(s.quantile_s(0.99), 10e-6);
+        assert_eq!(s.quantile_s(1.0), 2.56e-3, "overflow reports the range end");
+        let later = h.snapshot();
+        assert_eq!(later.since(&s).total(), 0);
+    }
+}

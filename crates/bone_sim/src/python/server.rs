@@ -1,0 +1,159 @@
+//! `dhg._bone_sim.Server`: the real-time server (engine + Zenoh transport) and the protocol
+//! layouts, for `dhg.serve` and `dhg.protocol`.
+
+use std::time::Duration;
+
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+
+use super::convert::detached;
+use super::errors::IntoPyResult;
+use super::session::config_from_dict;
+use super::volume::{xray_tuple, PyVolume, Views};
+use crate::engine::guidance::GuidanceParams;
+use crate::engine::EngineConfig;
+use crate::error::SimError;
+use crate::path::PlannedPath;
+use crate::protocol::LAYOUTS;
+use crate::transport::{Server, ServerConfig};
+
+/// Every configurable number of the server, by its flat key.
+fn server_fields<'a>(e: &'a mut EngineConfig, s: &'a mut ServerConfig, g: &'a mut f64) -> [(&'static str, &'a mut f64); 6] {
+    let GuidanceParams { max_n, max_rate_n_per_s, timeout_s } = &mut e.guidance;
+    [
+        ("idle_timeout_s", &mut s.idle_timeout_s),
+        ("model_timeout_s", &mut s.model_timeout_s),
+        ("guidance_gain", g),
+        ("guidance.max_n", max_n),
+        ("guidance.max_rate_n_per_s", max_rate_n_per_s),
+        ("guidance.timeout_s", timeout_s),
+    ]
+}
+
+/// The real-time server. Build it with `dhg.serve`; this is the native half.
+#[pyclass(name = "Server", module = "dhg._bone_sim")]
+pub struct PyServer {
+    inner: Option<Server>,
+}
+
+impl PyServer {
+    fn server(&self) -> PyResult<&Server> {
+        self.inner.as_ref().ok_or_else(|| SimError::Engine("the server is stopped".into())).py()
+    }
+}
+
+fn json_to_py(py: Python<'_>, v: &serde_json::Value) -> PyResult<Py<PyAny>> {
+    Ok(py.import("json")?.call_method1("loads", (v.to_string(),))?.unbind())
+}
+
+#[pymethods]
+impl PyServer {
+    /// Starts the engine on `volume` with the default path `entry_m` → `target_m` (m) and opens
+    /// its Zenoh session from `zenoh_json5`. `server` is a flat dict of the keys of
+    /// `dhg.serve.ServerSettings`; `session` a flat `dhg.SessionConfig` dict.
+    #[new]
+    #[pyo3(signature = (volume, entry_m, target_m, zenoh_json5, prefix="dhg", max_sessions=16, server=None, session=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        py: Python<'_>,
+        volume: Bound<'_, PyVolume>,
+        entry_m: [f64; 3],
+        target_m: [f64; 3],
+        zenoh_json5: String,
+        prefix: &str,
+        max_sessions: usize,
+        server: Option<&Bound<'_, PyDict>>,
+        session: Option<&Bound<'_, PyDict>>,
+    ) -> PyResult<Self> {
+        let path = PlannedPath::new(entry_m.into(), target_m.into()).py()?;
+        let mut engine = EngineConfig::new(path);
+        engine.max_sessions = max_sessions;
+        engine.session = config_from_dict(session)?;
+        let mut cfg = ServerConfig { prefix: prefix.to_owned(), idle_timeout_s: 5.0, model_timeout_s: 0.25, zenoh_json5 };
+        let mut gain = engine.default_gain;
+        if let Some(dict) = server {
+            for (key, value) in dict.iter() {
+                let key: String = key.extract()?;
+                let value: f64 = value.extract()?;
+                let mut fields = server_fields(&mut engine, &mut cfg, &mut gain);
+                let Some((_, slot)) = fields.iter_mut().find(|(n, _)| *n == key) else {
+                    return Err(SimError::InvalidOption {
+                        name: "server setting",
+                        value: key,
+                        allowed: "idle_timeout_s, model_timeout_s, guidance_gain, guidance.max_n, guidance.max_rate_n_per_s, guidance.timeout_s",
+                    })
+                    .py();
+                };
+                **slot = value;
+            }
+        }
+        engine.default_gain = gain;
+        let volume = std::sync::Arc::clone(&volume.get().inner);
+        let inner = detached(py, || Server::start(&volume, &engine, cfg)).py()?;
+        Ok(Self { inner: Some(inner) })
+    }
+
+    /// Health report (dict): sessions, tick lateness quantiles over the last `window_s` s, missed
+    /// ticks, refused payloads, model availability and latency.
+    #[pyo3(signature = (window_s=10.0))]
+    fn health(&self, py: Python<'_>, window_s: f64) -> PyResult<Py<PyAny>> {
+        json_to_py(py, &self.server()?.health(window_s))
+    }
+
+    /// Ids of the open sessions.
+    fn sessions(&self) -> PyResult<Vec<String>> {
+        Ok(self.server()?.sessions())
+    }
+
+    /// A session's metrics (dict, SI units).
+    fn metrics(&self, py: Python<'_>, session_id: &str) -> PyResult<Py<PyAny>> {
+        let v = self.server()?.metrics(session_id).py()?;
+        json_to_py(py, &v)
+    }
+
+    /// Applies a control request (dict with "op") to a session; returns the session info.
+    fn control(&self, py: Python<'_>, session_id: &str, request: &Bound<'_, PyDict>) -> PyResult<Py<PyAny>> {
+        let text: String = py.import("json")?.call_method1("dumps", (request,))?.extract()?;
+        let req: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| SimError::Payload { message: "control", reason: e.to_string() }).py()?;
+        let v = self.server()?.control(session_id, &req).py()?;
+        json_to_py(py, &v)
+    }
+
+    /// The three X-ray views (top, front, side line integrals) of a session's bone as drilled now.
+    #[pyo3(signature = (session_id, timeout_s=1.0))]
+    fn xray<'py>(&self, py: Python<'py>, session_id: &str, timeout_s: f64) -> PyResult<Views<'py>> {
+        let server = self.server()?;
+        let timeout = Duration::from_secs_f64(timeout_s.clamp(0.001, 60.0));
+        let p = detached(py, || server.snapshot(session_id, timeout).map(|bone| bone.xray())).py()?;
+        Ok(xray_tuple(py, &p))
+    }
+
+    /// Stops the engine and closes its Zenoh session (idempotent; waits at most a few ms).
+    fn stop(&mut self, py: Python<'_>) {
+        if let Some(mut s) = self.inner.take() {
+            detached(py, move || s.stop());
+        }
+    }
+
+    /// Whether the server runs.
+    #[getter]
+    fn running(&self) -> bool {
+        self.inner.is_some()
+    }
+}
+
+/// The payload layouts: {name: {"kind", "size", "fields": [(name, type, offset, count, unit)]}}.
+#[pyfunction]
+pub(crate) fn protocol_layouts(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+    let out = PyDict::new(py);
+    for l in LAYOUTS {
+        let d = PyDict::new(py);
+        d.set_item("kind", l.kind)?;
+        d.set_item("size", l.size)?;
+        let fields: Vec<_> = l.fields.iter().map(|f| (f.name, f.ty, f.offset, f.count, f.unit)).collect();
+        d.set_item("fields", PyList::new(py, fields)?)?;
+        out.set_item(l.name, d)?;
+    }
+    Ok(out)
+}

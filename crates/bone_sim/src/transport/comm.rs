@@ -1,0 +1,251 @@
+//! The comm thread: drains the tick thread's outputs, publishes them, keeps each session's window
+//! of records and sends the model queries. It sleeps until the tick thread unparks it.
+
+use std::collections::VecDeque;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::thread::{self, JoinHandle};
+use std::time::{Duration, Instant};
+
+use zenoh::bytes::Encoding;
+use zenoh::qos::{CongestionControl, Priority};
+use zenoh::query::{ConsolidationMode, QueryTarget};
+use zenoh::Wait;
+
+use super::{lock, Shared};
+use crate::engine::handoff::{Command, Output};
+use crate::engine::stats::HistogramSnapshot;
+use crate::error::{SimError, SimResult};
+use crate::protocol::{self, WINDOW_RECORDS};
+use crate::record::FEATURE_COUNT;
+
+/// Seconds of per-second tick-statistics history kept for the health report.
+const HISTORY_S: usize = 600;
+/// Model round trips kept for the latency quantiles.
+const LATENCIES_KEPT: usize = 2000;
+
+/// One second's cumulative tick statistics.
+#[derive(Debug, Clone)]
+pub(crate) struct StatsSample {
+    pub(crate) at: Instant,
+    pub(crate) ticks: u64,
+    pub(crate) missed: u64,
+    pub(crate) lateness: HistogramSnapshot,
+    pub(crate) busy: HistogramSnapshot,
+}
+
+/// Per-second samples, oldest first.
+#[derive(Debug, Default)]
+pub(crate) struct History {
+    pub(crate) samples: VecDeque<StatsSample>,
+}
+
+fn sample(shared: &Shared) -> StatsSample {
+    let s = &shared.stats;
+    StatsSample {
+        at: Instant::now(),
+        ticks: s.ticks.load(Ordering::Relaxed),
+        missed: s.missed.load(Ordering::Relaxed),
+        lateness: s.lateness.snapshot(),
+        busy: s.busy.snapshot(),
+    }
+}
+
+/// A session's publishers and model window.
+struct Outlet {
+    generation: u32,
+    force: zenoh::pubsub::Publisher<'static>,
+    guidance: zenoh::pubsub::Publisher<'static>,
+    state: zenoh::pubsub::Publisher<'static>,
+    window: VecDeque<[f32; FEATURE_COUNT]>,
+    window_seq: u32,
+    pose_time_ns: u64,
+}
+
+fn encoding(name: &str) -> Encoding {
+    Encoding::APPLICATION_OCTET_STREAM.with_schema(format!("dhg.{name}.v{}", protocol::VERSION))
+}
+
+struct Comm {
+    session: zenoh::Session,
+    shared: Arc<Shared>,
+    outlets: Vec<Option<Outlet>>,
+    querier: zenoh::query::Querier<'static>,
+}
+
+impl Comm {
+    fn outlet(&mut self, slot: u16, generation: u32) -> Option<&mut Outlet> {
+        let i = slot as usize;
+        let stale = self.outlets[i].as_ref().is_none_or(|o| o.generation != generation);
+        if stale {
+            self.outlets[i] = None;
+            let id = {
+                let reg = lock(&self.shared.registry);
+                let info = &reg.slots[i];
+                if info.generation != generation {
+                    return None; // the slot moved on; drop what is left of the old session
+                }
+                info.id.clone()?
+            };
+            let key = |leaf: &str| format!("{}/session/{id}/{leaf}", self.shared.prefix);
+            let declare = |leaf: &str, cc: CongestionControl, express: bool| {
+                self.session
+                    .declare_publisher(key(leaf))
+                    .encoding(encoding(leaf))
+                    .congestion_control(cc)
+                    .priority(if express { Priority::RealTime } else { Priority::DataHigh })
+                    .express(express)
+                    .wait()
+                    .ok()
+            };
+            // Forces are real-time: a late one is useless, so drop rather than block. State and
+            // guidance are recorded for datasets: block (briefly) rather than lose them.
+            self.outlets[i] = Some(Outlet {
+                generation,
+                force: declare("force", CongestionControl::Drop, true)?,
+                guidance: declare("guidance", CongestionControl::Block, false)?,
+                state: declare("state", CongestionControl::Block, false)?,
+                window: VecDeque::with_capacity(WINDOW_RECORDS),
+                window_seq: 0,
+                pose_time_ns: 0,
+            });
+        }
+        self.outlets[i].as_mut()
+    }
+
+    fn handle(&mut self, out: Output) {
+        match out {
+            Output::Force { slot, generation, msg } => {
+                if let Some(o) = self.outlet(slot, generation) {
+                    o.pose_time_ns = msg.pose_client_time_ns;
+                    let _ = o.force.put(protocol::encode_force(&msg).to_vec()).wait();
+                }
+            }
+            Output::State { slot, generation, record, msg } => {
+                let Some(o) = self.outlet(slot, generation) else { return };
+                let _ = o.state.put(protocol::encode_state(&msg).to_vec()).wait();
+                if o.window.len() == WINDOW_RECORDS {
+                    o.window.pop_front();
+                }
+                o.window.push_back(record.features.map(|x| x as f32));
+                o.window_seq = o.window_seq.wrapping_add(1);
+                let (seq, pose_time_ns) = (o.window_seq, o.pose_time_ns);
+                // Until 20 records exist, the window is padded with copies of the first record.
+                let mut window = [[0f32; FEATURE_COUNT]; WINDOW_RECORDS];
+                let pad = WINDOW_RECORDS - o.window.len();
+                for (r, row) in window.iter_mut().enumerate() {
+                    *row = o.window[r.saturating_sub(pad)];
+                }
+                let payload = protocol::encode_predict(seq, &window);
+                if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
+                    if info.generation == generation {
+                        info.metrics.add_state(&msg);
+                    }
+                }
+                self.query(slot, generation, seq, pose_time_ns, payload);
+            }
+            Output::Guidance { slot, generation, msg } => {
+                if let Some(o) = self.outlet(slot, generation) {
+                    let _ = o.guidance.put(protocol::encode_guidance(&msg).to_vec()).wait();
+                }
+                if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
+                    if info.generation == generation {
+                        info.metrics.add_guidance(&msg);
+                    }
+                }
+            }
+            Output::Snapshot { .. } => {
+                self.shared.snapshot_seq.fetch_add(1, Ordering::AcqRel);
+            }
+        }
+    }
+
+    fn query(&self, slot: u16, generation: u32, window_seq: u32, pose_time_ns: u64, payload: Vec<u8>) {
+        let shared = self.shared.clone();
+        let sent = Instant::now();
+        shared.counters.model_queries.fetch_add(1, Ordering::Relaxed);
+        let on_reply = move |reply: zenoh::query::Reply| {
+            let latency_s = sent.elapsed().as_secs_f64();
+            let decoded = match reply.result() {
+                Ok(sample) => protocol::decode_prediction(&sample.payload().to_bytes()).ok(),
+                Err(_) => None,
+            };
+            let Some(p) = decoded.filter(|p| p.window_seq == window_seq) else {
+                shared.counters.model_errors.fetch_add(1, Ordering::Relaxed);
+                return;
+            };
+            let cmd = Command::Prediction {
+                slot,
+                generation,
+                window_seq,
+                predicted_n: [p.force_n.x, p.force_n.y, p.force_n.z],
+                latency_s,
+                pose_client_time_ns: pose_time_ns,
+            };
+            if lock(&shared.registry).send(cmd).is_ok() {
+                shared.counters.model_replies.fetch_add(1, Ordering::Relaxed);
+            }
+            let mut m = lock(&shared.model);
+            m.last_reply = Some(Instant::now());
+            if m.latencies_s.len() == LATENCIES_KEPT {
+                m.latencies_s.pop_front();
+            }
+            m.latencies_s.push_back(latency_s);
+            if m.model_id != p.model_id {
+                m.model_id = p.model_id;
+            }
+        };
+        let sent_ok = self.querier.get().payload(payload).encoding(encoding("predict")).callback(on_reply).wait();
+        if sent_ok.is_err() {
+            self.shared.counters.model_errors.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    fn housekeeping(&mut self) {
+        let s = sample(&self.shared);
+        let mut h = lock(&self.shared.history);
+        if h.samples.len() == HISTORY_S {
+            h.samples.pop_front();
+        }
+        h.samples.push_back(s);
+        drop(h);
+        let idle = self.shared.config.idle_timeout_s;
+        lock(&self.shared.registry).sweep_idle(idle);
+    }
+
+    fn run(&mut self, mut outputs: rtrb::Consumer<Output>) {
+        let mut next_housekeeping = Instant::now();
+        while !self.shared.stopping.load(Ordering::Acquire) {
+            thread::park_timeout(Duration::from_millis(5));
+            while let Ok(out) = outputs.pop() {
+                self.handle(out);
+            }
+            if Instant::now() >= next_housekeeping {
+                self.housekeeping();
+                next_housekeeping += Duration::from_secs(1);
+            }
+        }
+        self.outlets.clear();
+    }
+}
+
+/// Starts the comm thread.
+pub(crate) fn spawn(
+    session: zenoh::Session,
+    shared: Arc<Shared>,
+    outputs: rtrb::Consumer<Output>,
+) -> SimResult<JoinHandle<()>> {
+    let querier = session
+        .declare_querier(format!("{}/model/predict", shared.prefix))
+        .target(QueryTarget::BestMatching)
+        .consolidation(ConsolidationMode::None)
+        .timeout(Duration::from_secs_f64(shared.config.model_timeout_s))
+        .wait()
+        .map_err(|e| SimError::Transport(format!("cannot declare the model querier: {e}")))?;
+    let slots = lock(&shared.registry).slots.len();
+    let mut comm = Comm { session, shared, outlets: (0..slots).map(|_| None).collect(), querier };
+    thread::Builder::new()
+        .name("dhg-comm".into())
+        .spawn(move || comm.run(outputs))
+        .map_err(|e| SimError::Engine(format!("cannot start the comm thread: {e}")))
+}

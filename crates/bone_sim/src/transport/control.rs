@@ -1,0 +1,318 @@
+//! The inputs: the pose subscriber, the catch-all that counts unknown keys, and the JSON
+//! queryables (session control, session metrics, server health).
+
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+
+use serde_json::{json, Value};
+use zenoh::bytes::Encoding;
+use zenoh::query::Query;
+use zenoh::sample::{Locality, Sample};
+use zenoh::Wait;
+
+use super::{lock, Shared};
+use crate::engine::guidance::check_gain;
+use crate::engine::handoff::Command;
+use crate::error::{SimError, SimResult};
+use crate::path::PlannedPath;
+use crate::protocol::{self, Refusal};
+
+/// Leaves under `<prefix>/session/<id>/` that clients may put or query.
+const CLIENT_LEAVES: [&str; 3] = ["pose", "control", "metrics"];
+/// Leaves the server publishes (and the model service) — not "unknown" when seen.
+const SERVER_LEAVES: [&str; 4] = ["force", "guidance", "state", "xray"];
+
+/// `(id, leaf)` of `<prefix>/session/<id>/<leaf>[/...]`.
+fn session_key<'a>(prefix: &str, key: &'a str) -> Option<(&'a str, &'a str)> {
+    let rest = key.strip_prefix(prefix)?.strip_prefix("/session/")?;
+    let (id, leaf) = rest.split_once('/')?;
+    Some((id, leaf.split('/').next().unwrap_or(leaf)))
+}
+
+fn count_refusal(shared: &Shared, r: Refusal) {
+    let c = &shared.counters;
+    match r {
+        Refusal::WrongSize => &c.wrong_size,
+        Refusal::WrongVersion => &c.wrong_version,
+        Refusal::NonFinite => &c.non_finite,
+        Refusal::Oversized => &c.oversized,
+    }
+    .fetch_add(1, Ordering::Relaxed);
+}
+
+fn on_pose(shared: &Shared, sample: &Sample) {
+    let Some((id, _)) = session_key(&shared.prefix, sample.key_expr().as_str()) else { return };
+    if sample.payload().len() > protocol::MAX_PAYLOAD_BYTES {
+        count_refusal(shared, Refusal::Oversized);
+        return;
+    }
+    let msg = match protocol::decode_pose(&sample.payload().to_bytes()) {
+        Ok(m) => m,
+        Err(r) => return count_refusal(shared, r),
+    };
+    let mut reg = lock(&shared.registry);
+    match reg.open(id, None) {
+        Ok((slot, _)) => {
+            reg.pose(slot, &msg);
+            shared.counters.poses.fetch_add(1, Ordering::Relaxed);
+        }
+        Err(_) => {
+            shared.counters.sessions_refused.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+}
+
+fn on_any(shared: &Shared, sample: &Sample) {
+    let key = sample.key_expr().as_str();
+    let known = match session_key(&shared.prefix, key) {
+        Some((_, leaf)) => CLIENT_LEAVES.contains(&leaf) || SERVER_LEAVES.contains(&leaf),
+        None => key.starts_with(&format!("{}/model/", shared.prefix)) || key.starts_with(&format!("{}/server/", shared.prefix)),
+    };
+    if !known {
+        shared.counters.unknown_key.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+fn query_json(query: &Query) -> SimResult<Value> {
+    let Some(payload) = query.payload() else { return Ok(json!({})) };
+    if payload.len() > protocol::MAX_PAYLOAD_BYTES {
+        return Err(SimError::Payload { message: "control", reason: format!("{} bytes, too long", payload.len()) });
+    }
+    serde_json::from_slice(&payload.to_bytes())
+        .map_err(|e| SimError::Payload { message: "control", reason: format!("not JSON: {e}") })
+}
+
+fn reply(query: &Query, result: SimResult<Value>) {
+    let key = query.key_expr().clone();
+    let _ = match result {
+        Ok(v) => query.reply(key, v.to_string()).encoding(Encoding::APPLICATION_JSON).wait(),
+        Err(e) => query.reply_err(json!({ "error": e.to_string() }).to_string()).encoding(Encoding::APPLICATION_JSON).wait(),
+    };
+}
+
+fn point(v: &Value, name: &'static str) -> SimResult<nalgebra::Point3<f64>> {
+    let arr = v.get(name).and_then(Value::as_array).filter(|a| a.len() == 3);
+    let xs: Option<Vec<f64>> = arr.map(|a| a.iter().filter_map(Value::as_f64).collect());
+    match xs {
+        Some(x) if x.len() == 3 => Ok(nalgebra::Point3::new(x[0], x[1], x[2])),
+        _ => Err(SimError::ShapeMismatch { what: name, expected: "a list of 3 numbers (m)".into(), got: v.get(name).map_or("nothing".into(), Value::to_string) }),
+    }
+}
+
+fn path_of(v: &Value) -> SimResult<PlannedPath> {
+    PlannedPath::new(point(v, "entry_m")?, point(v, "target_m")?)
+}
+
+fn session_info(shared: &Shared, id: &str) -> SimResult<Value> {
+    let reg = lock(&shared.registry);
+    let slot = reg.slot_of(id).ok_or_else(|| SimError::Engine(format!("no session {id:?}")))?;
+    let info = &reg.slots[slot as usize];
+    let (a, b) = (info.path.entry_m(), info.path.target_m());
+    Ok(json!({
+        "session": id,
+        "slot": slot,
+        "guidance_gain": info.gain,
+        "entry_m": [a.x, a.y, a.z],
+        "target_m": [b.x, b.y, b.z],
+        "poses_received": info.poses_received,
+    }))
+}
+
+/// Applies one control request to session `id`.
+pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> {
+    let op = req.get("op").and_then(Value::as_str).unwrap_or("info");
+    {
+        let mut reg = lock(&shared.registry);
+        let slot = |reg: &super::registry::Registry| {
+            reg.slot_of(id).ok_or_else(|| SimError::Engine(format!("no session {id:?}; create it first")))
+        };
+        match op {
+            "create" => {
+                let path = if req.get("entry_m").is_some() { Some(path_of(req)?) } else { None };
+                let (s, created) = reg.open(id, path)?;
+                if let Some(g) = req.get("guidance_gain") {
+                    let gain = check_gain(g.as_f64().unwrap_or(f64::NAN))?;
+                    reg.send(Command::SetGain { slot: s, gain })?;
+                    reg.slots[s as usize].gain = gain;
+                }
+                drop(reg);
+                let mut info = session_info(shared, id)?;
+                info["created"] = json!(created);
+                return Ok(info);
+            }
+            "reset" => {
+                let s = slot(&reg)?;
+                reg.send(Command::Reset { slot: s })?;
+                reg.slots[s as usize].metrics = super::metrics::SessionMetrics::default();
+            }
+            "set_path" => {
+                let s = slot(&reg)?;
+                let path = path_of(req)?;
+                reg.send(Command::SetPath { slot: s, path: path.clone() })?;
+                reg.slots[s as usize].path = path;
+            }
+            "set_guidance" => {
+                let s = slot(&reg)?;
+                let gain = check_gain(req.get("gain").and_then(Value::as_f64).unwrap_or(f64::NAN))?;
+                reg.send(Command::SetGain { slot: s, gain })?;
+                reg.slots[s as usize].gain = gain;
+            }
+            "close" => {
+                reg.close(id)?;
+                return Ok(json!({ "session": id, "closed": true }));
+            }
+            "info" => {}
+            other => {
+                return Err(SimError::InvalidOption {
+                    name: "op",
+                    value: other.to_owned(),
+                    allowed: "create, reset, set_path, set_guidance, close, info",
+                })
+            }
+        }
+        if let Some(s) = reg.slot_of(id) {
+            reg.slots[s as usize].last_seen = std::time::Instant::now();
+        }
+    }
+    session_info(shared, id)
+}
+
+/// A session's metrics.
+pub(crate) fn metrics(shared: &Shared, id: &str) -> SimResult<Value> {
+    let reg = lock(&shared.registry);
+    let slot = reg.slot_of(id).ok_or_else(|| SimError::Engine(format!("no session {id:?}")))?;
+    let info = &reg.slots[slot as usize];
+    let mut v = info.metrics.to_json(&info.path.target_m());
+    v["session"] = json!(id);
+    v["guidance_gain"] = json!(info.gain);
+    Ok(v)
+}
+
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    sorted[((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1]
+}
+
+/// The health report; tick quantiles cover the last `window_s` seconds (whole seconds).
+pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
+    let now = super::comm::StatsSample {
+        at: std::time::Instant::now(),
+        ticks: shared.stats.ticks.load(Ordering::Relaxed),
+        missed: shared.stats.missed.load(Ordering::Relaxed),
+        lateness: shared.stats.lateness.snapshot(),
+        busy: shared.stats.busy.snapshot(),
+    };
+    let (window, base) = {
+        let h = lock(&shared.history);
+        let back = (window_s.max(1.0).round() as usize).min(h.samples.len());
+        match h.samples.len().checked_sub(back).and_then(|i| h.samples.get(i)) {
+            Some(s) if back > 0 => (now.at.duration_since(s.at).as_secs_f64(), Some(s.clone())),
+            _ => (shared.started.elapsed().as_secs_f64(), None),
+        }
+    };
+    let (late, busy, ticks, missed) = match &base {
+        Some(b) => (now.lateness.since(&b.lateness), now.busy.since(&b.busy), now.ticks - b.ticks, now.missed - b.missed),
+        None => (now.lateness.clone(), now.busy.clone(), now.ticks, now.missed),
+    };
+    let model = lock(&shared.model);
+    let mut lat: Vec<f64> = model.latencies_s.iter().copied().collect();
+    lat.sort_by(f64::total_cmp);
+    let available = model.last_reply.is_some_and(|t| t.elapsed().as_secs_f64() < 1.0);
+    let c = &shared.counters;
+    let n = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
+    let reg = lock(&shared.registry);
+    json!({
+        "uptime_s": shared.started.elapsed().as_secs_f64(),
+        "sessions": reg.by_id.len(),
+        "max_sessions": reg.slots.len(),
+        "window_s": window,
+        "ticks": ticks,
+        "missed_ticks": missed,
+        "missed_ticks_total": now.missed,
+        "tick_lateness_p50_s": late.quantile_s(0.5),
+        "tick_lateness_p99_s": late.quantile_s(0.99),
+        "tick_lateness_p999_s": late.quantile_s(0.999),
+        "tick_busy_p99_s": busy.quantile_s(0.99),
+        "tick_lateness_max_s": n(&shared.stats.max_lateness_ns) as f64 * 1e-9,
+        "dropped_outputs": n(&shared.stats.dropped_outputs),
+        "poses": n(&c.poses),
+        "refused": {
+            "wrong_size": n(&c.wrong_size),
+            "wrong_version": n(&c.wrong_version),
+            "non_finite": n(&c.non_finite),
+            "oversized": n(&c.oversized),
+            "unknown_key": n(&c.unknown_key),
+            "sessions": n(&c.sessions_refused),
+        },
+        "model": {
+            "available": available,
+            "id": model.model_id,
+            "queries": n(&c.model_queries),
+            "replies": n(&c.model_replies),
+            "errors": n(&c.model_errors),
+            "latency_p50_s": quantile(&lat, 0.5),
+            "latency_p99_s": quantile(&lat, 0.99),
+        },
+    })
+}
+
+/// Declares the pose subscriber, the unknown-key counter and the queryables. They live as long as
+/// the Zenoh session.
+pub(crate) fn declare(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResult<()> {
+    let p = &shared.prefix;
+    let err = |what: &'static str| move |e: zenoh::Error| SimError::Transport(format!("cannot declare {what}: {e}"));
+    let s = shared.clone();
+    session
+        .declare_subscriber(format!("{p}/session/*/pose"))
+        .callback(move |sample| on_pose(&s, &sample))
+        .background()
+        .wait()
+        .map_err(err("the pose subscriber"))?;
+    let s = shared.clone();
+    session
+        .declare_subscriber(format!("{p}/**"))
+        .allowed_origin(Locality::Remote)
+        .callback(move |sample| on_any(&s, &sample))
+        .background()
+        .wait()
+        .map_err(err("the key counter"))?;
+    let s = shared.clone();
+    session
+        .declare_queryable(format!("{p}/session/*/control"))
+        .callback(move |q| {
+            let r = match session_key(&s.prefix, q.key_expr().as_str()) {
+                Some((id, _)) => query_json(&q).and_then(|req| apply(&s, id, &req)),
+                None => Err(SimError::Engine("bad key".into())),
+            };
+            reply(&q, r);
+        })
+        .background()
+        .wait()
+        .map_err(err("the control queryable"))?;
+    let s = shared.clone();
+    session
+        .declare_queryable(format!("{p}/session/*/metrics"))
+        .callback(move |q| {
+            let r = match session_key(&s.prefix, q.key_expr().as_str()) {
+                Some((id, _)) => metrics(&s, id),
+                None => Err(SimError::Engine("bad key".into())),
+            };
+            reply(&q, r);
+        })
+        .background()
+        .wait()
+        .map_err(err("the metrics queryable"))?;
+    let s = shared.clone();
+    session
+        .declare_queryable(format!("{p}/server/health"))
+        .callback(move |q| {
+            let window = q.parameters().get("window").and_then(|w| w.parse::<f64>().ok()).unwrap_or(10.0);
+            reply(&q, Ok(health(&s, window)));
+        })
+        .background()
+        .wait()
+        .map_err(err("the health queryable"))?;
+    Ok(())
+}

@@ -1,0 +1,249 @@
+//! The engine on Zenoh: its own Zenoh session, subscribers and queryables whose callbacks hand
+//! data to the tick thread through the lock-free [`engine::handoff`](crate::engine::handoff)
+//! structures, and a comm thread that owns the publishers and the model querier.
+//!
+//! Key expressions (under a configurable prefix, `dhg` by default; payloads in
+//! `docs/protocol.md`):
+//! - `<prefix>/session/<id>/pose`: stylus poses in (a session is created by its first pose);
+//! - `<prefix>/session/<id>/force`, `/guidance`, `/state`: out, at 1 kHz, 10 Hz, 10 Hz;
+//! - `<prefix>/session/<id>/control`, `/metrics`: JSON queryables;
+//! - `<prefix>/server/health`: JSON queryable;
+//! - `<prefix>/model/predict`: the model service, queried by the engine.
+
+mod comm;
+mod control;
+pub mod metrics;
+pub mod registry;
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+use zenoh::Wait;
+
+use crate::engine::handoff::Command;
+use crate::engine::stats::TickStats;
+use crate::engine::{self, EngineConfig, Snapshot, TickThread};
+use crate::error::{SimError, SimResult};
+use crate::volume::drilled::DrilledVolume;
+use crate::volume::Volume;
+use registry::Registry;
+
+/// Server settings beyond the engine's.
+#[derive(Debug, Clone)]
+pub struct ServerConfig {
+    /// Key prefix (one or more key segments, no wildcards).
+    pub prefix: String,
+    /// Seconds without poses or control requests after which a session is freed.
+    pub idle_timeout_s: f64,
+    /// Timeout of one model query (s).
+    pub model_timeout_s: f64,
+    /// Zenoh configuration (JSON5).
+    pub zenoh_json5: String,
+}
+
+impl ServerConfig {
+    /// Checks every field.
+    ///
+    /// # Errors
+    /// A bad prefix or a non-positive timeout.
+    pub fn validate(&self) -> SimResult<()> {
+        let ok = !self.prefix.is_empty()
+            && self.prefix.split('/').all(|seg| !seg.is_empty() && registry::check_id(seg).is_ok());
+        if !ok {
+            return Err(SimError::InvalidOption {
+                name: "prefix",
+                value: self.prefix.clone(),
+                allowed: "key segments of A-Z a-z 0-9 _ - . joined by '/'",
+            });
+        }
+        crate::error::positive("idle_timeout_s", self.idle_timeout_s)?;
+        crate::error::positive("model_timeout_s", self.model_timeout_s)?;
+        Ok(())
+    }
+}
+
+/// Counts of refused input, by reason.
+#[derive(Debug, Default)]
+pub struct Counters {
+    /// Poses accepted.
+    pub poses: AtomicU64,
+    /// Payloads of the wrong size.
+    pub wrong_size: AtomicU64,
+    /// Payloads of another kind or version.
+    pub wrong_version: AtomicU64,
+    /// Payloads with NaN/infinite values.
+    pub non_finite: AtomicU64,
+    /// Payloads over the size limit.
+    pub oversized: AtomicU64,
+    /// Puts on keys the server does not serve.
+    pub unknown_key: AtomicU64,
+    /// Sessions refused because every slot was taken (or the id was bad).
+    pub sessions_refused: AtomicU64,
+    /// Model queries sent.
+    pub model_queries: AtomicU64,
+    /// Model replies applied.
+    pub model_replies: AtomicU64,
+    /// Model queries that failed (error reply or bad payload).
+    pub model_errors: AtomicU64,
+}
+
+/// Model-service statistics (comm side).
+#[derive(Debug, Default)]
+pub struct ModelStats {
+    /// When the last good reply arrived.
+    pub last_reply: Option<Instant>,
+    /// Recent round trips (s), newest last.
+    pub latencies_s: std::collections::VecDeque<f64>,
+    /// Id the model service reported.
+    pub model_id: String,
+}
+
+/// State shared by the callbacks, the comm thread and the server handle.
+#[derive(Debug)]
+pub struct Shared {
+    pub(crate) prefix: String,
+    pub(crate) registry: Mutex<Registry>,
+    pub(crate) counters: Counters,
+    pub(crate) model: Mutex<ModelStats>,
+    pub(crate) stats: Arc<TickStats>,
+    pub(crate) history: Mutex<comm::History>,
+    pub(crate) snapshot: Mutex<triple_buffer::Output<Snapshot>>,
+    pub(crate) snapshot_seq: AtomicU64,
+    pub(crate) stopping: AtomicBool,
+    pub(crate) config: ServerConfig,
+    pub(crate) started: Instant,
+}
+
+/// Locks a mutex, recovering the data if a panicking thread poisoned it (every update here keeps
+/// the data consistent at each step).
+pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+fn zerr(what: &str) -> impl FnOnce(zenoh::Error) -> SimError + '_ {
+    move |e| SimError::Transport(format!("{what}: {e}"))
+}
+
+/// A running server: Zenoh session, tick thread and comm thread.
+pub struct Server {
+    shared: Arc<Shared>,
+    session: zenoh::Session,
+    tick: TickThread,
+    comm: Option<JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for Server {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Server").field("prefix", &self.shared.prefix).finish_non_exhaustive()
+    }
+}
+
+impl Server {
+    /// Opens the Zenoh session, declares the keys and starts the threads.
+    ///
+    /// # Errors
+    /// Invalid settings, or Zenoh failing to open (e.g. the listen endpoint is in use).
+    pub fn start(volume: &Arc<Volume>, engine_config: &EngineConfig, config: ServerConfig) -> SimResult<Self> {
+        config.validate()?;
+        let zconfig = zenoh::Config::from_json5(&config.zenoh_json5).map_err(zerr("bad zenoh configuration"))?;
+        let (core, link) = engine::build(volume, engine_config)?;
+        let session = zenoh::open(zconfig).wait().map_err(zerr("cannot open the zenoh session"))?;
+        let registry =
+            Registry::new(link.commands, link.poses, engine_config.default_path.clone(), engine_config.default_gain);
+        let shared = Arc::new(Shared {
+            prefix: config.prefix.clone(),
+            registry: Mutex::new(registry),
+            counters: Counters::default(),
+            model: Mutex::new(ModelStats::default()),
+            stats: link.stats,
+            history: Mutex::new(comm::History::default()),
+            snapshot: Mutex::new(link.snapshot),
+            snapshot_seq: AtomicU64::new(0),
+            stopping: AtomicBool::new(false),
+            config,
+            started: Instant::now(),
+        });
+        control::declare(&session, &shared)?;
+        let comm = comm::spawn(session.clone(), shared.clone(), link.outputs)?;
+        let tick = TickThread::spawn(core, Some(comm.thread().clone()))?;
+        Ok(Self { shared, session, tick, comm: Some(comm) })
+    }
+
+    /// Server health as JSON (see `docs/protocol.md`), with tick quantiles over the last
+    /// `window_s` seconds.
+    #[must_use]
+    pub fn health(&self, window_s: f64) -> Value {
+        control::health(&self.shared, window_s)
+    }
+
+    /// Ids of the open sessions.
+    #[must_use]
+    pub fn sessions(&self) -> Vec<String> {
+        let mut ids: Vec<String> = lock(&self.shared.registry).by_id.keys().cloned().collect();
+        ids.sort();
+        ids
+    }
+
+    /// A session's metrics as JSON.
+    ///
+    /// # Errors
+    /// Unknown session.
+    pub fn metrics(&self, id: &str) -> SimResult<Value> {
+        control::metrics(&self.shared, id)
+    }
+
+    /// Applies a control request (the JSON the control queryable takes) to a session.
+    ///
+    /// # Errors
+    /// A bad request or unknown session.
+    pub fn control(&self, id: &str, request: &Value) -> SimResult<Value> {
+        control::apply(&self.shared, id, request)
+    }
+
+    /// A copy of a session's bone as drilled now (taken by the tick thread between two ticks).
+    ///
+    /// # Errors
+    /// Unknown session, or no snapshot within `timeout`.
+    pub fn snapshot(&self, id: &str, timeout: Duration) -> SimResult<DrilledVolume> {
+        let mut out = lock(&self.shared.snapshot);
+        let before = self.shared.snapshot_seq.load(Ordering::Acquire);
+        let (slot, generation) = {
+            let mut reg = lock(&self.shared.registry);
+            let slot = reg.slot_of(id).ok_or_else(|| SimError::Engine(format!("no session {id:?}")))?;
+            reg.send(Command::Snapshot { slot })?;
+            (slot, reg.slots[slot as usize].generation)
+        };
+        let t0 = Instant::now();
+        while self.shared.snapshot_seq.load(Ordering::Acquire) == before {
+            if t0.elapsed() > timeout {
+                return Err(SimError::Engine(format!("no snapshot of session {id:?} within {timeout:?}")));
+            }
+            std::thread::sleep(Duration::from_micros(500));
+        }
+        let snap = out.read();
+        if snap.slot != slot || snap.generation != generation {
+            return Err(SimError::Engine(format!("session {id:?} ended while its snapshot was taken")));
+        }
+        Ok(snap.bone.clone())
+    }
+
+    /// Stops the threads and closes the Zenoh session (idempotent).
+    pub fn stop(&mut self) {
+        self.shared.stopping.store(true, Ordering::Release);
+        self.tick.stop();
+        if let Some(h) = self.comm.take() {
+            h.thread().unpark();
+            let _ = h.join();
+        }
+        let _ = self.session.close().wait();
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}

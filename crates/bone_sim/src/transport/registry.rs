@@ -1,0 +1,180 @@
+//! Which trainee holds which engine slot. Lives on the comm side behind one mutex that the
+//! subscriber, queryable and reply callbacks share; the tick thread never touches it. The mutex
+//! also owns the single producer of the command ring.
+
+use std::collections::HashMap;
+use std::time::Instant;
+
+use crate::engine::handoff::{Command, PoseSample};
+use crate::error::{SimError, SimResult};
+use crate::path::PlannedPath;
+use crate::protocol::PoseMsg;
+
+use super::metrics::SessionMetrics;
+
+/// Longest session id.
+pub const MAX_ID_LEN: usize = 64;
+
+/// Checks a session id: 1–64 characters of `A–Z a–z 0–9 _ - .` (it is one key segment).
+///
+/// # Errors
+/// Any other id.
+pub fn check_id(id: &str) -> SimResult<&str> {
+    let ok = !id.is_empty()
+        && id.len() <= MAX_ID_LEN
+        && id.bytes().all(|b| b.is_ascii_alphanumeric() || matches!(b, b'_' | b'-' | b'.'));
+    if ok {
+        Ok(id)
+    } else {
+        Err(SimError::InvalidOption {
+            name: "session id",
+            value: id.chars().take(80).collect(),
+            allowed: "1-64 characters of A-Z a-z 0-9 _ - .",
+        })
+    }
+}
+
+/// One slot as the comm side knows it.
+#[derive(Debug)]
+pub struct SlotInfo {
+    /// Trainee id holding the slot, if any.
+    pub id: Option<String>,
+    /// Bumped at every (re)assignment.
+    pub generation: u32,
+    /// Newest-pose writer.
+    pub poses: triple_buffer::Input<PoseSample>,
+    /// When the last pose (or control request) arrived.
+    pub last_seen: Instant,
+    /// Poses received.
+    pub poses_received: u64,
+    /// Planned path in effect.
+    pub path: PlannedPath,
+    /// Guidance gain in effect.
+    pub gain: f64,
+    /// Metrics so far.
+    pub metrics: SessionMetrics,
+}
+
+/// The slot table plus the command producer.
+#[derive(Debug)]
+pub struct Registry {
+    /// Commands into the tick thread.
+    pub commands: rtrb::Producer<Command>,
+    /// Session id → slot.
+    pub by_id: HashMap<String, u16>,
+    /// The slots.
+    pub slots: Vec<SlotInfo>,
+    default_path: PlannedPath,
+    default_gain: f64,
+}
+
+impl Registry {
+    /// A registry over the engine's pose writers.
+    #[must_use]
+    pub fn new(
+        commands: rtrb::Producer<Command>,
+        poses: Vec<triple_buffer::Input<PoseSample>>,
+        default_path: PlannedPath,
+        default_gain: f64,
+    ) -> Self {
+        let now = Instant::now();
+        let slots = poses
+            .into_iter()
+            .map(|poses| SlotInfo {
+                id: None,
+                generation: 0,
+                poses,
+                last_seen: now,
+                poses_received: 0,
+                path: default_path.clone(),
+                gain: default_gain,
+                metrics: SessionMetrics::default(),
+            })
+            .collect();
+        Self { commands, by_id: HashMap::new(), slots, default_path, default_gain }
+    }
+
+    /// Sends a command to the tick thread.
+    ///
+    /// # Errors
+    /// The ring is full (the tick thread is stalled).
+    pub fn send(&mut self, cmd: Command) -> SimResult<()> {
+        self.commands.push(cmd).map_err(|_| SimError::Engine("the engine's command ring is full".into()))
+    }
+
+    /// The slot of `id`, if it has one.
+    #[must_use]
+    pub fn slot_of(&self, id: &str) -> Option<u16> {
+        self.by_id.get(id).copied()
+    }
+
+    /// The slot of `id`, creating the session if needed. Returns (slot, created).
+    ///
+    /// # Errors
+    /// A bad id, every slot taken, or a full command ring.
+    pub fn open(&mut self, id: &str, path: Option<PlannedPath>) -> SimResult<(u16, bool)> {
+        if let Some(slot) = self.slot_of(id) {
+            return Ok((slot, false));
+        }
+        check_id(id)?;
+        let Some(slot) = self.slots.iter().position(|s| s.id.is_none()) else {
+            return Err(SimError::Engine(format!("all {} session slots are taken", self.slots.len())));
+        };
+        let info = &mut self.slots[slot];
+        let generation = info.generation.wrapping_add(1);
+        let path = path.unwrap_or_else(|| self.default_path.clone());
+        let gain = self.default_gain;
+        self.commands
+            .push(Command::Activate { slot: slot as u16, generation, path: Some(path.clone()), gain })
+            .map_err(|_| SimError::Engine("the engine's command ring is full".into()))?;
+        let info = &mut self.slots[slot];
+        info.id = Some(id.to_owned());
+        info.generation = generation;
+        info.last_seen = Instant::now();
+        info.poses_received = 0;
+        info.path = path;
+        info.gain = gain;
+        info.metrics = SessionMetrics::default();
+        self.by_id.insert(id.to_owned(), slot as u16);
+        Ok((slot as u16, true))
+    }
+
+    /// Hands a decoded pose to the tick thread.
+    pub fn pose(&mut self, slot: u16, msg: &PoseMsg) {
+        let info = &mut self.slots[slot as usize];
+        info.poses.write(PoseSample {
+            pose: Some(msg.pose),
+            seq: msg.seq,
+            client_time_ns: msg.client_time_ns,
+            generation: info.generation,
+        });
+        info.last_seen = Instant::now();
+        info.poses_received += 1;
+    }
+
+    /// Frees the session `id`.
+    ///
+    /// # Errors
+    /// Unknown id, or a full command ring.
+    pub fn close(&mut self, id: &str) -> SimResult<()> {
+        let slot = self.slot_of(id).ok_or_else(|| SimError::Engine(format!("no session {id:?}")))?;
+        self.send(Command::Release { slot })?;
+        self.by_id.remove(id);
+        self.slots[slot as usize].id = None;
+        Ok(())
+    }
+
+    /// Frees every session silent for longer than `timeout_s`; returns their ids.
+    pub fn sweep_idle(&mut self, timeout_s: f64) -> Vec<String> {
+        let idle: Vec<String> = self
+            .slots
+            .iter()
+            .filter(|s| s.last_seen.elapsed().as_secs_f64() > timeout_s)
+            .filter_map(|s| s.id.clone())
+            .collect();
+        for id in &idle {
+            let _ = self.close(id);
+        }
+        idle
+    }
+}

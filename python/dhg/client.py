@@ -1,0 +1,258 @@
+"""A Python client of the DHG server, for trainee programs, recorders and tools.
+
+:class:`TraineeClient` opens its own Zenoh session to a server endpoint, publishes stylus poses for
+one session id, and receives that session's forces (1 kHz), guidance (10 Hz) and state (10 Hz). It
+also wraps the JSON queries (control, metrics, health) and the X-ray PNGs. Every message follows
+``docs/protocol.md``; latencies are measured on the client's own clock (``time.monotonic_ns``),
+which the server echoes.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+import uuid
+from collections import deque
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from dhg import protocol
+from dhg.errors import EngineError, TransportError
+
+__all__ = ["TraineeClient", "feedback_tuple"]
+
+
+def feedback_tuple(force_msg: dict[str, Any]) -> tuple:
+    """The session feedback tuple the virtual surgeons read (tip x, y, z, depth, deviation,
+    temperature, layer, cutting, breakthroughs, plunging, plunge depth) from a force message."""
+    fl = force_msg["flags"]
+    tip = force_msg["tip_m"]
+    return (
+        tip[0],
+        tip[1],
+        tip[2],
+        force_msg["depth_m"],
+        force_msg["deviation_m"],
+        force_msg["temperature_c"],
+        force_msg["layer"],
+        bool(fl & protocol.FLAGS["cutting"]),
+        force_msg["breakthroughs"],
+        bool(fl & protocol.FLAGS["plunging"]),
+        force_msg["plunge_depth_m"],
+    )
+
+
+class TraineeClient:
+    """One trainee's connection: poses out, forces/guidance/state in.
+
+    ``connect`` is one or more Zenoh endpoints (``tcp/127.0.0.1:7447``). The session on the server
+    is created by the first pose, or explicitly with :meth:`create`. Received messages are decoded
+    into dicts (field names of ``docs/protocol.md``); the newest force is :attr:`force`, guidance
+    and state messages are kept in :attr:`guidance` and :attr:`states` (up to ``keep`` each).
+    ``on_force`` / ``on_state`` callbacks run on Zenoh's threads and must be quick.
+    """
+
+    def __init__(
+        self,
+        connect: str | Sequence[str],
+        session_id: str | None = None,
+        prefix: str = "dhg",
+        keep: int = 100_000,
+        on_force: Callable[[dict[str, Any]], None] | None = None,
+        on_state: Callable[[dict[str, Any]], None] | None = None,
+        zenoh_config_file: str | None = None,
+    ) -> None:
+        from dhg.serve import open_zenoh, zenoh_config_json5
+
+        endpoints = [connect] if isinstance(connect, str) else list(connect)
+        self.session_id = session_id or f"trainee-{uuid.uuid4().hex[:8]}"
+        self.prefix = prefix
+        self.keys = protocol.keys(prefix, self.session_id)
+        self._z = open_zenoh(zenoh_config_json5(connect=endpoints, config_file=zenoh_config_file, mode="peer"))
+        import zenoh
+
+        self._lock = threading.Lock()
+        self.force: dict[str, Any] | None = None
+        self.forces_received = 0
+        self.force_latencies_s: deque[float] = deque(maxlen=keep)
+        self.guidance: deque[dict[str, Any]] = deque(maxlen=keep)
+        self.guidance_latencies_s: deque[float] = deque(maxlen=keep)
+        self.states: deque[dict[str, Any]] = deque(maxlen=keep)
+        self.decode_errors = 0
+        self._on_force, self._on_state = on_force, on_state
+        self._seq = 0
+        self._pub = self._z.declare_publisher(
+            self.keys["pose"],
+            encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema(f"dhg.pose.v{protocol.VERSION}"),
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.REAL_TIME,
+            express=True,
+        )
+        self._subs = [
+            self._z.declare_subscriber(self.keys["force"], self._force_cb),
+            self._z.declare_subscriber(self.keys["guidance"], self._guidance_cb),
+            self._z.declare_subscriber(self.keys["state"], self._state_cb),
+        ]
+
+    # -- receiving -------------------------------------------------------------------------
+    def _decode(self, name: str, sample: Any) -> dict[str, Any] | None:
+        try:
+            return protocol.decode(name, sample.payload.to_bytes())
+        except ValueError:
+            self.decode_errors += 1
+            return None
+
+    def _force_cb(self, sample: Any) -> None:
+        m = self._decode("force", sample)
+        if m is None:
+            return
+        now = time.monotonic_ns()
+        with self._lock:
+            self.force = m
+            self.forces_received += 1
+            if m["pose_client_time_ns"]:
+                self.force_latencies_s.append((now - m["pose_client_time_ns"]) * 1e-9)
+        if self._on_force is not None:
+            self._on_force(m)
+
+    def _guidance_cb(self, sample: Any) -> None:
+        m = self._decode("guidance", sample)
+        if m is None:
+            return
+        m["received_ns"] = now = time.monotonic_ns()
+        with self._lock:
+            self.guidance.append(m)
+            if m["pose_client_time_ns"]:
+                self.guidance_latencies_s.append((now - m["pose_client_time_ns"]) * 1e-9)
+
+    def _state_cb(self, sample: Any) -> None:
+        m = self._decode("state", sample)
+        if m is None:
+            return
+        with self._lock:
+            self.states.append(m)
+        if self._on_state is not None:
+            self._on_state(m)
+
+    # -- sending ---------------------------------------------------------------------------
+    def send_pose(
+        self,
+        position_m: npt.ArrayLike,
+        orientation_wxyz: npt.ArrayLike = (1.0, 0.0, 0.0, 0.0),
+        drill_on: bool = False,
+        spindle_rpm: float = 0.0,
+    ) -> int:
+        """Publishes one stylus pose (burr centre in m, world frame; quaternion w, x, y, z with the
+        drill along the tool's +z; spindle speed in rpm). Returns its sequence number."""
+        self._seq += 1
+        self._pub.put(
+            protocol.encode_pose(self._seq, time.monotonic_ns(), position_m, orientation_wxyz, drill_on, spindle_rpm)
+        )
+        return self._seq
+
+    def send_row(self, row: Sequence[float]) -> int:
+        """Publishes a pose row (x, y, z, qw, qx, qy, qz, drill_on, spindle_rpm), as the virtual
+        surgeons produce them."""
+        return self.send_pose(row[0:3], row[3:7], row[7] > 0.5, row[8])
+
+    def put_raw(self, leaf: str, payload: bytes) -> None:
+        """Publishes raw bytes on ``<prefix>/session/<id>/<leaf>`` (for protocol tests)."""
+        self._z.put(f"{self.prefix}/session/{self.session_id}/{leaf}", payload)
+
+    # -- queries ---------------------------------------------------------------------------
+    def _get(self, key: str, payload: bytes | None = None, timeout_s: float = 2.0) -> list[tuple[str, bytes]]:
+        replies = self._z.get(key, payload=payload, timeout=timeout_s)
+        out, errors = [], []
+        for r in replies:
+            if r.ok is not None:
+                out.append((str(r.ok.key_expr), r.ok.payload.to_bytes()))
+            else:
+                errors.append(r.err.payload.to_string())
+        if errors and not out:
+            try:
+                message = json.loads(errors[0]).get("error", errors[0])
+            except json.JSONDecodeError:
+                message = errors[0]
+            raise EngineError(f"{key}: {message}")
+        if not out:
+            raise TransportError(f"{key}: no reply within {timeout_s} s (is the server running and reachable?)")
+        return out
+
+    def _json(self, key: str, request: dict[str, Any] | None = None, timeout_s: float = 2.0) -> dict[str, Any]:
+        payload = json.dumps(request).encode() if request is not None else None
+        ((_, body),) = self._get(key, payload, timeout_s)[:1]
+        return json.loads(body)
+
+    def control(self, op: str, timeout_s: float = 2.0, **fields: Any) -> dict[str, Any]:
+        """Sends a control request (``op``: create, reset, set_path, set_guidance, close, info) and
+        returns the session info. Refusals raise :class:`EngineError` with the server's reason."""
+        return self._json(self.keys["control"], {"op": op, **fields}, timeout_s)
+
+    def create(self, path: Any = None, guidance_gain: float | None = None) -> dict[str, Any]:
+        """Creates (or finds) this session, optionally with its own planned path and gain."""
+        fields: dict[str, Any] = {}
+        if path is not None:
+            fields |= {"entry_m": [float(v) for v in path.entry_m], "target_m": [float(v) for v in path.target_m]}
+        if guidance_gain is not None:
+            fields["guidance_gain"] = float(guidance_gain)
+        return self.control("create", **fields)
+
+    def set_guidance(self, gain: float) -> dict[str, Any]:
+        """Sets the guidance gain (0 = guidance computed and published, not felt)."""
+        return self.control("set_guidance", gain=float(gain))
+
+    def metrics(self) -> dict[str, Any]:
+        """The server's metrics of this session (SI units)."""
+        return self._json(self.keys["metrics"])
+
+    def health(self, window_s: float = 10.0) -> dict[str, Any]:
+        """The server's health report, tick statistics over the last ``window_s`` s."""
+        return self._json(f"{self.keys['health']}?window={window_s:g}")
+
+    def xray(self, view: str = "*", timeout_s: float = 5.0) -> dict[str, bytes]:
+        """PNG radiographs of this session's bone as drilled now: {view: PNG bytes}."""
+        return {k.rsplit("/", 1)[-1]: v for k, v in self._get(f"{self.keys['xray']}/{view}", None, timeout_s)}
+
+    # -- helpers ---------------------------------------------------------------------------
+    def wait_for_force(self, timeout_s: float = 5.0) -> dict[str, Any]:
+        """Blocks until a force has arrived (the server has picked up this session)."""
+        t0 = time.monotonic()
+        while self.force is None:
+            if time.monotonic() - t0 > timeout_s:
+                raise TransportError(f"no force from the server within {timeout_s} s")
+            time.sleep(0.002)
+        return self.force
+
+    def latency_summary(self) -> dict[str, float]:
+        """Pose → force and pose → guidance latency p50/p99 (s), and message counts."""
+
+        def q(values: Sequence[float], p: float) -> float:
+            return float(np.percentile(np.asarray(values), p)) if len(values) else float("nan")
+
+        with self._lock:
+            f, g = list(self.force_latencies_s), list(self.guidance_latencies_s)
+        return {
+            "forces": self.forces_received,
+            "guidance": len(self.guidance),
+            "pose_to_force_p50_s": q(f, 50),
+            "pose_to_force_p99_s": q(f, 99),
+            "pose_to_guidance_p50_s": q(g, 50),
+            "pose_to_guidance_p99_s": q(g, 99),
+        }
+
+    def close(self) -> None:
+        """Closes the Zenoh session (the server frees the session after its idle timeout)."""
+        try:
+            self._z.close()
+        except Exception:
+            pass
+
+    def __enter__(self) -> TraineeClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,120 @@
+"""A virtual trainee that drills through a running server, feeling the forces (and guidance) it sends.
+
+The operator model is the virtual surgeon of :mod:`dhg.surgeons`; here its hand is pushed by the
+force the server renders (bone feedback plus any guidance), and it perceives the drill through the
+server's 1 kHz force messages. It paces itself at 1 kHz on absolute deadlines.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from dhg.client import TraineeClient, feedback_tuple
+from dhg.surgeons import SurgeonController, sample_style, skill_metrics
+from dhg.task import PlannedPath, TaskRules
+
+__all__ = ["TraineeRun", "run_trainee", "state_records"]
+
+
+@dataclass
+class TraineeRun:
+    """What a networked run produced (SI units)."""
+
+    session_id: str
+    skill: str
+    guidance_gain: float
+    metrics: dict[str, Any]
+    """Skill metrics (as :func:`dhg.surgeons.skill_metrics`) from the server's state stream."""
+    latency: dict[str, float]
+    """Pose → force and pose → guidance latency quantiles (s) and message counts."""
+    records: npt.NDArray[np.float64]
+    """(M, 11) records from the state stream: time, nine features, drill_on."""
+    guidance: list[dict[str, Any]] = field(default_factory=list)
+    """Guidance messages received."""
+    states: list[dict[str, Any]] = field(default_factory=list)
+    """State messages received."""
+    poses_sent: int = 0
+    wall_s: float = 0.0
+
+
+def state_records(states: list[dict[str, Any]]) -> npt.NDArray[np.float64]:
+    """(M, 11) records (time, nine features, drill_on) from decoded state messages."""
+    from dhg.protocol import FLAGS
+
+    if not states:
+        return np.empty((0, 11))
+    return np.array([[s["time_s"], *s["features"], float(bool(s["flags"] & FLAGS["drill_on"]))] for s in states])
+
+
+def run_trainee(
+    client: TraineeClient,
+    skill: Literal["expert", "novice"] = "novice",
+    guidance_gain: float = 1.0,
+    duration_s: float = 20.0,
+    seed: int = 0,
+    rules: TaskRules | None = None,
+) -> TraineeRun:
+    """Creates the client's session (with ``guidance_gain``; 0 = unguided), drills for up to
+    ``duration_s`` (s) or until the surgeon stops at B, and returns metrics and latencies.
+    The surgeon's style and noise come from ``seed``, so two runs with one seed are paired."""
+    rules = rules or TaskRules()
+    info = client.create(guidance_gain=guidance_gain)
+    path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))
+    rng = np.random.default_rng(seed)
+    surgeon = SurgeonController(path, sample_style(skill, rng), rng, rules)
+    a = path.entry_m
+    resting = (a[0], a[1], a[2], -0.025, 0.0, 37.0, 0, False, 0, False, 0.0)
+    period_ns = 1_000_000
+    t0 = time.monotonic_ns()
+    end_ns = t0 + int(duration_s * 1e9)
+    sent = 0
+    while True:
+        now = time.monotonic_ns()
+        if now >= end_ns:
+            break
+        latest = client.force
+        fb = feedback_tuple(latest) if latest is not None else resting
+        force = latest["force_n"] if latest is not None else (0.0, 0.0, 0.0)
+        row = surgeon.step(fb, force)
+        if row is None:
+            break
+        client.send_row(row)
+        sent += 1
+        deadline = t0 + sent * period_ns
+        pause = deadline - time.monotonic_ns()
+        if pause > 0:
+            time.sleep(pause * 1e-9)
+    wall_s = (time.monotonic_ns() - t0) * 1e-9
+    time.sleep(0.25)  # let the last state and guidance messages arrive
+    states = list(client.states)
+    records = state_records(states)
+    last = states[-1] if states else None
+    feedback = client.force
+    metrics = skill_metrics(
+        records,
+        path,
+        rules,
+        final_tip_m=np.array(feedback["tip_m"]) if feedback else path.entry_m,
+        drilling_s=surgeon.drilling_s,
+        plunge_depth_m=surgeon.max_plunge,
+        peak_temperature_c=last["peak_temperature_c"] if last else 37.0,
+        time_above_47_s=last["time_above_47_s"] if last else 0.0,
+    )
+    metrics["reached_target"] = bool(surgeon.phase == "done")
+    return TraineeRun(
+        session_id=client.session_id,
+        skill=skill,
+        guidance_gain=guidance_gain,
+        metrics=metrics,
+        latency=client.latency_summary(),
+        records=records,
+        guidance=list(client.guidance),
+        states=states,
+        poses_sent=sent,
+        wall_s=wall_s,
+    )
