@@ -118,7 +118,9 @@ def decode(name: str, payload: bytes) -> dict[str, Any]:
     if len(payload) < layout.size:
         raise InvalidInputError(f"{name} payload has {len(payload)} bytes, expected {layout.size}")
     if payload[0] != layout.kind or payload[1] != VERSION:
-        raise InvalidInputError(f"{name} payload has kind {payload[0]} version {payload[1]}, expected {layout.kind} v{VERSION}")
+        raise InvalidInputError(
+            f"{name} payload has kind {payload[0]} version {payload[1]}, expected {layout.kind} v{VERSION}"
+        )
     flat = _STRUCTS[name].unpack_from(payload)
     out: dict[str, Any] = {}
     i = 0

@@ -395,7 +395,7 @@ def run_episode(
         path,
         rules,
         final_tip_m=st.tip_m,
-        drilling_s=surgeon.drilling_s if surgeon.drill_off_t is not None else end_tick * 1e-3 - (surgeon.drill_on_t or 0.0),
+        drilling_s=surgeon.drilling_s,
         plunge_depth_m=surgeon.max_plunge,
         peak_temperature_c=st.peak_temperature_c,
         time_above_47_s=st.time_above_47_s,

@@ -40,7 +40,7 @@ pub const TICK_PERIOD: Duration = Duration::from_millis(1);
 /// Engine settings.
 #[derive(Debug, Clone)]
 pub struct EngineConfig {
-    /// Session slots, allocated up front (each holds its reserved bricks, about 0.6 MB).
+    /// Session slots, allocated up front (each holds `reserve_bricks` bricks of 1 KiB plus a brick table).
     pub max_sessions: usize,
     /// Settings of every drilling session.
     pub session: SessionConfig,
