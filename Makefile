@@ -37,8 +37,8 @@ venv: $(VENV)/.ready-$(LOCK_HASH) ## create .venv with the pinned dependencies
 build: venv ## build the Rust extension into .venv (maturin develop --release)
 	PIP_QUIET=1 $(VENV)/bin/maturin develop --release -q
 
-demo: build ## run the main job on the embedded phantom
-	$(VENV)/bin/dhg demo --out out/demo
+demo: build ## dhg-serve on the phantom + bundled model, a guided and an unguided virtual novice
+	$(VENV)/bin/dhg live-demo --out out/demo
 
 test: build ## cargo test + pytest
 	cargo test --workspace -q

@@ -72,10 +72,17 @@ def test_exit_codes_and_messages(tmp_path, args, code, message):
     assert "Traceback" not in r.stderr
 
 
-def test_serve_says_it_is_not_built_yet():
-    r = run(tool="dhg-serve")
-    assert r.returncode == 4
-    assert "not built yet" in r.stderr
+def test_serve_help_teaches_the_roles_and_exit_codes():
+    r = run("--help", tool="dhg-serve")
+    assert r.returncode == 0
+    for needle in ("--role", "--listen", "--connect", "--model", "exit codes", "docs/protocol.md"):
+        assert needle in r.stdout
+
+
+def test_serve_refuses_an_unknown_role():
+    r = run("--role", "chef", tool="dhg-serve")
+    assert r.returncode == 2
+    assert "invalid choice" in r.stderr
 
 
 def test_phantom_file_round_trip(tmp_path):

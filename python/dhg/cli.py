@@ -2,7 +2,7 @@
 
 Exit codes: 0 success; 1 unexpected internal error (a bug: please report it); 2 usage error
 (bad arguments); 3 bad input (unreadable CT or volume file, invalid values); 4 the feature is not
-built yet.
+built yet; 5 network trouble (endpoint in use, no server answering).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dhg.errors import DhgError, NotBuiltYetError
+from dhg.errors import DhgError, NotBuiltYetError, TransportError
 
 PRESET_NAMES = ("fusion-1x128", "fusion-2x256", "force-only-2x256", "all-2x256", "tiny")
 
@@ -24,9 +24,10 @@ EXIT_INTERNAL = 1
 EXIT_USAGE = 2
 EXIT_BAD_INPUT = 3
 EXIT_NOT_BUILT = 4
+EXIT_NETWORK = 5
 
 _EPILOG = """\
-exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input, 4 not built yet.
+exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input, 4 not built yet, 5 network trouble.
 units: SI throughout (m, s, kg); options ending in -mm take millimetres for convenience.
 """
 
@@ -444,6 +445,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="texture and noise seed (default 0)")
     p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="voxel size (default 0.5)")
     p.set_defaults(func=cmd_phantom)
+
+    from dhg.cli_serve import add_commands
+
+    add_commands(sub, "")
     return parser
 
 
@@ -453,6 +458,9 @@ def _run(func, args: argparse.Namespace) -> int:
     except NotBuiltYetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_NOT_BUILT
+    except TransportError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NETWORK
     except (DhgError, ValueError, TypeError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -468,20 +476,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def serve_main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``dhg-serve`` (the real-time guidance server, not built yet)."""
-    parser = argparse.ArgumentParser(
-        prog="dhg-serve",
-        description="The real-time haptic guidance server over Zenoh. Not built yet: it is the subject of the "
-        "guidance-server issue. Until then use 'dhg demo'.",
-        epilog=_EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.parse_args(argv)
+    """Entry point of ``dhg-serve`` (see :mod:`dhg.cli_serve`)."""
+    from dhg.cli_serve import serve_main as run
 
-    def fail(_: argparse.Namespace) -> int:
-        raise NotBuiltYetError("dhg-serve is not built yet (the guidance-server issue); use 'dhg demo' for now")
-
-    return _run(fail, argparse.Namespace())
+    return run(argv)
 
 
 if __name__ == "__main__":

@@ -72,7 +72,7 @@ class TraineeClient:
         self.session_id = session_id or f"trainee-{uuid.uuid4().hex[:8]}"
         self.prefix = prefix
         self.keys = protocol.keys(prefix, self.session_id)
-        self._z = open_zenoh(zenoh_config_json5(connect=endpoints, config_file=zenoh_config_file, mode="peer"))
+        self._z = open_zenoh(zenoh_config_json5(connect=endpoints, config_file=zenoh_config_file, mode="client"))
         import zenoh
 
         self._lock = threading.Lock()

@@ -112,6 +112,8 @@ class GuidanceModel:
     path: Path
     meta: dict[str, Any]
     module: torch.jit.ScriptModule
+    device: str = "cpu"
+    """Where the module runs (``cpu`` or ``cuda``)."""
 
     @property
     def window(self) -> int:
@@ -133,11 +135,15 @@ class GuidanceModel:
         if not np.all(np.isfinite(w)):
             raise InvalidInputError("windows contain NaN or infinite values")
         with torch.no_grad():
-            return self.module(torch.from_numpy(np.ascontiguousarray(w))).double().numpy()
+            x = torch.from_numpy(np.ascontiguousarray(w)).to(self.device)
+            return self.module(x).double().cpu().numpy()
 
 
 def load_model(path: str | os.PathLike[str], device: str = "cpu") -> GuidanceModel:
-    """Loads an exported ``model.ts`` (checking its metadata first)."""
+    """Loads an exported ``model.ts`` (checking its metadata first) onto ``device``: ``cpu``,
+    ``cuda``, or ``auto`` (CUDA when present)."""
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
     p = Path(path)
     meta = read_model_meta(p)
     try:
@@ -146,4 +152,4 @@ def load_model(path: str | os.PathLike[str], device: str = "cpu") -> GuidanceMod
     except (RuntimeError, OSError, ValueError) as exc:
         raise ModelFileError(f"{p}: TorchScript could not load it ({exc})") from None
     module.eval()
-    return GuidanceModel(p, meta, module)
+    return GuidanceModel(p, meta, module, device)

@@ -76,12 +76,25 @@ LAYOUTS: dict[str, Layout] = {
 _STRUCTS = {name: layout.struct for name, layout in LAYOUTS.items()}
 
 
+def check_session_id(session_id: str) -> str:
+    """Returns ``session_id`` if it is a valid session id (1–64 of ``A-Z a-z 0-9 _ . -``, the
+    engine's rule), else raises :class:`dhg.errors.InvalidInputError` saying why."""
+    import re
+
+    from dhg.errors import InvalidInputError
+
+    if not isinstance(session_id, str) or not re.fullmatch(r"[A-Za-z0-9_.\-]{1,64}", session_id):
+        raise InvalidInputError(f"session id {session_id!r}: use 1 to 64 characters of A-Z a-z 0-9 _ . -")
+    return session_id
+
+
 def keys(prefix: str, session_id: str) -> dict[str, str]:
     """The key expressions of one session under ``prefix`` (see ``docs/protocol.md``)."""
     base = f"{prefix}/session/{session_id}"
-    return {
-        leaf: f"{base}/{leaf}" for leaf in ("pose", "force", "guidance", "state", "control", "metrics", "xray")
-    } | {"health": f"{prefix}/server/health", "predict": f"{prefix}/model/predict"}
+    return {leaf: f"{base}/{leaf}" for leaf in ("pose", "force", "guidance", "state", "control", "metrics", "xray")} | {
+        "health": f"{prefix}/server/health",
+        "predict": f"{prefix}/model/predict",
+    }
 
 
 def encode(name: str, flags: int = 0, **values: Any) -> bytes:

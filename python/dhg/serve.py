@@ -31,7 +31,18 @@ import numpy as np
 from dhg import protocol
 from dhg.errors import InvalidInputError, TransportError
 
-__all__ = ["ModelService", "ServerSettings", "XRayService", "open_zenoh", "start_engine", "zenoh_config_json5"]
+__all__ = [
+    "ROLES",
+    "ModelService",
+    "RunningServer",
+    "ServeOptions",
+    "ServerSettings",
+    "XRayService",
+    "open_zenoh",
+    "start",
+    "start_engine",
+    "zenoh_config_json5",
+]
 
 log = logging.getLogger("dhg.serve")
 
@@ -130,6 +141,10 @@ class ModelService:
         self.inference_s: list[float] = []
         self._queue: queue.Queue[Any] = queue.Queue()
         self._stop = threading.Event()
+        # TorchScript's profiling executor optimises on the first calls (100s of ms): do them now,
+        # not on a trainee's first windows.
+        for batch in (1, 2, 1):
+            model.predict(np.zeros((batch, model.window, 9), dtype=np.float32))
         self._worker = threading.Thread(target=self._run, name="dhg-model", daemon=True)
         self._worker.start()
         self._queryable = session.declare_queryable(self.key, self._on_query, complete=True)
@@ -286,3 +301,155 @@ def start_engine(
         session=flat,
     )
 
+
+# -- dhg-serve: one process running the roles ---------------------------------------------------
+ROLES = ("all", "sim", "model")
+
+
+def _loopback(endpoint: str) -> str:
+    """The endpoint a process on the same host connects to (wildcard hosts become 127.0.0.1)."""
+    proto, _, rest = endpoint.partition("/")
+    host, _, port = rest.rpartition(":")
+    if host in ("0.0.0.0", "[::]", "::", ""):
+        host = "127.0.0.1"
+    return f"{proto}/{host}:{port}"
+
+
+@dataclass
+class ServeOptions:
+    """What ``dhg-serve`` runs (see :func:`start`)."""
+
+    role: str = "all"
+    """``all`` (engine + model), ``sim`` (engine, X-ray), ``model`` (model service alone)."""
+    listen: Sequence[str] = ()
+    """Endpoints to listen on. Default: :data:`DEFAULT_ENDPOINT` for ``all``/``sim``, none for ``model``."""
+    connect: Sequence[str] = ()
+    """Endpoints to connect to (for ``model``: the engine; default :data:`DEFAULT_ENDPOINT`)."""
+    zenoh_config: str | Path | None = None
+    """A Zenoh JSON5 config file; listen/connect still override its endpoints."""
+    prefix: str = "dhg"
+    """First chunk of every key expression."""
+    settings: ServerSettings = ServerSettings()
+    model_device: str = "auto"
+    """``cpu``, ``cuda`` or ``auto`` (CUDA when present)."""
+
+
+class RunningServer:
+    """The parts ``dhg-serve`` started; :meth:`close` stops them in order (engine last)."""
+
+    def __init__(self, options: ServeOptions):
+        self.options = options
+        self.engine: Any = None
+        self.zenoh: Any = None
+        self.model_service: ModelService | None = None
+        self.xray_service: XRayService | None = None
+        self.endpoints: list[str] = []
+        self.started = time.monotonic()
+
+    def status(self) -> dict[str, Any]:
+        """Sessions, tick p99 and missed ticks (engine), model latency and answers (service)."""
+        out: dict[str, Any] = {"uptime_s": time.monotonic() - self.started}
+        if self.engine is not None:
+            out["engine"] = self.engine.health(5.0)
+        if self.model_service is not None:
+            out["model_service"] = self.model_service.stats()
+        return out
+
+    def status_line(self) -> str:
+        """The one-line status ``dhg-serve`` logs every few seconds."""
+        s = self.status()
+        parts = []
+        if "engine" in s:
+            h = s["engine"]
+            m = h["model"]
+            model = (
+                f"model {'up' if m['available'] else 'DOWN'} p99 {m['latency_p99_s'] * 1e3:.1f} ms"
+                if m["queries"]
+                else "model idle"
+            )
+            parts.append(
+                f"sessions {h['sessions']}/{h['max_sessions']} | tick p99 {h['tick_lateness_p99_s'] * 1e6:.0f} µs "
+                f"late, busy p99 {h['tick_busy_p99_s'] * 1e6:.0f} µs | missed {h['missed_ticks']} "
+                f"(total {h['missed_ticks_total']}) | {model} | poses {h['poses']}"
+            )
+        if "model_service" in s:
+            ms = s["model_service"]
+            parts.append(
+                f"model service answered {ms['answered']} in {ms['batches']} batches, "
+                f"refused {ms['refused']}, inference p99 {ms['inference_p99_s'] * 1e3:.1f} ms"
+            )
+        return " || ".join(parts)
+
+    def close(self) -> None:
+        """Stops the services, closes the Python Zenoh session, then stops the engine (which closes
+        its sessions and its own Zenoh session). Safe to call twice."""
+        for svc in (self.xray_service, self.model_service):
+            if svc is not None:
+                svc.close()
+        self.xray_service = self.model_service = None
+        if self.zenoh is not None:
+            try:
+                self.zenoh.close()
+            except Exception:
+                pass
+            self.zenoh = None
+        if self.engine is not None:
+            self.engine.stop()
+            self.engine = None
+
+    def __enter__(self) -> RunningServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _friendly(exc: Exception, endpoints: Sequence[str]) -> TransportError:
+    text = str(exc)
+    if "Address already in use" in text:
+        return TransportError(
+            f"cannot listen on {', '.join(endpoints)}: the address is already in use "
+            "(another dhg-serve? pick a free port with --listen tcp/127.0.0.1:PORT)"
+        )
+    return TransportError(text.split(" at /")[0])
+
+
+def start(options: ServeOptions, volume: Any = None, path: Any = None, model: Any = None) -> RunningServer:
+    """Starts the roles of ``options``. ``volume``/``path`` (``sim``, ``all``) and ``model``
+    (``model``, ``all``) must be given for the roles that need them. On any failure, what was
+    started is stopped again before the error propagates."""
+    if options.role not in ROLES:
+        raise InvalidInputError(f"unknown role {options.role!r}: use one of {', '.join(ROLES)}")
+    run = RunningServer(options)
+    try:
+        engine_role = options.role in ("all", "sim")
+        if engine_role:
+            if volume is None or path is None:
+                raise InvalidInputError("the engine needs a volume and a planned path")
+            listen = list(options.listen) or [DEFAULT_ENDPOINT]
+            run.endpoints = listen
+            # The engine is the router: trainees, recorders and model workers connect to it.
+            conf = zenoh_config_json5(listen, options.connect, options.zenoh_config, mode="router")
+            try:
+                run.engine = start_engine(volume, path, conf, options.settings, options.prefix)
+            except TransportError as exc:
+                raise _friendly(exc, listen) from None
+            py_conf = zenoh_config_json5((), [_loopback(e) for e in listen], options.zenoh_config, mode="client")
+        else:
+            connect = list(options.connect) or ([] if options.listen else [DEFAULT_ENDPOINT])
+            run.endpoints = list(options.listen) or connect
+            py_conf = zenoh_config_json5(options.listen, connect, options.zenoh_config, mode="peer")
+        try:
+            run.zenoh = open_zenoh(py_conf)
+        except TransportError as exc:
+            raise _friendly(exc, options.listen) from None
+        if options.role in ("all", "model"):
+            if model is None:
+                raise InvalidInputError("the model service needs a model")
+            run.model_service = ModelService(run.zenoh, model, options.prefix)
+        if engine_role:
+            run.xray_service = XRayService(run.zenoh, run.engine, volume, options.prefix)
+    except BaseException:
+        run.close()
+        raise
+    return run

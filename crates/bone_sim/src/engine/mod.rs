@@ -10,6 +10,7 @@
 
 pub mod guidance;
 pub mod handoff;
+mod realtime;
 mod slot;
 pub mod stats;
 
@@ -268,6 +269,7 @@ impl TickThread {
             .name("dhg-tick".into())
             .spawn(move || {
                 let period_ns = TICK_PERIOD.as_nanos() as u64;
+                core.stats.realtime.store(u64::from(realtime::promote()), Ordering::Relaxed);
                 let start = Instant::now();
                 let mut k: u64 = 0;
                 while !flag.load(Ordering::Relaxed) {

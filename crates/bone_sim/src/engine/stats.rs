@@ -89,6 +89,8 @@ pub struct TickStats {
     pub sessions: AtomicU64,
     /// Outputs dropped because the outgoing ring was full (the comm side fell behind).
     pub dropped_outputs: AtomicU64,
+    /// Whether the tick thread got real-time scheduling (SCHED_FIFO); 0 = no, 1 = yes.
+    pub realtime: AtomicU64,
 }
 
 impl Default for TickStats {
@@ -101,6 +103,7 @@ impl Default for TickStats {
             max_lateness_ns: AtomicU64::new(0),
             sessions: AtomicU64::new(0),
             dropped_outputs: AtomicU64::new(0),
+            realtime: AtomicU64::new(0),
         }
     }
 }

@@ -226,6 +226,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
     json!({
         "uptime_s": shared.started.elapsed().as_secs_f64(),
         "sessions": reg.by_id.len(),
+        "session_ids": reg.by_id.keys().collect::<Vec<_>>(),
         "max_sessions": reg.slots.len(),
         "window_s": window,
         "ticks": ticks,
@@ -237,6 +238,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
         "tick_busy_p99_s": busy.quantile_s(0.99),
         "tick_lateness_max_s": n(&shared.stats.max_lateness_ns) as f64 * 1e-9,
         "dropped_outputs": n(&shared.stats.dropped_outputs),
+        "tick_realtime": n(&shared.stats.realtime) == 1,
         "poses": n(&c.poses),
         "refused": {
             "wrong_size": n(&c.wrong_size),

@@ -1,0 +1,357 @@
+"""``dhg-serve`` and the ``dhg`` subcommands that talk to a running server: ``trainee``, ``record``.
+
+Exit codes (shared with ``dhg``): 0 success; 1 internal error; 2 usage error; 3 bad input
+(unreadable CT or model file, invalid values); 5 network trouble (the listen endpoint is in use, no
+server answered).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+from dhg.errors import DhgError, TransportError
+
+EXIT_OK, EXIT_INTERNAL, EXIT_USAGE, EXIT_BAD_INPUT, EXIT_NETWORK = 0, 1, 2, 3, 5
+
+EPILOG = """\
+exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input (CT, model file, values),
+5 network trouble (endpoint in use, no server answering).
+endpoints look like tcp/127.0.0.1:7447 (loopback) or tcp/0.0.0.0:7447 (every interface).
+key expressions and payloads: docs/protocol.md. Units: SI (m, N, s, °C).
+"""
+
+
+def _run(func: Any, args: argparse.Namespace) -> int:
+    try:
+        return int(func(args))
+    except TransportError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NETWORK
+    except (DhgError, ValueError, TypeError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+@contextmanager
+def _stop_on_signals() -> Iterator[threading.Event]:
+    """An event set by SIGINT (Ctrl-C) or SIGTERM, instead of an exception at a random place."""
+    stop = threading.Event()
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def handler(signum: int, _frame: Any) -> None:
+        stop.set()
+
+    for s in previous:
+        signal.signal(s, handler)
+    try:
+        yield stop
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+# -- dhg-serve --------------------------------------------------------------------------------
+def serve_parser() -> argparse.ArgumentParser:
+    """The ``dhg-serve`` argument parser."""
+    from dhg.serve import DEFAULT_ENDPOINT, ROLES, ServerSettings
+
+    d = ServerSettings()
+    p = argparse.ArgumentParser(
+        prog="dhg-serve",
+        description=(
+            "The real-time haptic guidance server. Trainees' stylus poses come in over Zenoh; a 1 kHz "
+            "engine drills each trainee's own copy of the bone and sends back the force to render; every "
+            "100 ms the last 20 records go to the LSTM model, and guidance (predicted expert force minus "
+            "the trainee's force) is mixed into the force.\n\n"
+            "  dhg-serve                                   # phantom femur + bundled model on "
+            f"{DEFAULT_ENDPOINT}\n"
+            "  dhg-serve --listen tcp/0.0.0.0:7447 --ct scan.nii.gz --model runs/x/model.ts\n"
+            "  dhg-serve --role sim --listen tcp/0.0.0.0:7447      # engine next to the haptic devices\n"
+            "  dhg-serve --role model --connect tcp/ENGINE:7447    # model worker on a GPU machine\n\n"
+            "Then drive it: 'dhg trainee --connect ENDPOINT', record it: 'dhg record ...'."
+        ),
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--role", choices=ROLES, default="all", help="what this process runs (default: all)")
+    p.add_argument(
+        "--ct",
+        metavar="PATH",
+        help="bone to drill: a prepared volume (.npz), DICOM folder or NIfTI file; default: the phantom femur",
+    )
+    p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="voxel size (default 0.5)")
+    p.add_argument(
+        "--entry-mm", metavar="X,Y,Z", help="entry point A of the default path (mm, LPS; a CT's own path by default)"
+    )
+    p.add_argument("--target-mm", metavar="X,Y,Z", help="target point B of the default path (mm, LPS)")
+    p.add_argument("--model", metavar="FILE.ts", help="TorchScript model from 'dhg train'; default: the bundled one")
+    p.add_argument(
+        "--device", choices=("auto", "cpu", "cuda"), default="auto", help="where the model runs (default: auto)"
+    )
+    p.add_argument(
+        "--model-threads",
+        type=int,
+        metavar="N",
+        help="torch CPU threads (default: a quarter of the cores, at least 1, so the 1 kHz engine keeps a core)",
+    )
+    p.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"endpoint to listen on, repeatable (default for all/sim: {DEFAULT_ENDPOINT})",
+    )
+    p.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"endpoint to connect to, repeatable (default for --role model: {DEFAULT_ENDPOINT})",
+    )
+    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (scouting, TLS, ...)")
+    p.add_argument("--prefix", default="dhg", help="first chunk of every key expression (default: dhg)")
+    p.add_argument("--max-sessions", type=int, default=d.max_sessions, metavar="N", help="trainee slots (default 16)")
+    p.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=d.idle_timeout_s,
+        metavar="S",
+        help=f"free a session after this many seconds without poses (default {d.idle_timeout_s:g})",
+    )
+    p.add_argument(
+        "--model-timeout",
+        type=float,
+        default=d.model_timeout_s,
+        metavar="S",
+        help=f"give up on one model query after S seconds (default {d.model_timeout_s:g})",
+    )
+    p.add_argument(
+        "--guidance-gain",
+        type=float,
+        default=d.guidance_gain,
+        metavar="G",
+        help="guidance gain of new sessions, 0..4; 0 = computed and published but not felt (default 1)",
+    )
+    p.add_argument("--status-every", type=float, default=5.0, metavar="S", help="status line period (default 5 s)")
+    return p
+
+
+def _point_mm(text: str, option: str) -> Any:
+    import numpy as np
+
+    try:
+        vals = [float(v) * 1e-3 for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 3:
+        raise ValueError(f"{option} takes three numbers in mm: X,Y,Z, got {text!r}")
+    return np.array(vals)
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from dhg import serve
+
+    if args.status_every <= 0:
+        raise ValueError("--status-every must be positive")
+    settings = serve.ServerSettings(
+        max_sessions=args.max_sessions,
+        idle_timeout_s=args.idle_timeout,
+        model_timeout_s=args.model_timeout,
+        guidance_gain=args.guidance_gain,
+    )
+    options = serve.ServeOptions(
+        role=args.role,
+        listen=args.listen,
+        connect=args.connect,
+        zenoh_config=args.zenoh_config,
+        prefix=args.prefix,
+        settings=settings,
+        model_device=args.device,
+    )
+    t0 = time.perf_counter()
+    volume = path = model = None
+    described = []
+    if args.role in ("all", "model"):
+        import torch
+
+        from dhg.export import ModelFileError, load_model
+        from dhg.models import default_model_path
+
+        torch.set_num_threads(args.model_threads or max(1, (os.cpu_count() or 2) // 4))
+        model_file = args.model or default_model_path()
+        if not os.path.isfile(model_file):
+            raise ModelFileError(f"{model_file}: no such model file (train one with 'dhg train', or omit --model)")
+        model = load_model(model_file, device=args.device)
+        described.append(f"model {model.meta.get('preset', '?')} from {model_file} on {model.device}")
+    if args.role in ("all", "sim"):
+        from dhg.cli import _load_volume
+
+        volume, path = _load_volume(args.ct, args.voxel_mm)
+        if (args.entry_mm is None) != (args.target_mm is None):
+            raise ValueError("give both --entry-mm and --target-mm, or neither")
+        if args.entry_mm is not None:
+            from dhg.task import PlannedPath
+
+            path = PlannedPath(_point_mm(args.entry_mm, "--entry-mm"), _point_mm(args.target_mm, "--target-mm"))
+        if path is None:
+            raise ValueError(f"{args.ct}: this volume has no planned path; give --entry-mm and --target-mm")
+        described.append(f"volume {volume}")
+    with _stop_on_signals() as stop:
+        with serve.start(options, volume, path, model) as running:
+            where = "listening on" if options.listen or args.role != "model" else "connected to"
+            print(
+                f"dhg-serve ready: role {args.role}, {where} {', '.join(running.endpoints)}, prefix {args.prefix}, "
+                f"{'; '.join(described)} (started in {time.perf_counter() - t0:.1f} s)",
+                flush=True,
+            )
+            while not stop.wait(args.status_every):
+                print(time.strftime("%H:%M:%S ") + running.status_line(), flush=True)
+            sessions = running.engine.sessions() if running.engine is not None else []
+            print(f"dhg-serve stopping: closing {len(sessions)} session(s)", flush=True)
+    print("dhg-serve stopped", flush=True)
+    return EXIT_OK
+
+
+def serve_main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``dhg-serve``."""
+    args = serve_parser().parse_args(argv)
+    return _run(_cmd_serve, args)
+
+
+# -- dhg trainee ------------------------------------------------------------------------------
+def add_commands(sub: Any, epilog: str) -> None:
+    """Adds ``trainee`` and ``record`` to the ``dhg`` subcommands."""
+    from dhg.serve import DEFAULT_ENDPOINT
+
+    fmt = argparse.RawDescriptionHelpFormatter
+    p = sub.add_parser(
+        "trainee",
+        help="a virtual trainee that drills through a running dhg-serve",
+        description="Connects to a running dhg-serve, creates a session and drills A→B as a virtual "
+        "surgeon (the operator model of 'dhg synth') who feels the force the server renders, guidance "
+        "included. Prints the skill metrics and the pose→force and pose→guidance latencies at the end.\n\n"
+        "  dhg trainee --skill novice --guidance on  --seed 3\n"
+        "  dhg trainee --skill novice --guidance off --seed 3   # the same hand, unguided",
+        epilog=EPILOG + epilog,
+        formatter_class=fmt,
+    )
+    p.add_argument(
+        "--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help=f"server (default {DEFAULT_ENDPOINT})"
+    )
+    p.add_argument("--session", metavar="ID", help="session id (default: trainee-<random>)")
+    p.add_argument("--skill", choices=("novice", "expert"), default="novice", help="operator model (default novice)")
+    p.add_argument("--guidance", choices=("on", "off"), default="on", help="feel the guidance force (default on)")
+    p.add_argument("--gain", type=float, default=1.0, metavar="G", help="guidance gain when on (default 1)")
+    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="longest run in seconds (default 20)")
+    p.add_argument("--seed", type=int, default=0, help="the surgeon's style and tremor (default 0)")
+    p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
+    p.add_argument("--json", metavar="FILE", help="also write metrics and latencies as JSON")
+    p.set_defaults(func=_cmd_trainee)
+
+    p = sub.add_parser(
+        "record",
+        help="record a live session into a demonstrations dataset",
+        description="Subscribes to one session's 10 Hz state on a running dhg-serve and writes it in the "
+        "dataset format of 'dhg synth' (records.parquet + card.json), rewriting the folder atomically "
+        "every second: stopping it (Ctrl-C) or the server crashing keeps everything up to the last "
+        "second. A reset of the session's bone starts a new attempt. Train on it with "
+        "'dhg train --data DIR' (label experts with --skill expert).\n\n"
+        "  dhg record --session alice-01 --skill expert --out data/alice",
+        epilog=EPILOG + epilog,
+        formatter_class=fmt,
+    )
+    p.add_argument(
+        "--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help=f"server (default {DEFAULT_ENDPOINT})"
+    )
+    p.add_argument("--session", required=True, metavar="ID", help="the session to record")
+    p.add_argument("--out", required=True, metavar="DIR", help="dataset folder (replaced on every flush)")
+    p.add_argument("--skill", default="unknown", help="label of the subject: expert, novice, ... (default unknown)")
+    p.add_argument("--subject", metavar="NAME", help="subject id (default: the session id)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--flush-every", type=float, default=1.0, metavar="S", help="seconds between writes (default 1)")
+    p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
+    p.set_defaults(func=_cmd_record)
+
+    p = sub.add_parser(
+        "live-demo",
+        help="the whole product: dhg-serve plus a guided and an unguided virtual novice (make demo)",
+        description="Starts dhg-serve (phantom femur, bundled model) on a free loopback port, runs a virtual "
+        "novice with guidance and the same novice (same seed) without, each for up to --duration seconds, "
+        "prints both runs' skill metrics and the guidance and latency figures side by side, writes the "
+        "guided session's X-ray views (top/front/side.png) and live.png (force, guidance and temperature "
+        "over time) into --out, and stops the server.",
+        epilog=EPILOG + epilog,
+        formatter_class=fmt,
+    )
+    p.add_argument("--out", default="out/demo", metavar="DIR", help="folder for the PNGs (default out/demo)")
+    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds per run (default 20)")
+    p.add_argument("--seed", type=int, default=7, help="the novice's hand (default 7)")
+    p.set_defaults(func=_cmd_live_demo)
+
+
+def _cmd_trainee(args: argparse.Namespace) -> int:
+    from dhg.client import TraineeClient
+    from dhg.trainee import run_trainee
+
+    if args.duration <= 0:
+        raise ValueError("--duration must be positive")
+    gain = args.gain if args.guidance == "on" else 0.0
+    with TraineeClient(args.connect, args.session, prefix=args.prefix) as client:
+        client.health(1.0)  # fails fast, with a clear message, when no server answers
+        print(f"session {client.session_id}: {args.skill}, guidance {args.guidance} (gain {gain:g}), seed {args.seed}")
+        run = run_trainee(client, args.skill, gain, args.duration, args.seed)
+    report = {"session": run.session_id, "metrics": run.metrics, "latency": run.latency, "poses": run.poses_sent}
+    for k, v in run.metrics.items():
+        print(f"  {k:22s} {v}")
+    lat = run.latency
+    print(
+        f"  pose→force    p50 {lat['pose_to_force_p50_s'] * 1e3:.2f} ms  p99 {lat['pose_to_force_p99_s'] * 1e3:.2f} ms "
+        f"({lat['forces']} forces for {run.poses_sent} poses)"
+    )
+    print(
+        f"  pose→guidance p50 {lat['pose_to_guidance_p50_s'] * 1e3:.2f} ms  "
+        f"p99 {lat['pose_to_guidance_p99_s'] * 1e3:.2f} ms ({lat['guidance']} messages)"
+    )
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(report, fh, indent=1)
+    return EXIT_OK
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from dhg.recorder import SessionRecorder
+
+    rec = SessionRecorder(args.connect, args.session, args.out, args.prefix, args.subject, args.skill, args.flush_every)
+    print(f"recording session {args.session} into {args.out} (Ctrl-C to stop)", flush=True)
+    try:
+        with _stop_on_signals() as stop:
+            rec.run(stop, args.duration)
+    finally:
+        rec.close()
+    print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}")
+    return EXIT_OK
+
+
+def _cmd_live_demo(args: argparse.Namespace) -> int:
+    from dhg.live_demo import run_live_demo
+
+    if args.duration <= 0:
+        raise ValueError("--duration must be positive")
+    code = run_live_demo(args.out, args.duration, args.seed)
+    return EXIT_OK if code == 0 else EXIT_INTERNAL
+
+
+if __name__ == "__main__":
+    sys.exit(serve_main())

@@ -1,0 +1,61 @@
+"""docs/protocol.md is the contract for clients in other languages: it must match the code."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dhg import _bone_sim, protocol
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
+
+
+def _doc_layouts() -> dict[str, dict]:
+    text = DOC.read_text()
+    out: dict[str, dict] = {}
+    for m in re.finditer(r"^### `(\w+)` \(kind (\d+), (\d+) bytes\)\n\n(.*?)(?:\n\n|\Z)", text, re.M | re.S):
+        rows = []
+        for line in m.group(4).splitlines()[2:]:
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            rows.append((cells[1].strip("`"), cells[2], int(cells[0]), int(cells[3]), cells[4]))
+        out[m.group(1)] = {"kind": int(m.group(2)), "size": int(m.group(3)), "fields": rows}
+    return out
+
+
+def test_every_layout_in_the_doc_matches_the_code():
+    code = _bone_sim.protocol_layouts()
+    doc = _doc_layouts()
+    assert set(doc) == set(code)
+    for name, layout in code.items():
+        assert doc[name]["kind"] == layout["kind"], name
+        assert doc[name]["size"] == layout["size"], name
+        assert doc[name]["fields"] == [tuple(f) for f in layout["fields"]], name
+
+
+def test_the_flags_table_matches_the_code():
+    rows = re.findall(r"^\| (\d+) \| (\d+) \| `(\w+)` \|", DOC.read_text(), re.M)
+    assert {name: int(value) for _, value, name in rows} == protocol.FLAGS
+    assert all(int(value) == 1 << int(bit) for bit, value, _ in rows)
+
+
+def test_the_doc_example_pose_is_a_valid_pose():
+    import struct
+
+    fmt = re.search(r'pose = struct\.pack\("([^"]+)"', DOC.read_text()).group(1)
+    payload = struct.pack(fmt, 1, 1, 0, 1, 123, 0.01, 0.02, 0.03, 1, 0, 0, 0, 0.0, 0)
+    m = protocol.decode("pose", payload)
+    assert m["position_m"] == pytest.approx((0.01, 0.02, 0.03))
+    assert m["client_time_ns"] == 123
+
+
+def test_python_encodes_what_the_layouts_say():
+    b = protocol.encode_pose(7, 99, [1.0, 2.0, 3.0], [1.0, 0.0, 0.0, 0.0], True, 1000.0)
+    assert len(b) == _bone_sim.protocol_layouts()["pose"]["size"]
+    assert b[0] == 1 and b[1] == protocol.VERSION
+    assert np.frombuffer(b, "<f8", 3, 16).tolist() == [1.0, 2.0, 3.0]
+    assert protocol.decode("pose", b)["flags"] & protocol.FLAGS["drill_on"]
+    with pytest.raises(ValueError):
+        protocol.decode("pose", b[:-1])

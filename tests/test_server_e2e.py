@@ -1,0 +1,317 @@
+"""End to end over real Zenoh sessions on loopback: ``dhg-serve`` runs in its own process (or two:
+engine and model worker), the test process is the client."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from dhg import protocol
+from dhg.client import TraineeClient
+from dhg.live_demo import ServerProcess, free_port
+
+PEAK_FORCE_N = 3.3  # the Touch profile's peak: nothing above it may reach a device
+
+
+def _serve(*args: str, endpoint: str | None = None) -> tuple[ServerProcess, str]:
+    endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
+    flag = "--connect" if "model" in args else "--listen"
+    return ServerProcess([flag, endpoint, "--voxel-mm", "1.0", "--status-every", "1", *args], echo=False), endpoint
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[tuple[ServerProcess, str]]:
+    """One ``dhg-serve --role all`` with a 1 s idle timeout."""
+    proc, endpoint = _serve("--idle-timeout", "1.0")
+    yield proc, endpoint
+    assert proc.stop() == 0
+    assert "dhg-serve stopped" in proc.lines[-1]
+
+
+def _entry(client: TraineeClient) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float]]:
+    """The session's entry point A, its unit drill direction, and a quaternion pointing +z of the tool
+    along it (so the burr is in line with the path)."""
+    info = client.create()
+    a, b = np.array(info["entry_m"]), np.array(info["target_m"])
+    d = (b - a) / np.linalg.norm(b - a)
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, d)
+    s = np.linalg.norm(axis)
+    if s < 1e-9:
+        q = (1.0, 0.0, 0.0, 0.0)
+    else:
+        half = np.arctan2(s, z @ d) / 2
+        ax = axis / s * np.sin(half)
+        q = (float(np.cos(half)), float(ax[0]), float(ax[1]), float(ax[2]))
+    return a, d, q
+
+
+def _stream(client: TraineeClient, positions: np.ndarray, q: tuple, drill_on: bool = True) -> float:
+    """Publishes one pose per 1 ms on absolute deadlines; returns the wall time it took (s)."""
+    t0 = time.monotonic_ns()
+    for k, p in enumerate(positions):
+        client.send_pose(p, q, drill_on, 60_000.0)
+        pause = t0 + (k + 1) * 1_000_000 - time.monotonic_ns()
+        if pause > 0:
+            time.sleep(pause * 1e-9)
+    return (time.monotonic_ns() - t0) * 1e-9
+
+
+def test_a_1khz_client_gets_its_forces_and_10hz_guidance(server):
+    _, endpoint = server
+    counted = {"in_window": 0}
+    window: dict[str, int] = {}
+
+    def on_force(m: dict) -> None:
+        lo, hi = window.get("lo"), window.get("hi")
+        if lo is not None and m["pose_client_time_ns"] >= lo and (hi is None or m["pose_client_time_ns"] <= hi):
+            counted["in_window"] += 1
+
+    with TraineeClient(endpoint, "stream-1", on_force=on_force) as c:
+        a, d, q = _entry(c)
+        # Hold 2 mm short of A, then feed into the bone at 5 mm/s: contact forces and guidance.
+        n = 2000
+        path = a + d * (-2e-3 + 5e-3 * np.arange(n) * 1e-3)[:, None]
+        window["lo"] = time.monotonic_ns()
+        wall = _stream(c, path, q)
+        window["hi"] = time.monotonic_ns()
+        time.sleep(0.3)  # latency allowance for the last messages
+        guidance = [g for g in c.guidance if window["lo"] <= g["received_ns"] <= window["hi"] + 300_000_000]
+        forces = np.array([c.force["force_n"]])
+        summary = c.latency_summary()
+        state = c.states[-1]
+    assert wall < 2.5, f"the client itself could not keep 1 kHz ({wall:.2f} s for 2000 poses)"
+    assert counted["in_window"] >= 0.95 * n, f"{counted['in_window']} forces for {n} poses"
+    assert len(guidance) >= 18, f"{len(guidance)} guidance messages in 2 s"
+    assert state["features"][7] > 0.0, "the drill never entered the bone"
+    assert np.all(np.isfinite(forces)) and np.linalg.norm(forces) <= PEAK_FORCE_N + 1e-6
+    assert summary["pose_to_force_p50_s"] < 0.05
+    # Guidance is what the paper defines: predicted expert force minus the trainee's feedback.
+    g = guidance[-1]
+    assert np.linalg.norm(g["predicted_force_n"]) > 0.0
+    assert g["model_latency_s"] > 0.0
+
+
+def test_every_force_is_finite_and_within_the_device_limit(server):
+    _, endpoint = server
+    seen: list[tuple[float, float, float]] = []
+    with TraineeClient(endpoint, "limit-1", on_force=lambda m: seen.append(m["force_n"])) as c:
+        a, d, q = _entry(c)
+        # Ram the burr 15 mm into the bone within 0.3 s: the raw contact force is far above 3.3 N.
+        path = a + d * np.linspace(-1e-3, 15e-3, 300)[:, None]
+        _stream(c, np.concatenate([path, np.repeat(path[-1:], 500, axis=0)]), q)
+        time.sleep(0.1)
+    f = np.array(seen)
+    assert len(f) > 500
+    assert np.all(np.isfinite(f))
+    assert np.linalg.norm(f, axis=1).max() <= PEAK_FORCE_N + 1e-6
+    assert np.linalg.norm(f, axis=1).max() > 0.5, "the test never pressed on bone"
+
+
+def test_bad_payloads_and_unknown_keys_are_counted_and_ignored(server):
+    _, endpoint = server
+    with TraineeClient(endpoint, "bad-1") as c:
+        a, _, q = _entry(c)
+        before = c.health()["refused"]
+        good = protocol.encode_pose(1, time.monotonic_ns(), a, q, False, 0.0)
+        c.put_raw("pose", good[:-1])  # wrong size
+        c.put_raw("pose", good[:1] + bytes([protocol.VERSION + 1]) + good[2:])  # wrong version
+        nan = protocol.encode_pose(2, time.monotonic_ns(), [float("nan"), 0.0, 0.0], q, False, 0.0)
+        c.put_raw("pose", nan)
+        c.put_raw("pose", bytes(protocol.MAX_PAYLOAD_BYTES + 1))  # oversized
+        c._z.put("dhg/no/such/thing", b"x")  # an unknown key under the prefix
+        c.put_raw("elbow", b"x")  # an unknown leaf of a session
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:
+            after = c.health()["refused"]
+            if after["unknown_key"] - before["unknown_key"] >= 2 and after["oversized"] > before["oversized"]:
+                break
+            time.sleep(0.05)
+        for key in ("wrong_size", "wrong_version", "non_finite", "oversized"):
+            assert after[key] == before[key] + 1, (key, before, after)
+        assert after["unknown_key"] == before["unknown_key"] + 2
+        # The server kept running: a good pose still gets forces.
+        seq = c.send_pose(a, q)
+        _wait(lambda: c.force is not None and c.force["pose_seq"] == seq, 2.0)
+
+
+def test_control_refusals_say_what_was_wrong(server):
+    _, endpoint = server
+    from dhg.errors import EngineError
+
+    with TraineeClient(endpoint, "ctl-1") as c:
+        c.create()
+        with pytest.raises(EngineError, match="gain"):
+            c.set_guidance(99.0)
+        with pytest.raises(EngineError, match="op"):
+            c.control("dance")
+        info = c.set_guidance(0.5)
+        assert info["guidance_gain"] == 0.5
+
+
+def test_a_silent_client_gets_its_force_ramped_to_zero_and_its_session_freed(server):
+    _, endpoint = server
+    with TraineeClient(endpoint, "silent-1") as c:
+        a, d, q = _entry(c)
+        path = a + d * np.linspace(-1e-3, 4e-3, 600)[:, None]
+        _stream(c, path, q)
+        pressing = np.linalg.norm(c.force["force_n"])
+        assert pressing > 0.05, "the test never pressed on bone"
+        time.sleep(0.3)  # silence: the device profile's stale time is 50 ms
+        m = c.force
+        assert m["flags"] & protocol.FLAGS["stale"]
+        assert np.linalg.norm(m["force_n"]) == 0.0
+        assert "silent-1" in _sessions(c), "freed before its idle timeout (1 s)"
+        deadline = time.monotonic() + 4.0
+        while time.monotonic() < deadline and "silent-1" in _sessions(c):
+            time.sleep(0.1)
+        assert "silent-1" not in _sessions(c), "the idle session was not freed"
+
+
+def _sessions(c: TraineeClient) -> list[str]:
+    return list(c.health()["session_ids"])
+
+
+def test_record_keeps_everything_up_to_the_last_flush_when_killed(server, tmp_path):
+    from dhg.dataset import load_dataset
+
+    _, endpoint = server
+    out = tmp_path / "rec"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    rec = subprocess.Popen(
+        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", "rec-1", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
+    try:
+        assert rec.stdout is not None and "recording" in rec.stdout.readline()
+        with TraineeClient(endpoint, "rec-1") as c:
+            a, d, q = _entry(c)
+            _stream(c, a + d * np.linspace(-2e-3, 6e-3, 2600)[:, None], q)
+        time.sleep(1.3)  # at least one flush after the last record
+        rec.send_signal(signal.SIGKILL)  # a crash: no final flush
+        rec.wait(timeout=10)
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+            rec.wait()
+        rec.stdout.close()
+    ds = load_dataset(out)
+    (ep,) = ds.episodes
+    assert 20 <= len(ep.times_s) <= 30
+    assert np.all(np.diff(ep.times_s) > 0)
+    assert np.all(np.isfinite(ep.features))
+    assert ep.features[:, 7].max() > 0.0  # penetration depth reached into the bone
+
+
+def test_cli_trainee_drills_and_reports(server, tmp_path):
+    import json
+
+    _, endpoint = server
+    out = tmp_path / "run.json"
+    r = subprocess.run(
+        [sys.executable, "-m", "dhg.cli", "trainee", "--connect", endpoint, "--duration", "2", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "pose→force" in r.stdout
+    report = json.loads(out.read_text())
+    assert report["poses"] >= 1900
+    assert report["latency"]["forces"] >= 1900
+    assert report["latency"]["guidance"] >= 15
+
+
+def test_trainee_without_a_server_fails_clearly():
+    r = subprocess.run(
+        [sys.executable, "-m", "dhg.cli", "trainee", "--connect", f"tcp/127.0.0.1:{free_port()}", "--duration", "1"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 5, r.stderr
+    assert "error:" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_serve_on_a_busy_port_exits_with_a_clear_message(server):
+    _, endpoint = server
+    r = subprocess.run(
+        [sys.executable, "-m", "dhg.cli_serve", "--listen", endpoint, "--voxel-mm", "1.0"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 5
+    assert "already in use" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_serve_with_a_missing_model_exits_with_a_clear_message(tmp_path):
+    r = subprocess.run(
+        [sys.executable, "-m", "dhg.cli_serve", "--model", str(tmp_path / "nope.ts"), "--listen", "tcp/127.0.0.1:1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 3
+    assert "no such model file" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
+    engine, endpoint = _serve("--role", "sim", "--model-timeout", "0.1")
+    worker, _ = _serve("--role", "model", endpoint=endpoint)
+    stop = threading.Event()
+    try:
+        with TraineeClient(endpoint, "fault-1") as c:
+            a, d, q = _entry(c)
+
+            def hold() -> None:  # keep the session fresh: 1 kHz poses pressing on the cortex
+                p = a + d * 0.5e-3
+                while not stop.is_set():
+                    c.send_pose(p, q, True, 60_000.0)
+                    time.sleep(0.001)
+
+            pump = threading.Thread(target=hold, daemon=True)
+            pump.start()
+            _wait(lambda: c.force is not None and c.force["flags"] & protocol.FLAGS["model_available"], 5.0)
+            worker.proc.send_signal(signal.SIGKILL)
+            assert worker.stop() == -signal.SIGKILL
+            t_kill = time.monotonic()
+            _wait(lambda: not c.force["flags"] & protocol.FLAGS["model_available"], 2.0)
+            _wait(lambda: np.linalg.norm(c.force["guidance_n"]) == 0.0, 2.0)
+            faded_after = time.monotonic() - t_kill
+            n0 = c.forces_received
+            time.sleep(0.5)
+            assert c.forces_received - n0 >= 400, "forces stopped flowing without the model"
+            assert c.force["flags"] & protocol.FLAGS["model_available"] == 0
+            worker, _ = _serve("--role", "model", endpoint=endpoint)
+            t_ready = time.monotonic()
+            _wait(lambda: c.force["flags"] & protocol.FLAGS["model_available"], 1.0)
+            back_after = time.monotonic() - t_ready
+            stop.set()
+            pump.join()
+    finally:
+        stop.set()
+        worker.stop()
+        assert engine.stop() == 0
+    assert faded_after < 1.0
+    assert back_after <= 1.0
+
+
+def _wait(cond, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return
+        time.sleep(0.005)
+    raise AssertionError(f"condition not met within {timeout_s} s")
