@@ -20,6 +20,11 @@ __all__ = [
     "HU_MAX",
     "BRICK_EDGE",
     "MAX_BURR_RADIUS_M",
+    "PROTOCOL_VERSION",
+    "WINDOW_RECORDS",
+    "MAX_PAYLOAD_BYTES",
+    "Server",
+    "protocol_layouts",
     "__version__",
 ]
 
@@ -34,6 +39,9 @@ HU_MIN: Final[int]
 HU_MAX: Final[int]
 BRICK_EDGE: Final[int]
 MAX_BURR_RADIUS_M: Final[float]
+PROTOCOL_VERSION: Final[int]
+WINDOW_RECORDS: Final[int]
+MAX_PAYLOAD_BYTES: Final[int]
 __version__: Final[str]
 
 _Interp = Literal["nearest", "linear"]
@@ -129,3 +137,29 @@ class DrillingSession:
     @property
     def memory_bytes(self) -> int: ...
     def config(self) -> dict[str, float]: ...
+
+_Field = tuple[str, str, int, int, str]
+
+def protocol_layouts() -> dict[str, dict[str, Any]]: ...
+
+@final
+class Server:
+    def __new__(
+        cls,
+        volume: Volume,
+        entry_m: tuple[float, float, float] | list[float],
+        target_m: tuple[float, float, float] | list[float],
+        zenoh_json5: str,
+        prefix: str = "dhg",
+        max_sessions: int = 16,
+        server: dict[str, float] | None = None,
+        session: dict[str, float] | None = None,
+    ) -> Server: ...
+    def health(self, window_s: float = 10.0) -> dict[str, Any]: ...
+    def sessions(self) -> list[str]: ...
+    def metrics(self, session_id: str) -> dict[str, Any]: ...
+    def control(self, session_id: str, request: dict[str, Any]) -> dict[str, Any]: ...
+    def xray(self, session_id: str, timeout_s: float = 1.0) -> tuple[_Image, _Image, _Image]: ...
+    def stop(self) -> None: ...
+    @property
+    def running(self) -> bool: ...

@@ -85,6 +85,8 @@ class TraineeClient:
         self.decode_errors = 0
         self._on_force, self._on_state = on_force, on_state
         self._seq = 0
+        self._last_force_seq = -1
+        self._last_guidance_pose_ns = -1
         self._pub = self._z.declare_publisher(
             self.keys["pose"],
             encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema(f"dhg.pose.v{protocol.VERSION}"),
@@ -114,8 +116,11 @@ class TraineeClient:
         with self._lock:
             self.force = m
             self.forces_received += 1
-            if m["pose_client_time_ns"]:
+            # A pose's latency is that of the first force that used it: later forces (no newer
+            # pose yet, or the client stopped) echo the same pose and would count its age.
+            if m["pose_client_time_ns"] and m["pose_seq"] != self._last_force_seq:
                 self.force_latencies_s.append((now - m["pose_client_time_ns"]) * 1e-9)
+            self._last_force_seq = m["pose_seq"]
         if self._on_force is not None:
             self._on_force(m)
 
@@ -126,8 +131,9 @@ class TraineeClient:
         m["received_ns"] = now = time.monotonic_ns()
         with self._lock:
             self.guidance.append(m)
-            if m["pose_client_time_ns"]:
+            if m["pose_client_time_ns"] and m["pose_client_time_ns"] != self._last_guidance_pose_ns:
                 self.guidance_latencies_s.append((now - m["pose_client_time_ns"]) * 1e-9)
+            self._last_guidance_pose_ns = m["pose_client_time_ns"]
 
     def _state_cb(self, sample: Any) -> None:
         m = self._decode("state", sample)

@@ -126,10 +126,12 @@ class ModelService:
 
     Queries are queued by the Zenoh callback; one worker thread takes everything that arrived
     within ``max_wait_s`` of the first query (up to ``max_batch`` windows), runs one forward pass,
-    and replies to each query. Bad queries get an error reply and are counted.
+    and replies to each query. With the default ``max_wait_s = 0`` it waits for nothing: queries
+    that arrive during a forward pass form the next batch, so batches grow with the load and a
+    lone query pays no waiting. Bad queries get an error reply and are counted.
     """
 
-    def __init__(self, session: Any, model: Any, prefix: str = "dhg", max_batch: int = 64, max_wait_s: float = 0.002):
+    def __init__(self, session: Any, model: Any, prefix: str = "dhg", max_batch: int = 64, max_wait_s: float = 0.0):
         self.model = model
         self.model_id = str(model.meta.get("id") or model.meta.get("preset") or model.path.name)
         self.key = f"{prefix}/model/predict"
@@ -169,10 +171,8 @@ class ModelService:
             deadline = time.perf_counter() + self.max_wait_s
             while len(batch) < self.max_batch:
                 left = deadline - time.perf_counter()
-                if left <= 0:
-                    break
                 try:
-                    batch.append(self._queue.get(timeout=left))
+                    batch.append(self._queue.get(timeout=left) if left > 0 else self._queue.get_nowait())
                 except queue.Empty:
                     break
             self._answer(batch)

@@ -269,7 +269,11 @@ impl Refusal {
         let reason = match self {
             Refusal::WrongSize => format!("{} bytes, expected the layout's size", bytes.len()),
             Refusal::WrongVersion => {
-                format!("kind {} version {}, expected version {VERSION}", bytes.first().unwrap_or(&0), bytes.get(1).unwrap_or(&0))
+                format!(
+                    "kind {} version {}, expected version {VERSION}",
+                    bytes.first().unwrap_or(&0),
+                    bytes.get(1).unwrap_or(&0)
+                )
             }
             Refusal::NonFinite => "a NaN or infinite value, or a zero quaternion".to_owned(),
             Refusal::Oversized => format!("{} bytes, over the {MAX_PAYLOAD_BYTES}-byte limit", bytes.len()),

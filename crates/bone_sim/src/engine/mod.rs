@@ -143,7 +143,8 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
         slots.push(Slot::new(session, config.guidance.clone(), rx)?);
         poses.push(tx);
     }
-    let blank = Snapshot { slot: 0, generation: 0, bone: DrilledVolume::with_reserve(volume.clone(), config.reserve_bricks) };
+    let blank =
+        Snapshot { slot: 0, generation: 0, bone: DrilledVolume::with_reserve(volume.clone(), config.reserve_bricks) };
     let (snap_tx, snap_rx) = triple_buffer::triple_buffer(&blank);
     let stats = Arc::new(TickStats::default());
     let core = TickCore {
@@ -171,6 +172,7 @@ impl TickCore {
         self.slots.get(slot).map(|s| &s.session)
     }
 
+    #[allow(clippy::large_types_passed_by_value)] // moved into the ring / consumed: by value is the point
     fn emit(outputs: &mut rtrb::Producer<Output>, stats: &TickStats, out: Output) {
         if outputs.push(out).is_err() {
             stats.dropped_outputs.fetch_add(1, Ordering::Relaxed);
@@ -314,4 +316,3 @@ impl Drop for TickThread {
         self.stop();
     }
 }
-

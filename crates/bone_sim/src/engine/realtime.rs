@@ -15,7 +15,7 @@ const FIFO_PRIORITY: i32 = 80;
 pub(crate) fn promote() -> bool {
     let param = libc::sched_param { sched_priority: FIFO_PRIORITY };
     // SAFETY: `param` is a valid sched_param; pid 0 names the calling thread.
-    unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) == 0 }
+    unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &raw const param) == 0 }
 }
 
 /// Other systems: normal scheduling.

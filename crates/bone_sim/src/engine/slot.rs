@@ -93,7 +93,14 @@ impl Slot {
     }
 
     /// Applies a model reply: guidance = predicted expert force − the current force feedback.
-    pub(crate) fn prediction(&mut self, idx: u16, window_seq: u32, predicted_n: [f64; 3], latency_s: f64, pose_time_ns: u64) -> Output {
+    pub(crate) fn prediction(
+        &mut self,
+        idx: u16,
+        window_seq: u32,
+        predicted_n: [f64; 3],
+        latency_s: f64,
+        pose_time_ns: u64,
+    ) -> Output {
         let predicted = Vector3::from(predicted_n);
         let guidance_n = predicted - self.session.state().force_n;
         self.guidance.set_target(guidance_n);

@@ -43,7 +43,10 @@ impl HistogramSnapshot {
     /// Counts since `earlier`.
     #[must_use]
     pub fn since(&self, earlier: &Self) -> Self {
-        Self { width_ns: self.width_ns, counts: std::array::from_fn(|i| self.counts[i].saturating_sub(earlier.counts[i])) }
+        Self {
+            width_ns: self.width_ns,
+            counts: std::array::from_fn(|i| self.counts[i].saturating_sub(earlier.counts[i])),
+        }
     }
 
     /// Number of samples.
@@ -89,7 +92,7 @@ pub struct TickStats {
     pub sessions: AtomicU64,
     /// Outputs dropped because the outgoing ring was full (the comm side fell behind).
     pub dropped_outputs: AtomicU64,
-    /// Whether the tick thread got real-time scheduling (SCHED_FIFO); 0 = no, 1 = yes.
+    /// Whether the tick thread got real-time scheduling (`SCHED_FIFO`); 0 = no, 1 = yes.
     pub realtime: AtomicU64,
 }
 

@@ -8,7 +8,7 @@ use pyo3::types::{PyDict, PyList};
 
 use super::convert::detached;
 use super::errors::IntoPyResult;
-use super::session::config_from_dict;
+use super::session::{config_from_dict, set_flat_fields};
 use super::volume::{xray_tuple, PyVolume, Views};
 use crate::engine::guidance::GuidanceParams;
 use crate::engine::EngineConfig;
@@ -18,7 +18,11 @@ use crate::protocol::LAYOUTS;
 use crate::transport::{Server, ServerConfig};
 
 /// Every configurable number of the server, by its flat key.
-fn server_fields<'a>(e: &'a mut EngineConfig, s: &'a mut ServerConfig, g: &'a mut f64) -> [(&'static str, &'a mut f64); 6] {
+fn server_fields<'a>(
+    e: &'a mut EngineConfig,
+    s: &'a mut ServerConfig,
+    g: &'a mut f64,
+) -> [(&'static str, &'a mut f64); 6] {
     let GuidanceParams { max_n, max_rate_n_per_s, timeout_s } = &mut e.guidance;
     [
         ("idle_timeout_s", &mut s.idle_timeout_s),
@@ -69,23 +73,19 @@ impl PyServer {
         let mut engine = EngineConfig::new(path);
         engine.max_sessions = max_sessions;
         engine.session = config_from_dict(session)?;
-        let mut cfg = ServerConfig { prefix: prefix.to_owned(), idle_timeout_s: 5.0, model_timeout_s: 0.25, zenoh_json5 };
+        let mut cfg =
+            ServerConfig { prefix: prefix.to_owned(), idle_timeout_s: 5.0, model_timeout_s: 0.25, zenoh_json5 };
         let mut gain = engine.default_gain;
         if let Some(dict) = server {
-            for (key, value) in dict.iter() {
-                let key: String = key.extract()?;
-                let value: f64 = value.extract()?;
-                let mut fields = server_fields(&mut engine, &mut cfg, &mut gain);
-                let Some((_, slot)) = fields.iter_mut().find(|(n, _)| *n == key) else {
-                    return Err(SimError::InvalidOption {
-                        name: "server setting",
-                        value: key,
-                        allowed: "idle_timeout_s, model_timeout_s, guidance_gain, guidance.max_n, guidance.max_rate_n_per_s, guidance.timeout_s",
-                    })
-                    .py();
-                };
-                **slot = value;
-            }
+            set_flat_fields(
+                dict,
+                "server setting",
+                "idle_timeout_s, model_timeout_s, guidance_gain, guidance.max_n, guidance.max_rate_n_per_s, guidance.timeout_s",
+                |key, value| {
+                    let mut fields = server_fields(&mut engine, &mut cfg, &mut gain);
+                    fields.iter_mut().find(|(n, _)| *n == key).map(|(_, slot)| **slot = value).is_some()
+                },
+            )?;
         }
         engine.default_gain = gain;
         let volume = std::sync::Arc::clone(&volume.get().inner);
@@ -114,8 +114,9 @@ impl PyServer {
     /// Applies a control request (dict with "op") to a session; returns the session info.
     fn control(&self, py: Python<'_>, session_id: &str, request: &Bound<'_, PyDict>) -> PyResult<Py<PyAny>> {
         let text: String = py.import("json")?.call_method1("dumps", (request,))?.extract()?;
-        let req: serde_json::Value =
-            serde_json::from_str(&text).map_err(|e| SimError::Payload { message: "control", reason: e.to_string() }).py()?;
+        let req: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| SimError::Payload { message: "control", reason: e.to_string() })
+            .py()?;
         let v = self.server()?.control(session_id, &req).py()?;
         json_to_py(py, &v)
     }
@@ -124,7 +125,8 @@ impl PyServer {
     #[pyo3(signature = (session_id, timeout_s=1.0))]
     fn xray<'py>(&self, py: Python<'py>, session_id: &str, timeout_s: f64) -> PyResult<Views<'py>> {
         let server = self.server()?;
-        let timeout = Duration::from_secs_f64(timeout_s.clamp(0.001, 60.0));
+        crate::error::positive("timeout_s", timeout_s).py()?;
+        let timeout = Duration::from_secs_f64(timeout_s.min(60.0));
         let p = detached(py, || server.snapshot(session_id, timeout).map(|bone| bone.xray())).py()?;
         Ok(xray_tuple(py, &p))
     }

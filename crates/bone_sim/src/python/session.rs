@@ -51,25 +51,37 @@ fn config_fields(c: &mut SessionConfig) -> [(&'static str, &mut f64); 26] {
     ]
 }
 
-pub(crate) fn config_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<SessionConfig> {
-    let mut c = SessionConfig::default();
-    let Some(dict) = dict else { return Ok(c) };
-    let mut stiffness_given = false;
+/// Applies a flat `{key: number}` dict through `set` (which returns false for an unknown key);
+/// an unknown key or a non-number is refused with an error naming the allowed keys.
+pub(crate) fn set_flat_fields(
+    dict: &Bound<'_, PyDict>,
+    what: &'static str,
+    allowed: &'static str,
+    mut set: impl FnMut(&str, f64) -> bool,
+) -> PyResult<()> {
     for (key, value) in dict.iter() {
         let key: String = key.extract()?;
         let value: f64 = value.extract()?;
-        stiffness_given |= key == "coupling_stiffness_n_per_m";
-        let mut fields = config_fields(&mut c);
-        let Some((_, slot)) = fields.iter_mut().find(|(name, _)| *name == key) else {
-            return Err(SimError::InvalidOption {
-                name: "session config key",
-                value: key,
-                allowed: "the fields of dhg.SessionConfig (nested ones as 'device.x', 'cutting.x', 'thermal.x')",
-            })
-            .py();
-        };
-        **slot = value;
+        if !set(&key, value) {
+            return Err(SimError::InvalidOption { name: what, value: key, allowed }).py();
+        }
     }
+    Ok(())
+}
+
+pub(crate) fn config_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<SessionConfig> {
+    let mut c = SessionConfig::default();
+    let Some(dict) = dict else { return Ok(c) };
+    let stiffness_given = dict.contains("coupling_stiffness_n_per_m")?;
+    set_flat_fields(
+        dict,
+        "session config key",
+        "the fields of dhg.SessionConfig (nested ones as 'device.x', 'cutting.x', 'thermal.x')",
+        |key, value| {
+            let mut fields = config_fields(&mut c);
+            fields.iter_mut().find(|(name, _)| *name == key).map(|(_, slot)| **slot = value).is_some()
+        },
+    )?;
     if !stiffness_given {
         // Unless given, the coupling is as stiff as the (possibly changed) device allows.
         c.coupling_stiffness_n_per_m = c.device.max_stiffness_n_per_m;

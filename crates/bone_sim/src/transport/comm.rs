@@ -113,6 +113,7 @@ impl Comm {
         self.outlets[i].as_mut()
     }
 
+    #[allow(clippy::large_types_passed_by_value)] // moved into the ring / consumed: by value is the point
     fn handle(&mut self, out: Output) {
         match out {
             Output::Force { slot, generation, msg } => {

@@ -66,7 +66,10 @@ fn on_any(shared: &Shared, sample: &Sample) {
     let key = sample.key_expr().as_str();
     let known = match session_key(&shared.prefix, key) {
         Some((_, leaf)) => CLIENT_LEAVES.contains(&leaf) || SERVER_LEAVES.contains(&leaf),
-        None => key.starts_with(&format!("{}/model/", shared.prefix)) || key.starts_with(&format!("{}/server/", shared.prefix)),
+        None => {
+            key.starts_with(&format!("{}/model/", shared.prefix))
+                || key.starts_with(&format!("{}/server/", shared.prefix))
+        }
     };
     if !known {
         shared.counters.unknown_key.fetch_add(1, Ordering::Relaxed);
@@ -86,7 +89,9 @@ fn reply(query: &Query, result: SimResult<Value>) {
     let key = query.key_expr().clone();
     let _ = match result {
         Ok(v) => query.reply(key, v.to_string()).encoding(Encoding::APPLICATION_JSON).wait(),
-        Err(e) => query.reply_err(json!({ "error": e.to_string() }).to_string()).encoding(Encoding::APPLICATION_JSON).wait(),
+        Err(e) => {
+            query.reply_err(json!({ "error": e.to_string() }).to_string()).encoding(Encoding::APPLICATION_JSON).wait()
+        }
     };
 }
 
@@ -95,7 +100,11 @@ fn point(v: &Value, name: &'static str) -> SimResult<nalgebra::Point3<f64>> {
     let xs: Option<Vec<f64>> = arr.map(|a| a.iter().filter_map(Value::as_f64).collect());
     match xs {
         Some(x) if x.len() == 3 => Ok(nalgebra::Point3::new(x[0], x[1], x[2])),
-        _ => Err(SimError::ShapeMismatch { what: name, expected: "a list of 3 numbers (m)".into(), got: v.get(name).map_or("nothing".into(), Value::to_string) }),
+        _ => Err(SimError::ShapeMismatch {
+            what: name,
+            expected: "a list of 3 numbers (m)".into(),
+            got: v.get(name).map_or("nothing".into(), Value::to_string),
+        }),
     }
 }
 
@@ -195,6 +204,12 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
     sorted[((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1]
 }
 
+fn sorted_ids(by_id: &std::collections::HashMap<String, u16>) -> Vec<&String> {
+    let mut ids: Vec<&String> = by_id.keys().collect();
+    ids.sort();
+    ids
+}
+
 /// The health report; tick quantiles cover the last `window_s` seconds (whole seconds).
 pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
     let now = super::comm::StatsSample {
@@ -213,7 +228,9 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
         }
     };
     let (late, busy, ticks, missed) = match &base {
-        Some(b) => (now.lateness.since(&b.lateness), now.busy.since(&b.busy), now.ticks - b.ticks, now.missed - b.missed),
+        Some(b) => {
+            (now.lateness.since(&b.lateness), now.busy.since(&b.busy), now.ticks - b.ticks, now.missed - b.missed)
+        }
         None => (now.lateness.clone(), now.busy.clone(), now.ticks, now.missed),
     };
     let model = lock(&shared.model);
@@ -226,7 +243,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
     json!({
         "uptime_s": shared.started.elapsed().as_secs_f64(),
         "sessions": reg.by_id.len(),
-        "session_ids": reg.by_id.keys().collect::<Vec<_>>(),
+        "session_ids": sorted_ids(&reg.by_id),
         "max_sessions": reg.slots.len(),
         "window_s": window,
         "ticks": ticks,

@@ -20,7 +20,7 @@ const NO_BRICK: u32 = u32::MAX;
 pub type Brick = [u16; BRICK_VOXELS];
 
 /// A session's private copies of the bricks it has drilled.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct MaterialOverlay {
     bricks_per_axis: [usize; 3],
     /// Brick id → slot in `slots`, or `NO_BRICK`.
@@ -28,6 +28,19 @@ pub struct MaterialOverlay {
     slots: Vec<Brick>,
     /// Slot → brick id (the touched list that makes reset cheap).
     slot_brick: Vec<u32>,
+}
+
+/// A clone keeps the original's reserved room (a derived `Clone` would not: `Vec::clone` allocates
+/// only the length), so a cloned overlay is as allocation-free as the original. The engine's
+/// snapshot buffers are clones.
+impl Clone for MaterialOverlay {
+    fn clone(&self) -> Self {
+        let mut slots = Vec::with_capacity(self.slots.capacity());
+        slots.extend_from_slice(&self.slots);
+        let mut slot_brick = Vec::with_capacity(self.slot_brick.capacity());
+        slot_brick.extend_from_slice(&self.slot_brick);
+        Self { bricks_per_axis: self.bricks_per_axis, table: self.table.clone(), slots, slot_brick }
+    }
 }
 
 impl MaterialOverlay {

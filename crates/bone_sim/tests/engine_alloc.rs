@@ -1,0 +1,105 @@
+//! The tick thread's promise: a tick never allocates. A counting global allocator watches 3000
+//! ticks of 4 sessions drilling through cortex and cancellous bone, with model replies arriving,
+//! snapshots taken and every output drained. Its own test binary, so no other test allocates
+//! while it counts.
+
+mod common;
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+use bone_sim::engine::handoff::{Command, PoseSample};
+use bone_sim::engine::{build, EngineConfig};
+use bone_sim::{Layer, PlannedPath, Pose};
+use common::{slab, H};
+use nalgebra::{Point3, UnitQuaternion};
+
+struct Counting;
+
+static COUNTING: AtomicBool = AtomicBool::new(false);
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+// SAFETY: forwards to the system allocator; only counts.
+#[allow(unsafe_code)]
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        if COUNTING.load(Ordering::Relaxed) {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        if COUNTING.load(Ordering::Relaxed) {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+#[test]
+fn ticks_do_not_allocate() {
+    const NXY: usize = 24;
+    let centre = 12.0 * H;
+    let (vol, surface) = slab(NXY, &[(Layer::Cortical, 1500.0, 3e-3), (Layer::Cancellous, 300.0, 6e-3)]);
+    let path =
+        PlannedPath::new(Point3::new(centre, centre, surface), Point3::new(centre, centre, surface + 9e-3)).unwrap();
+    let mut cfg = EngineConfig::new(path);
+    cfg.max_sessions = 4;
+    cfg.reserve_bricks = 256;
+    let (mut core, mut link) = build(&vol, &cfg).unwrap();
+    for slot in 0..4u16 {
+        link.commands.push(Command::Activate { slot, generation: 1, path: None, gain: 1.0 }).unwrap();
+    }
+    let pose = |z: f64| Pose {
+        position_m: Point3::new(centre, centre, z),
+        orientation: UnitQuaternion::identity(),
+        drill_on: true,
+        spindle_rpm: 60_000.0,
+    };
+    let mut run = |core: &mut bone_sim::engine::TickCore, from: u32, to: u32| {
+        for k in from..to {
+            // Feed from 2 mm above the surface into the bone at 5 mm/s.
+            let z = surface - 2e-3 + 5e-3 * f64::from(k) * 1e-3;
+            for (slot, input) in link.poses.iter_mut().enumerate() {
+                let sample = PoseSample {
+                    pose: Some(pose(z + slot as f64 * 0.1e-3)),
+                    seq: k,
+                    client_time_ns: u64::from(k),
+                    generation: 1,
+                };
+                input.write(sample);
+            }
+            if k % 100 == 50 {
+                for slot in 0..4u16 {
+                    let cmd = Command::Prediction {
+                        slot,
+                        generation: 1,
+                        window_seq: k,
+                        predicted_n: [0.0, 0.0, -0.5],
+                        latency_s: 0.005,
+                        pose_client_time_ns: u64::from(k),
+                    };
+                    link.commands.push(cmd).unwrap();
+                }
+            }
+            if k % 500 == 250 {
+                link.commands.push(Command::Snapshot { slot: (k / 500 % 4) as u16 }).unwrap();
+            }
+            core.tick();
+            while link.outputs.pop().is_ok() {}
+        }
+    };
+    run(&mut core, 0, 100); // warm-up: first-touch paths
+    COUNTING.store(true, Ordering::SeqCst);
+    run(&mut core, 100, 3100);
+    COUNTING.store(false, Ordering::SeqCst);
+    let removed = core.session(0).unwrap().bone().removed_voxels();
+    assert!(removed > 100, "the sessions never cut bone ({removed} voxels)");
+    assert_eq!(ALLOCATIONS.load(Ordering::SeqCst), 0, "the tick path allocated");
+}

@@ -1,0 +1,50 @@
+"""Load benchmark of ``dhg-serve``: for each client count, a fresh server (phantom, bundled model)
+and the Rust load tool (``crates/bone_sim/examples/load.rs``) streaming 1 kHz poses from that
+many trainees. Prints one JSON line per run (latencies in ms, server CPU in cores).
+
+    cargo build --release -p bone_sim --example load
+    python tests/benchmarks/bench_server.py --seconds 60 --clients 1,16,64 [--load PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+from pathlib import Path
+
+from dhg.live_demo import ServerProcess, free_port
+
+
+def main() -> None:
+    target = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/dhg/target"))
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seconds", type=float, default=60.0)
+    p.add_argument("--clients", default="1,16,64")
+    p.add_argument("--load", default=str(target / "release/examples/load"), help="the load tool binary")
+    p.add_argument("--out", help="also append the JSON lines to this file")
+    args = p.parse_args()
+    for n in (int(c) for c in args.clients.split(",")):
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        serve_args = ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30"]
+        server = ServerProcess(serve_args, echo=False)
+        try:
+            r = subprocess.run(
+                [args.load, "--connect", endpoint, "--clients", str(n), "--seconds", str(args.seconds),
+                 "--server-pid", str(server.proc.pid)],
+                capture_output=True, text=True, timeout=args.seconds + 120,
+            )  # fmt: skip
+        finally:
+            server.stop()
+        if r.returncode != 0:
+            raise SystemExit(f"load tool failed ({r.returncode}): {r.stderr}")
+        line = json.dumps({"cpus": os.cpu_count(), **json.loads(r.stdout)})
+        print(line, flush=True)
+        if args.out:
+            with open(args.out, "a") as fh:
+                fh.write(line + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,61 @@
+"""The native server's Python surface, in-process: settings are checked, bad values are refused
+with a clear error, and it stops cleanly (no Zenoh peers involved beyond loopback)."""
+
+from __future__ import annotations
+
+import pytest
+
+from dhg import _bone_sim, serve
+from dhg.errors import EngineError, InvalidInputError
+from dhg.live_demo import free_port
+
+
+@pytest.fixture()
+def engine(coarse_phantom):
+    conf = serve.zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
+    srv = serve.start_engine(coarse_phantom.volume, coarse_phantom.path, conf, serve.ServerSettings(max_sessions=2))
+    yield srv
+    srv.stop()
+
+
+def test_unknown_server_settings_are_refused_with_the_allowed_keys(coarse_phantom):
+    conf = serve.zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
+    p = coarse_phantom.path
+    with pytest.raises(InvalidInputError, match="idle_timeout_s"):
+        _bone_sim.Server(coarse_phantom.volume._vol, list(p.entry_m), list(p.target_m), conf, server={"idle": 1.0})
+    with pytest.raises(InvalidInputError, match="max_sessions"):
+        _bone_sim.Server(coarse_phantom.volume._vol, list(p.entry_m), list(p.target_m), conf, max_sessions=0)
+
+
+def test_sessions_are_limited_and_controlled(engine):
+    info = engine.control("a", {"op": "create", "guidance_gain": 0.5})
+    assert info["created"] and info["guidance_gain"] == 0.5
+    engine.control("b", {"op": "create"})
+    with pytest.raises(EngineError, match="session"):
+        engine.control("c", {"op": "create"})  # two slots only
+    assert sorted(engine.sessions()) == ["a", "b"]
+    assert engine.health()["session_ids"] == ["a", "b"]
+    with pytest.raises(InvalidInputError):
+        engine.control("a", {"op": "set_guidance", "gain": float("nan")})
+    with pytest.raises(InvalidInputError, match="id"):
+        engine.control("bad id!", {"op": "create"})
+    engine.control("a", {"op": "close"})
+    assert engine.sessions() == ["b"]
+
+
+def test_xray_of_a_session_and_bad_timeouts(engine):
+    engine.control("x", {"op": "create"})
+    top, front, side = engine.xray("x", 2.0)
+    assert top.ndim == front.ndim == side.ndim == 2 and top.max() > 0
+    with pytest.raises(InvalidInputError, match="timeout_s"):
+        engine.xray("x", float("nan"))
+    with pytest.raises(EngineError):
+        engine.xray("nobody", 0.5)
+
+
+def test_stop_is_idempotent_and_later_calls_fail_clearly(engine):
+    engine.stop()
+    engine.stop()
+    assert not engine.running
+    with pytest.raises(EngineError, match="stopped"):
+        engine.health()
