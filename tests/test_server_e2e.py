@@ -143,6 +143,28 @@ def test_bad_payloads_and_unknown_keys_are_counted_and_ignored(server):
         _wait(lambda: c.force is not None and c.force["pose_seq"] == seq, 2.0)
 
 
+def test_xray_views_metrics_and_an_own_path_over_zenoh(server):
+    _, endpoint = server
+    with TraineeClient(endpoint, "views-1") as c:
+        a, d, q = _entry(c)
+        _stream(c, a + d * np.linspace(-1e-3, 3e-3, 800)[:, None], q)
+        time.sleep(0.15)
+        m = c.metrics()
+        assert m["records"] >= 7 and m["removed_mass_kg"] > 0.0
+        pngs = c.xray()
+        assert set(pngs) == {"top", "front", "side"}
+        assert all(png.startswith(b"\x89PNG\r\n\x1a\n") for png in pngs.values())
+        with pytest.raises(Exception, match="view"):
+            c.xray("back")
+    with TraineeClient(endpoint, "own-path-1") as c:
+        from dhg.task import PlannedPath
+
+        own = PlannedPath(a + [0.002, 0.0, 0.0], a + [0.002, 0.0, 0.0] + d * 0.05)
+        info = c.create(path=own, guidance_gain=0.0)
+        assert np.allclose(info["entry_m"], own.entry_m) and np.allclose(info["target_m"], own.target_m)
+        assert info["guidance_gain"] == 0.0
+
+
 def test_control_refusals_say_what_was_wrong(server):
     _, endpoint = server
     from dhg.errors import EngineError

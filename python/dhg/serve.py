@@ -368,7 +368,8 @@ class RunningServer:
                 else "model idle"
             )
             parts.append(
-                f"sessions {h['sessions']}/{h['max_sessions']} | tick p99 {h['tick_lateness_p99_s'] * 1e6:.0f} µs "
+                f"sessions {h['sessions']}/{h['max_sessions']} | tick{' (rt)' if h['tick_realtime'] else ''} "
+                f"p99 {h['tick_lateness_p99_s'] * 1e6:.0f} µs "
                 f"late, busy p99 {h['tick_busy_p99_s'] * 1e6:.0f} µs | missed {h['missed_ticks']} "
                 f"(total {h['missed_ticks_total']}) | {model} | poses {h['poses']}"
             )
