@@ -337,3 +337,46 @@ def _wait(cond, timeout_s: float) -> None:
             return
         time.sleep(0.005)
     raise AssertionError(f"condition not met within {timeout_s} s")
+
+
+def test_ctrl_c_stops_a_busy_server_cleanly_with_a_zenoh_config_file(tmp_path):
+    """Ctrl-C while a trainee streams: the server closes its sessions and exits 0, promptly."""
+    conf = tmp_path / "zenoh.json5"
+    conf.write_text("{ scouting: { multicast: { enabled: false } }, timestamping: { enabled: { router: true } } }")
+    proc, endpoint = _serve("--zenoh-config", str(conf))
+    stop = threading.Event()
+    with TraineeClient(endpoint, "busy-1") as c:
+        a, d, q = _entry(c)
+
+        def pump() -> None:
+            while not stop.is_set():
+                c.send_pose(a, q, True, 60_000.0)
+                time.sleep(0.001)
+
+        t = threading.Thread(target=pump, daemon=True)
+        t.start()
+        _wait(lambda: c.forces_received > 200, 5.0)
+        t0 = time.monotonic()
+        proc.proc.send_signal(signal.SIGINT)
+        code = proc.proc.wait(timeout=10)
+        took = time.monotonic() - t0
+        stop.set()
+        t.join()
+    assert proc.stop() == code == 0
+    assert took < 5.0, f"took {took:.1f} s to stop"
+    assert any("closing 1 session(s)" in line for line in proc.lines), proc.lines[-5:]
+    assert proc.lines[-1] == "dhg-serve stopped"
+
+
+def test_a_bad_zenoh_config_file_is_a_clear_error(tmp_path):
+    conf = tmp_path / "broken.json5"
+    conf.write_text("{ this is not json5")
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    r = subprocess.run(
+        [sys.executable, "-m", "dhg.cli_serve", "--zenoh-config", str(conf), "--listen", listen],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 3, r.stderr
+    assert "zenoh config" in r.stderr and "Traceback" not in r.stderr

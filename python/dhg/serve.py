@@ -93,21 +93,24 @@ def zenoh_config_json5(
     (several servers on one host or network never join each other by accident). Endpoints look like
     ``tcp/127.0.0.1:7447``.
     """
-    conf: dict[str, Any] = {}
     if config_file is not None:
         import zenoh
 
         try:
-            conf = json.loads(zenoh.Config.from_file(str(config_file)).get_json(""))
+            cfg = zenoh.Config.from_file(str(config_file))
+            cfg.insert_json5("mode", json.dumps(mode))
+            if listen or mode == "client":  # a client never listens (the file may name the server's port)
+                cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+            if connect:
+                cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
         except Exception as exc:  # zenoh raises its own ZError
             raise InvalidInputError(f"cannot read the zenoh config {config_file}: {exc}") from None
-    else:
-        conf["scouting"] = {"multicast": {"enabled": False}}
-    conf["mode"] = mode
+        return str(cfg)  # the whole configuration, as JSON
+    conf: dict[str, Any] = {"scouting": {"multicast": {"enabled": False}}, "mode": mode}
     if listen:
-        conf.setdefault("listen", {})["endpoints"] = list(listen)
+        conf["listen"] = {"endpoints": list(listen)}
     if connect:
-        conf.setdefault("connect", {})["endpoints"] = list(connect)
+        conf["connect"] = {"endpoints": list(connect)}
     return json.dumps(conf)
 
 
