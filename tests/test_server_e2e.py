@@ -230,7 +230,7 @@ def test_record_keeps_everything_up_to_the_last_flush_when_killed(server, tmp_pa
         rec.stdout.close()
     ds = load_dataset(out)
     (ep,) = ds.episodes
-    assert 20 <= len(ep.times_s) <= 30
+    assert 20 <= len(ep.times_s) <= 50  # 2.6 s of poses, then the idle session ticks on until the kill
     assert np.all(np.diff(ep.times_s) > 0)
     assert np.all(np.isfinite(ep.features))
     assert ep.features[:, 7].max() > 0.0  # penetration depth reached into the bone

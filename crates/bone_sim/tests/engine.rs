@@ -253,7 +253,8 @@ fn poses_and_predictions_of_an_earlier_owner_of_the_slot_are_ignored() {
 
 #[test]
 fn the_tick_thread_ticks_and_stops() {
-    let (core, link, _) = engine(1);
+    let (core, mut link, _) = engine(1);
+    activate(&mut link, 0, 1, 1.0);
     let mut t = TickThread::spawn(core, None).unwrap();
     while link.stats.ticks.load(Ordering::Relaxed) < 20 {
         std::thread::yield_now();
@@ -262,4 +263,101 @@ fn the_tick_thread_ticks_and_stops() {
     let n = link.stats.ticks.load(Ordering::Relaxed);
     std::thread::sleep(std::time::Duration::from_millis(5));
     assert_eq!(link.stats.ticks.load(Ordering::Relaxed), n, "ticked after stop()");
+}
+
+mod schedule {
+    //! `tick_due`: each slot ticks once per period on average, locked to its client's poses.
+
+    use super::*;
+    use std::time::{Duration, Instant};
+
+    const MS: Duration = Duration::from_millis(1);
+    fn us(n: u64) -> Duration {
+        Duration::from_micros(n)
+    }
+
+    fn started() -> (TickCore, EngineLink, f64, Instant) {
+        let (mut core, mut link, surface) = engine(1);
+        activate(&mut link, 0, 1, 1.0);
+        let t0 = Instant::now();
+        let (n, next) = core.tick_due(t0); // just activated: due at once
+        assert_eq!(n, 1);
+        assert_eq!(next, t0 + MS);
+        (core, link, surface, t0)
+    }
+
+    fn near(a: Instant, b: Instant) -> bool {
+        a.max(b) - a.min(b) < us(2)
+    }
+
+    #[test]
+    fn without_poses_a_slot_ticks_once_per_period() {
+        let (mut core, _link, _, t0) = started();
+        assert_eq!(core.tick_due(t0 + us(999)).0, 0);
+        assert_eq!(core.tick_due(t0 + MS).0, 1);
+        assert!(near(core.tick_due(t0 + us(1500)).1, t0 + 2 * MS));
+        assert_eq!(core.tick_due(t0 + 2 * MS).0, 1);
+    }
+
+    #[test]
+    fn a_fresh_pose_ticks_at_once_whatever_its_phase() {
+        let (mut core, mut link, surface, t0) = started();
+        // A 1 kHz client whose poses arrive 0.45 ms into each period. The first poses wait a
+        // little (the slot ticked at activation); within 20 periods the slot's phase has moved
+        // onto the poses' and each one ticks the moment it arrives.
+        let mut waited = Vec::new();
+        for k in 1..=60u32 {
+            send(&mut link, 0, 1, k, surface - 1e-3);
+            let arrival = t0 + us(450) + MS * (k - 1);
+            let (n, next) = core.tick_due(arrival);
+            if n == 0 {
+                waited.push(k);
+                assert!(next - arrival <= us(300), "pose {k} would wait {:?}", next - arrival);
+                assert_eq!(core.tick_due(next).0, 1);
+            }
+            let f = forces(&drain(&mut link));
+            assert_eq!(f.last().unwrap().pose_seq, k, "the tick did not use pose {k}");
+        }
+        assert!(waited.iter().all(|&k| k <= 20), "poses waited: {waited:?}");
+    }
+
+    #[test]
+    fn a_late_pose_is_waited_for_briefly() {
+        let (mut core, mut link, surface, t0) = started();
+        send(&mut link, 0, 1, 1, surface - 1e-3);
+        assert_eq!(core.tick_due(t0 + MS).0, 1); // fresh: the client is streaming now
+                                                 // A period later no new pose yet: wait up to the grace (0.3 ms) for it.
+        let (n, next) = core.tick_due(t0 + 2 * MS);
+        assert_eq!(n, 0);
+        assert!(next > t0 + 2 * MS + us(250) && next <= t0 + 2 * MS + us(300), "{:?}", next - t0);
+        send(&mut link, 0, 1, 2, surface - 1e-3);
+        assert_eq!(core.tick_due(t0 + 2 * MS + us(200)).0, 1);
+        assert_eq!(forces(&drain(&mut link)).last().unwrap().pose_seq, 2);
+        // Without a pose it ticks anyway, once a period plus the grace is due.
+        assert_eq!(core.tick_due(t0 + 3 * MS + us(100)).0, 0);
+        assert_eq!(core.tick_due(t0 + 3 * MS + us(500)).0, 1);
+    }
+
+    #[test]
+    fn poses_faster_than_1_khz_do_not_speed_up_the_session() {
+        let (mut core, mut link, surface, t0) = started();
+        let mut ticks = 0;
+        for k in 1..=400u32 {
+            // A 4 kHz client: a fresh pose every 0.25 ms for 100 ms.
+            send(&mut link, 0, 1, k, surface - 1e-3);
+            ticks += core.tick_due(t0 + us(250) * k).0;
+        }
+        assert!((99..=103).contains(&ticks), "{ticks} ticks in 100 ms (at most 1.02 kHz)");
+    }
+
+    #[test]
+    fn a_whole_period_late_counts_missed_ticks_and_buys_no_burst() {
+        let (mut core, link, _, t0) = started();
+        assert_eq!(core.tick_due(t0 + us(3500)).0, 1); // due at 1 ms: 2.5 periods late
+        assert_eq!(link.stats.missed.load(Ordering::Relaxed), 2);
+        // The budget banked at most 1.3 periods: the next tick is 0.7 ms away, not at once.
+        assert_eq!(core.tick_due(t0 + us(3600)).0, 0);
+        assert_eq!(core.tick_due(t0 + us(4150)).0, 0);
+        assert_eq!(core.tick_due(t0 + us(4200)).0, 1);
+    }
 }

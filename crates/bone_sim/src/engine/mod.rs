@@ -4,9 +4,18 @@
 //! structures made at start-up ([`handoff`]): an SPSC ring of commands in, an SPSC ring of outputs
 //! out, a triple buffer per slot carrying the newest pose, and one triple buffer for bone
 //! snapshots. Sessions, their reserved bricks and the rings are all allocated before the first
-//! tick, so a tick never allocates, locks or does I/O. Deadlines are absolute (start + k·1 ms): a
-//! late wake-up does not shift later ticks, and a wake-up a whole period late skips the missed
-//! ticks and counts them.
+//! tick, so a tick never allocates, locks or does I/O.
+//!
+//! Each slot ticks once per 1 ms on average, **locked to its client's poses**. Every slot has a
+//! tick budget that fills by one period per 1 ms and is spent by one per tick. A fresh pose
+//! starts the slot's tick as soon as it arrives, once the budget holds a period (less the
+//! [`EARLY_PERIODS`] it may borrow). So a steady 1 kHz client gets each force computed from the
+//! pose that just arrived, whatever its phase, while a client sending faster still gets 1 kHz.
+//! Without a fresh pose the slot ticks when a period is due, after waiting [`GRACE_PERIODS`] for
+//! a streaming client's late pose. A silent client still gets 1 kHz. A tick a whole period or
+//! more late skips the missed periods and counts them, and the budget banks at most
+//! `1 + GRACE_PERIODS` periods, so a stall never buys a burst. The pose subscriber unparks the
+//! tick thread when it hands over a pose.
 
 pub mod guidance;
 pub mod handoff;
@@ -37,6 +46,32 @@ const OUTPUT_SLACK_PER_SLOT: usize = 128;
 const COMMANDS_PER_TICK: usize = 256;
 /// The tick period (1 kHz).
 pub const TICK_PERIOD: Duration = Duration::from_millis(1);
+/// How early (in periods) a fresh pose may start a slot's tick: the slot borrows it from its
+/// next period, so the rate still averages at most 1 kHz.
+pub const EARLY_PERIODS: f64 = 0.3;
+/// How long (in periods) a slot whose last tick had a fresh pose waits past its deadline for
+/// the next pose before ticking without one.
+pub const GRACE_PERIODS: f64 = 0.3;
+/// How fast a slot's budget fills while fresh poses wait (periods per period): the 2 % that lets
+/// its phase drift onto its client's within tens of periods. A client sending faster than 1 kHz
+/// gets at most 1.02 kHz; without poses a slot ticks at exactly 1 kHz.
+pub const LOCK_RATE: f64 = 1.02;
+/// Most periods a slot may bank (so a pause never buys a burst of ticks).
+const MAX_TOKENS: f64 = 1.0 + GRACE_PERIODS;
+
+/// `seconds` rounded up to whole microseconds (waking a hair early would find nothing due).
+fn ceil_us(seconds: f64) -> Duration {
+    Duration::from_micros((seconds * 1e6).ceil() as u64)
+}
+
+/// A slot's tick budget: one period's worth accrues per 1 ms, a tick spends one.
+#[derive(Debug, Clone, Copy)]
+struct SlotClock {
+    /// When the slot last ticked.
+    last: Instant,
+    /// Periods banked at `last`, after that tick (may be negative by up to [`EARLY_PERIODS`]).
+    tokens: f64,
+}
 
 /// Engine settings.
 #[derive(Debug, Clone)]
@@ -103,6 +138,10 @@ pub struct Snapshot {
 #[derive(Debug)]
 pub struct TickCore {
     slots: Vec<Slot>,
+    /// Per slot: its tick budget (`None`: just activated, due at once).
+    clock: Vec<Option<SlotClock>>,
+    /// Per slot: whether its last tick used a fresh pose (it may wait [`GRACE`] for the next).
+    streaming: Vec<bool>,
     commands: rtrb::Consumer<Command>,
     outputs: rtrb::Producer<Output>,
     snapshot: triple_buffer::Input<Snapshot>,
@@ -148,6 +187,8 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
     let (snap_tx, snap_rx) = triple_buffer::triple_buffer(&blank);
     let stats = Arc::new(TickStats::default());
     let core = TickCore {
+        clock: vec![None; slots.len()],
+        streaming: vec![false; slots.len()],
         slots,
         commands: commands_rx,
         outputs: outputs_tx,
@@ -186,6 +227,8 @@ impl TickCore {
                 let default = &self.default_path;
                 if let Some(s) = self.slots.get_mut(slot_of(slot)) {
                     s.activate(generation, path.unwrap_or_else(|| default.clone()), gain);
+                    self.clock[slot_of(slot)] = None;
+                    self.streaming[slot_of(slot)] = false;
                 }
             }
             Command::Release { slot } => {
@@ -230,14 +273,72 @@ impl TickCore {
         }
     }
 
-    /// One tick of every active slot: commands first, then the sessions.
-    pub fn tick(&mut self) {
+    fn apply_commands(&mut self) {
         for _ in 0..COMMANDS_PER_TICK {
             match self.commands.pop() {
                 Ok(cmd) => self.apply(cmd),
                 Err(_) => break,
             }
         }
+    }
+
+    /// Applies waiting commands, then ticks every active slot that is due at `now` (see the
+    /// module docs). Returns the number of slot ticks and when the next slot becomes due (at
+    /// most one period away, so commands are never left waiting longer).
+    pub fn tick_due(&mut self, now: Instant) -> (u32, Instant) {
+        self.apply_commands();
+        let period_s = TICK_PERIOD.as_secs_f64();
+        let mut next = now + TICK_PERIOD;
+        let mut ticked = 0;
+        let mut active = 0;
+        let (outputs, stats) = (&mut self.outputs, &self.stats);
+        for (i, s) in self.slots.iter_mut().enumerate() {
+            if !s.active {
+                continue;
+            }
+            active += 1;
+            let clock = self.clock[i].get_or_insert(SlotClock { last: now, tokens: 1.0 });
+            let elapsed = now.saturating_duration_since(clock.last).as_secs_f64() / period_s;
+            // Periods owed since the last tick (uncapped: 2 or more means whole periods missed).
+            let owed = clock.tokens + elapsed;
+            let fresh = s.pose_pending();
+            let wait = if self.streaming[i] { GRACE_PERIODS } else { 0.0 };
+            // A fresh pose counts time slightly fast, so the slot's phase drifts onto the pose's.
+            let (have, need, rate) = if fresh {
+                (clock.tokens + elapsed * LOCK_RATE, 1.0 - EARLY_PERIODS, LOCK_RATE)
+            } else {
+                (owed, 1.0 + wait, 1.0)
+            };
+            if have < need {
+                let until = ceil_us((need - have) / rate * period_s);
+                next = next.min(now + until);
+                continue;
+            }
+            let late_s = ((owed - 1.0 - wait).max(0.0)) * period_s;
+            let late_ns = (late_s * 1e9) as u64;
+            stats.lateness.record(late_ns);
+            stats.max_lateness_ns.fetch_max(late_ns, Ordering::Relaxed);
+            let behind = (owed - 1.0 - wait).floor();
+            if behind >= 1.0 {
+                stats.missed.fetch_add(behind as u64, Ordering::Relaxed);
+            }
+            s.tick(i as u16, |out| Self::emit(outputs, stats, out));
+            ticked += 1;
+            *clock = SlotClock { last: now, tokens: have.min(MAX_TOKENS) - 1.0 };
+            self.streaming[i] = fresh;
+            let wait = if fresh { GRACE_PERIODS } else { 0.0 };
+            let until = ceil_us((1.0 + wait - clock.tokens).max(0.0) * period_s);
+            next = next.min(now + until);
+        }
+        self.stats.sessions.store(active, Ordering::Relaxed);
+        self.stats.ticks.fetch_add(u64::from(ticked), Ordering::Relaxed);
+        (ticked, next)
+    }
+
+    /// One tick of every active slot, due or not: commands first, then the sessions (tests and
+    /// offline stepping; the tick thread uses [`tick_due`](Self::tick_due)).
+    pub fn tick(&mut self) {
+        self.apply_commands();
         let mut active = 0;
         let (outputs, stats) = (&mut self.outputs, &self.stats);
         for (i, s) in self.slots.iter_mut().enumerate() {
@@ -259,8 +360,9 @@ pub struct TickThread {
 }
 
 impl TickThread {
-    /// Starts ticking `core` at 1 kHz on absolute deadlines; `notify` is unparked after every
-    /// tick (the comm thread, so outputs leave without polling delay).
+    /// Starts ticking `core` (see the module docs for the schedule); `notify` is unparked after
+    /// every wake-up that ticked a slot (the comm thread, so outputs leave without polling delay).
+    /// Unpark [`thread`](Self::thread) after handing over a pose.
     ///
     /// # Errors
     /// The thread could not be spawned.
@@ -270,36 +372,33 @@ impl TickThread {
         let handle = thread::Builder::new()
             .name("dhg-tick".into())
             .spawn(move || {
-                let period_ns = TICK_PERIOD.as_nanos() as u64;
                 core.stats.realtime.store(u64::from(realtime::promote()), Ordering::Relaxed);
-                let start = Instant::now();
-                let mut k: u64 = 0;
+                let mut wake = Instant::now();
                 while !flag.load(Ordering::Relaxed) {
-                    let deadline = start + Duration::from_nanos(k * period_ns);
                     let now = Instant::now();
-                    if now < deadline {
-                        thread::sleep(deadline - now);
+                    if now < wake {
+                        // Woken early by the pose subscriber (or spuriously: the loop checks).
+                        thread::park_timeout(wake - now);
                     }
                     let woke = Instant::now();
-                    let late_ns = woke.saturating_duration_since(deadline).as_nanos() as u64;
-                    let stats = &core.stats;
-                    stats.lateness.record(late_ns);
-                    stats.max_lateness_ns.fetch_max(late_ns, Ordering::Relaxed);
-                    let behind = late_ns / period_ns;
-                    if behind > 0 {
-                        stats.missed.fetch_add(behind, Ordering::Relaxed);
-                        k += behind;
+                    let (ticked, next) = core.tick_due(woke);
+                    if ticked > 0 {
+                        core.stats.busy.record(woke.elapsed().as_nanos() as u64);
+                        if let Some(t) = &notify {
+                            t.unpark();
+                        }
                     }
-                    core.tick();
-                    core.stats.busy.record(woke.elapsed().as_nanos() as u64);
-                    if let Some(t) = &notify {
-                        t.unpark();
-                    }
-                    k += 1;
+                    wake = next;
                 }
             })
             .map_err(|e| SimError::Engine(format!("cannot start the tick thread: {e}")))?;
         Ok(Self { stop, handle: Some(handle) })
+    }
+
+    /// The tick thread (to unpark when a pose arrives).
+    #[must_use]
+    pub fn thread(&self) -> Option<&Thread> {
+        self.handle.as_ref().map(JoinHandle::thread)
     }
 
     /// Stops the thread and waits for it (at most one tick).

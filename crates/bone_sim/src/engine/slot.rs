@@ -69,6 +69,11 @@ impl Slot {
         })
     }
 
+    /// Whether a pose newer than the last one used is waiting.
+    pub(crate) fn pose_pending(&self) -> bool {
+        self.poses.updated()
+    }
+
     /// Starts a fresh session: undrilled bone, new state, no guidance.
     pub(crate) fn activate(&mut self, generation: u32, path: PlannedPath, gain: f64) {
         self.session.set_path(path);

@@ -54,7 +54,11 @@ fn on_pose(shared: &Shared, sample: &Sample) {
     match reg.open(id, None) {
         Ok((slot, _)) => {
             reg.pose(slot, &msg);
+            drop(reg);
             shared.counters.poses.fetch_add(1, Ordering::Relaxed);
+            if let Some(t) = shared.tick_thread.get() {
+                t.unpark(); // the slot may tick now rather than at its next deadline
+            }
         }
         Err(_) => {
             shared.counters.sessions_refused.fetch_add(1, Ordering::Relaxed);

@@ -113,6 +113,8 @@ pub struct Shared {
     pub(crate) snapshot: Mutex<triple_buffer::Output<Snapshot>>,
     pub(crate) snapshot_seq: AtomicU64,
     pub(crate) stopping: AtomicBool,
+    /// The tick thread, unparked by the pose subscriber after it hands over a pose.
+    pub(crate) tick_thread: std::sync::OnceLock<std::thread::Thread>,
     pub(crate) config: ServerConfig,
     pub(crate) started: Instant,
 }
@@ -163,12 +165,17 @@ impl Server {
             snapshot: Mutex::new(link.snapshot),
             snapshot_seq: AtomicU64::new(0),
             stopping: AtomicBool::new(false),
+            tick_thread: std::sync::OnceLock::new(),
             config,
             started: Instant::now(),
         });
         control::declare(&session, &shared)?;
         let comm = comm::spawn(session.clone(), shared.clone(), link.outputs)?;
         let tick = TickThread::spawn(core, Some(comm.thread().clone()))?;
+        // Until this is set the tick thread still polls every period; after, poses wake it.
+        if let Some(t) = tick.thread() {
+            let _ = shared.tick_thread.set(t.clone());
+        }
         Ok(Self { shared, session, tick, comm: Some(comm) })
     }
 
