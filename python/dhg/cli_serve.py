@@ -18,9 +18,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
-from dhg.errors import DhgError, TransportError
-
-EXIT_OK, EXIT_INTERNAL, EXIT_USAGE, EXIT_BAD_INPUT, EXIT_NETWORK = 0, 1, 2, 3, 5
+from dhg.cli import EXIT_INTERNAL, EXIT_OK, _run
 
 EPILOG = """\
 exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input (CT, model file, values),
@@ -28,20 +26,6 @@ exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input (CT, model f
 endpoints look like tcp/127.0.0.1:7447 (loopback) or tcp/0.0.0.0:7447 (every interface).
 key expressions and payloads: docs/protocol.md. Units: SI (m, N, s, °C).
 """
-
-
-def _run(func: Any, args: argparse.Namespace) -> int:
-    try:
-        return int(func(args))
-    except TransportError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_NETWORK
-    except (DhgError, ValueError, TypeError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
 
 
 @contextmanager
