@@ -12,6 +12,7 @@ subject.
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections.abc import Sequence
@@ -25,6 +26,7 @@ from dhg.dataset import EpisodeInput, write_dataset
 from dhg.surgeons import skill_metrics
 from dhg.synth import attempt_score
 from dhg.task import PlannedPath, TaskRules
+from dhg.trainee import state_records
 
 __all__ = ["SessionRecorder"]
 
@@ -87,19 +89,16 @@ class SessionRecorder:
             return sum(len(e) for e in self._episodes)
 
     def _fetch_path(self) -> None:
+        """The session's planned path (for the skill metrics), asked once it answers. Best effort:
+        without it the records are still written, with empty metrics."""
         if self.path is not None:
             return
-        from dhg.errors import DhgError
-
         try:
-            replies = self._z.get(self.keys["control"], payload=b'{"op":"info"}', timeout=1.0)
-            for r in replies:
+            for r in self._z.get(self.keys["control"], payload=b'{"op":"info"}', timeout=1.0):
                 if r.ok is not None:
-                    import json
-
                     info = json.loads(r.ok.payload.to_bytes())
                     self.path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))
-        except (DhgError, KeyError, ValueError):
+        except Exception:  # zenoh errors, a closed session or a malformed reply: try again next flush
             pass
 
     def flush(self) -> bool:
@@ -114,8 +113,6 @@ class SessionRecorder:
         rules = TaskRules()
         inputs = []
         for attempt, states in enumerate(episodes):
-            from dhg.trainee import state_records
-
             records = state_records(states)
             last = states[-1]
             metrics: dict[str, Any] = {}
