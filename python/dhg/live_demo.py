@@ -144,7 +144,7 @@ def run_live_demo(out: str | Path, duration_s: float = 20.0, seed: int = 7, echo
                 if name == "guided":
                     for view, png in client.xray().items():
                         (out / f"{view}.png").write_bytes(png)
-                run.health = client.health(duration_s + 5.0)  # type: ignore[attr-defined]
+                run.server_health = client.health(duration_s + 5.0)
             runs.append(run)
     finally:
         code = server.stop()
@@ -189,7 +189,7 @@ def run_live_demo(out: str | Path, duration_s: float = 20.0, seed: int = 7, echo
         for q in ("p50", "p99"):
             table.add_row(*_row(f"{label} {q} (ms)", [f"{r.latency[f'{key}_{q}_s'] * 1e3:.2f}" for r in runs]))
     table.add_row(*_row("forces / poses sent", [f"{r.latency['forces']} / {r.poses_sent}" for r in runs]))
-    table.add_row(*_row("missed ticks (server)", [str(r.health["missed_ticks"]) for r in runs]))
+    table.add_row(*_row("missed ticks (server)", [str(r.server_health["missed_ticks"]) for r in runs]))
     console.print(table)
     plot = plot_live_runs(runs, out / "live.png", "Virtual novice through dhg-serve: guided vs unguided")
     console.print(

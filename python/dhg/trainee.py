@@ -40,6 +40,8 @@ class TraineeRun:
     """State messages received."""
     poses_sent: int = 0
     wall_s: float = 0.0
+    server_health: dict[str, Any] = field(default_factory=dict)
+    """The server's health report after the run, when the caller asked for it."""
 
 
 def state_records(states: list[dict[str, Any]]) -> npt.NDArray[np.float64]:
