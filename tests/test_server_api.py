@@ -37,6 +37,10 @@ def test_sessions_are_limited_and_controlled(engine):
     assert engine.health()["session_ids"] == ["a", "b"]
     with pytest.raises(InvalidInputError):
         engine.control("a", {"op": "set_guidance", "gain": float("nan")})
+    with pytest.raises(InvalidInputError, match="burr_radius_m"):
+        engine.control("a", {"op": "set_drill", "burr_radius_m": -1e-3})
+    assert engine.control("b", {"op": "set_drill", "burr_radius_m": 1.5e-3})["burr_radius_m"] == 1.5e-3
+    assert engine.control("a", {"op": "info"})["burr_radius_m"] == 1.25e-3, "a refusal changed a's burr"
     with pytest.raises(InvalidInputError, match="id"):
         engine.control("bad id!", {"op": "create"})
     engine.control("a", {"op": "close"})

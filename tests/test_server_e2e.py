@@ -177,6 +177,13 @@ def test_control_refusals_say_what_was_wrong(server):
             c.control("dance")
         info = c.set_guidance(0.5)
         assert info["guidance_gain"] == 0.5
+        with pytest.raises(EngineError, match="burr_radius_m"):
+            c.set_drill(0.05)
+        with pytest.raises(EngineError, match="burr_radius_m"):
+            c.control("set_drill")
+        assert c.control("info")["burr_radius_m"] == pytest.approx(1.25e-3), "a refusal changed the burr"
+        assert c.set_drill(2e-3)["burr_radius_m"] == 2e-3
+        assert c.metrics()["burr_radius_m"] == 2e-3
 
 
 def test_a_silent_client_gets_its_force_ramped_to_zero_and_its_session_freed(server):

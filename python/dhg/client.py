@@ -194,22 +194,33 @@ class TraineeClient:
         return json.loads(body)
 
     def control(self, op: str, timeout_s: float = 2.0, **fields: Any) -> dict[str, Any]:
-        """Sends a control request (``op``: create, reset, set_path, set_guidance, close, info) and
+        """Sends a control request (``op``: create, reset, set_path, set_guidance, set_drill, close,
+        info) and
         returns the session info. Refusals raise :class:`EngineError` with the server's reason."""
         return self._json(self.keys["control"], {"op": op, **fields}, timeout_s)
 
-    def create(self, path: Any = None, guidance_gain: float | None = None) -> dict[str, Any]:
-        """Creates (or finds) this session, optionally with its own planned path and gain."""
+    def create(
+        self, path: Any = None, guidance_gain: float | None = None, burr_radius_m: float | None = None
+    ) -> dict[str, Any]:
+        """Creates (or finds) this session, optionally with its own planned path, guidance gain and
+        burr radius (m)."""
         fields: dict[str, Any] = {}
         if path is not None:
             fields |= {"entry_m": [float(v) for v in path.entry_m], "target_m": [float(v) for v in path.target_m]}
         if guidance_gain is not None:
             fields["guidance_gain"] = float(guidance_gain)
+        if burr_radius_m is not None:
+            fields["burr_radius_m"] = float(burr_radius_m)
         return self.control("create", **fields)
 
     def set_guidance(self, gain: float) -> dict[str, Any]:
         """Sets the guidance gain (0 = guidance computed and published, not felt)."""
         return self.control("set_guidance", gain=float(gain))
+
+    def set_drill(self, burr_radius_m: float) -> dict[str, Any]:
+        """Swaps this session's burr for one of ``burr_radius_m`` (m, at most 0.02), as a surgeon
+        changes bits: the bone drilled so far stays, the new burr cuts from the next tick on."""
+        return self.control("set_drill", burr_radius_m=float(burr_radius_m))
 
     def metrics(self) -> dict[str, Any]:
         """The server's metrics of this session (SI units)."""

@@ -92,20 +92,29 @@ impl Default for SessionConfig {
     }
 }
 
+/// Checks a burr radius (m): finite and in (0, [`MAX_BURR_RADIUS_M`]].
+///
+/// # Errors
+/// `InvalidParameter` naming `burr_radius_m`.
+pub fn check_burr_radius(radius_m: f64) -> SimResult<f64> {
+    positive("burr_radius_m", radius_m)?;
+    if radius_m > MAX_BURR_RADIUS_M {
+        return Err(SimError::InvalidParameter {
+            name: "burr_radius_m",
+            value: radius_m,
+            reason: "must be at most 0.02 m",
+        });
+    }
+    Ok(radius_m)
+}
+
 impl SessionConfig {
     /// Checks every field.
     ///
     /// # Errors
     /// Any invalid value, or a coupling stiffer than the device can render.
     pub fn validate(&self) -> SimResult<()> {
-        positive("burr_radius_m", self.burr_radius_m)?;
-        if self.burr_radius_m > MAX_BURR_RADIUS_M {
-            return Err(SimError::InvalidParameter {
-                name: "burr_radius_m",
-                value: self.burr_radius_m,
-                reason: "must be at most 0.02 m",
-            });
-        }
+        check_burr_radius(self.burr_radius_m)?;
         self.device.validate()?;
         positive("coupling_stiffness_n_per_m", self.coupling_stiffness_n_per_m)?;
         if self.coupling_stiffness_n_per_m > self.device.max_stiffness_n_per_m {
@@ -357,6 +366,18 @@ impl DrillingSession {
     /// allocate until the session has drilled that much.
     pub fn reserve_bricks(&mut self, bricks: usize) {
         self.bone = DrilledVolume::with_reserve(self.bone.volume().clone(), bricks);
+    }
+
+    /// Changes the burr (drill tip) radius (m) from the next tick on, as when the trainee swaps
+    /// bits: the bone drilled so far and the proxy's position stay. Allocation-free.
+    ///
+    /// # Errors
+    /// A radius outside (0, [`MAX_BURR_RADIUS_M`]]; the session is unchanged.
+    pub fn set_burr_radius(&mut self, radius_m: f64) -> SimResult<()> {
+        check_burr_radius(radius_m)?;
+        self.probe = BurrProbe::new(self.bone.volume().grid(), radius_m);
+        self.config.burr_radius_m = radius_m;
+        Ok(())
     }
 
     /// Sets a new planned path (depth and deviation are measured against it from now on).

@@ -361,3 +361,34 @@ mod schedule {
         assert_eq!(core.tick_due(t0 + us(4200)).0, 1);
     }
 }
+
+#[test]
+fn set_burr_swaps_the_drill_of_one_slot_and_a_new_session_gets_the_default_again() {
+    let (mut core, mut link, surface) = engine(2);
+    let r0 = core.session(0).unwrap().config().burr_radius_m;
+    activate(&mut link, 0, 1, 1.0);
+    activate(&mut link, 1, 1, 1.0);
+    link.commands.push(Command::SetBurr { slot: 1, radius_m: 2.0 * r0 }).unwrap();
+    core.tick();
+    assert_eq!(core.session(0).unwrap().config().burr_radius_m, r0);
+    assert_eq!(core.session(1).unwrap().config().burr_radius_m, 2.0 * r0);
+    // Both slots drill the same 2 mm: the wider burr removes more bone.
+    let mut z = surface - 2e-3;
+    for seq in 1..6000 {
+        z = (z + 0.002e-3).min(surface + 2e-3);
+        send(&mut link, 0, 1, seq, z);
+        send(&mut link, 1, 1, seq, z);
+        core.tick();
+        drain(&mut link);
+    }
+    let removed = |core: &TickCore, s: usize| core.session(s).unwrap().bone().removed_voxels();
+    assert!(removed(&core, 0) > 0, "slot 0 never cut");
+    assert!(removed(&core, 1) > 2 * removed(&core, 0), "{} vs {}", removed(&core, 1), removed(&core, 0));
+    // A bad radius sent anyway leaves the slot as it was; a re-activated slot starts with the default.
+    link.commands.push(Command::SetBurr { slot: 1, radius_m: f64::NAN }).unwrap();
+    core.tick();
+    assert_eq!(core.session(1).unwrap().config().burr_radius_m, 2.0 * r0);
+    activate(&mut link, 1, 2, 1.0);
+    core.tick();
+    assert_eq!(core.session(1).unwrap().config().burr_radius_m, r0);
+}

@@ -1,6 +1,6 @@
 //! The tick thread's promise: a tick never allocates. A counting global allocator watches 3000
 //! ticks of 4 sessions drilling through cortex and cancellous bone, with model replies arriving,
-//! snapshots taken and every output drained. Its own test binary, so no other test allocates
+//! snapshots taken, a burr swapped and every output drained. Its own test binary, so no other test allocates
 //! while it counts.
 
 mod common;
@@ -88,6 +88,11 @@ fn ticks_do_not_allocate() {
                     };
                     link.commands.push(cmd).unwrap();
                 }
+            }
+            if k % 1000 == 700 {
+                // A bit swap mid-drill (set_drill): 1.0 mm and 1.5 mm burrs in turn.
+                let radius_m = if k % 2000 == 700 { 1.0e-3 } else { 1.5e-3 };
+                link.commands.push(Command::SetBurr { slot: 2, radius_m }).unwrap();
             }
             if k % 500 == 250 {
                 link.commands.push(Command::Snapshot { slot: (k / 500 % 4) as u16 }).unwrap();

@@ -347,3 +347,25 @@ fn leaving_the_cortex_for_cancellous_bone_is_a_breakthrough_but_cancellous_alone
     let (_, s) = drill_until(s, surface, 1.5, 1250.0, surface + 4e-3, 20.0);
     assert_eq!(s.state().breakthroughs, 0);
 }
+
+#[test]
+fn a_wider_burr_removes_more_bone_and_bad_radii_are_refused_without_change() {
+    let layers = [(Layer::Cancellous, 350.0, 6e-3)];
+    let (narrow, surface, _) = session(&layers);
+    let (mut wide, _, _) = session(&layers);
+    let r0 = narrow.config().burr_radius_m;
+    for bad in [0.0, -1e-3, f64::NAN, f64::INFINITY, 0.021] {
+        let err = wide.set_burr_radius(bad).unwrap_err().to_string();
+        assert!(err.contains("burr_radius_m"), "{err}");
+        assert_eq!(wide.config().burr_radius_m, r0);
+    }
+    wide.set_burr_radius(2.0 * r0).unwrap();
+    assert_eq!(wide.config().burr_radius_m, 2.0 * r0);
+    let depth = surface + 3e-3;
+    let (_, narrow) = drill_until(narrow, surface, 1.5, 1250.0, depth, 20.0);
+    let (_, wide) = drill_until(wide, surface, 1.5, 1250.0, depth, 20.0);
+    assert!(narrow.state().tip_m.z >= depth && wide.state().tip_m.z >= depth, "both bored 3 mm");
+    // Twice the radius bores a hole of about four times the cross-section.
+    let ratio = wide.state().removed_mass_kg / narrow.state().removed_mass_kg;
+    assert!((2.5..6.0).contains(&ratio), "removed mass ratio {ratio}");
+}

@@ -51,6 +51,13 @@ pub enum Command {
         /// The new path.
         path: PlannedPath,
     },
+    /// Swap the burr: a new radius (m), checked by the sender; the drilled bone stays.
+    SetBurr {
+        /// Slot index.
+        slot: u16,
+        /// Burr radius (m).
+        radius_m: f64,
+    },
     /// Change the guidance gain (0 disables mixing; guidance is still computed and published).
     SetGain {
         /// Slot index.

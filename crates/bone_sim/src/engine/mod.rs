@@ -246,6 +246,12 @@ impl TickCore {
                     s.session.set_path(path);
                 }
             }
+            Command::SetBurr { slot, radius_m } => {
+                if let Some(s) = self.slots.get_mut(slot_of(slot)) {
+                    // Checked by the sender; a bad value would leave the session as it was.
+                    let _ = s.session.set_burr_radius(radius_m);
+                }
+            }
             Command::SetGain { slot, gain } => {
                 if let Some(s) = self.slots.get_mut(slot_of(slot)) {
                     s.set_gain(gain);

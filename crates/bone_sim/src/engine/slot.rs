@@ -25,6 +25,8 @@ pub(crate) struct Slot {
     pose_time_ns: u64,
     record_seq: u32,
     voxel_m3: f64,
+    /// The burr a fresh session starts with (m).
+    default_burr_m: f64,
 }
 
 fn flags_of(s: &SessionState) -> u16 {
@@ -55,6 +57,7 @@ impl Slot {
     ) -> SimResult<Self> {
         let output = ForceLimiter::new(session.config().device.clone())?;
         let voxel_m3 = session.bone().volume().grid().voxel_volume_m3();
+        let default_burr_m = session.config().burr_radius_m;
         Ok(Self {
             active: false,
             generation: 0,
@@ -66,6 +69,7 @@ impl Slot {
             pose_time_ns: 0,
             record_seq: 0,
             voxel_m3,
+            default_burr_m,
         })
     }
 
@@ -77,6 +81,8 @@ impl Slot {
     /// Starts a fresh session: undrilled bone, new state, no guidance.
     pub(crate) fn activate(&mut self, generation: u32, path: PlannedPath, gain: f64) {
         self.session.set_path(path);
+        // Valid: it is the radius the session was built with.
+        let _ = self.session.set_burr_radius(self.default_burr_m);
         self.session.reset();
         self.output.reset();
         self.guidance.reset(gain);

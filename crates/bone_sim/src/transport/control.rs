@@ -16,6 +16,7 @@ use crate::engine::handoff::Command;
 use crate::error::{SimError, SimResult};
 use crate::path::PlannedPath;
 use crate::protocol::{self, Refusal};
+use crate::session::check_burr_radius;
 
 /// Leaves under `<prefix>/session/<id>/` that clients may put or query.
 const CLIENT_LEAVES: [&str; 3] = ["pose", "control", "metrics"];
@@ -125,10 +126,19 @@ fn session_info(shared: &Shared, id: &str) -> SimResult<Value> {
         "session": id,
         "slot": slot,
         "guidance_gain": info.gain,
+        "burr_radius_m": info.burr_radius_m,
         "entry_m": [a.x, a.y, a.z],
         "target_m": [b.x, b.y, b.z],
         "poses_received": info.poses_received,
     }))
+}
+
+/// Swaps the burr of `slot`; `value` must be a radius (m) in (0, 0.02].
+fn set_burr(reg: &mut super::registry::Registry, slot: u16, value: &Value) -> SimResult<()> {
+    let radius_m = check_burr_radius(value.as_f64().unwrap_or(f64::NAN))?;
+    reg.send(Command::SetBurr { slot, radius_m })?;
+    reg.slots[slot as usize].burr_radius_m = radius_m;
+    Ok(())
 }
 
 /// Applies one control request to session `id`.
@@ -147,6 +157,9 @@ pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> 
                     let gain = check_gain(g.as_f64().unwrap_or(f64::NAN))?;
                     reg.send(Command::SetGain { slot: s, gain })?;
                     reg.slots[s as usize].gain = gain;
+                }
+                if let Some(r) = req.get("burr_radius_m") {
+                    set_burr(&mut reg, s, r)?;
                 }
                 drop(reg);
                 let mut info = session_info(shared, id)?;
@@ -170,6 +183,10 @@ pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> 
                 reg.send(Command::SetGain { slot: s, gain })?;
                 reg.slots[s as usize].gain = gain;
             }
+            "set_drill" => {
+                let s = slot(&reg)?;
+                set_burr(&mut reg, s, req.get("burr_radius_m").unwrap_or(&Value::Null))?;
+            }
             "close" => {
                 reg.close(id)?;
                 return Ok(json!({ "session": id, "closed": true }));
@@ -179,7 +196,7 @@ pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> 
                 return Err(SimError::InvalidOption {
                     name: "op",
                     value: other.to_owned(),
-                    allowed: "create, reset, set_path, set_guidance, close, info",
+                    allowed: "create, reset, set_path, set_guidance, set_drill, close, info",
                 })
             }
         }
@@ -198,6 +215,7 @@ pub(crate) fn metrics(shared: &Shared, id: &str) -> SimResult<Value> {
     let mut v = info.metrics.to_json(&info.path.target_m());
     v["session"] = json!(id);
     v["guidance_gain"] = json!(info.gain);
+    v["burr_radius_m"] = json!(info.burr_radius_m);
     Ok(v)
 }
 

@@ -153,8 +153,13 @@ impl Server {
         let zconfig = zenoh::Config::from_json5(&config.zenoh_json5).map_err(zerr("bad zenoh configuration"))?;
         let (core, link) = engine::build(volume, engine_config)?;
         let session = zenoh::open(zconfig).wait().map_err(zerr("cannot open the zenoh session"))?;
-        let registry =
-            Registry::new(link.commands, link.poses, engine_config.default_path.clone(), engine_config.default_gain);
+        let registry = Registry::new(
+            link.commands,
+            link.poses,
+            engine_config.default_path.clone(),
+            engine_config.default_gain,
+            engine_config.session.burr_radius_m,
+        );
         let shared = Arc::new(Shared {
             prefix: config.prefix.clone(),
             registry: Mutex::new(registry),

@@ -51,6 +51,8 @@ pub struct SlotInfo {
     pub path: PlannedPath,
     /// Guidance gain in effect.
     pub gain: f64,
+    /// Burr radius in effect (m).
+    pub burr_radius_m: f64,
     /// Metrics so far.
     pub metrics: SessionMetrics,
 }
@@ -66,6 +68,7 @@ pub struct Registry {
     pub slots: Vec<SlotInfo>,
     default_path: PlannedPath,
     default_gain: f64,
+    default_burr_m: f64,
 }
 
 impl Registry {
@@ -76,6 +79,7 @@ impl Registry {
         poses: Vec<triple_buffer::Input<PoseSample>>,
         default_path: PlannedPath,
         default_gain: f64,
+        default_burr_m: f64,
     ) -> Self {
         let now = Instant::now();
         let slots = poses
@@ -88,10 +92,11 @@ impl Registry {
                 poses_received: 0,
                 path: default_path.clone(),
                 gain: default_gain,
+                burr_radius_m: default_burr_m,
                 metrics: SessionMetrics::default(),
             })
             .collect();
-        Self { commands, by_id: HashMap::new(), slots, default_path, default_gain }
+        Self { commands, by_id: HashMap::new(), slots, default_path, default_gain, default_burr_m }
     }
 
     /// Sends a command to the tick thread.
@@ -134,6 +139,7 @@ impl Registry {
         info.poses_received = 0;
         info.path = path;
         info.gain = gain;
+        info.burr_radius_m = self.default_burr_m;
         info.metrics = SessionMetrics::default();
         self.by_id.insert(id.to_owned(), slot as u16);
         Ok((slot as u16, true))
