@@ -140,6 +140,50 @@ def test_writer_refuses_bad_episodes_and_leaves_nothing(tmp_path, small):
     assert records_schema().names[0] == "episode_id"
 
 
+def test_a_rewrite_interrupted_after_the_swap_leaves_the_whole_new_dataset(tmp_path, small, monkeypatch):
+    import shutil
+
+    out = write_dataset(tmp_path / "d", small[1][:1], {})
+    real, calls = shutil.rmtree, []
+
+    def crash_once(path, *args, **kwargs):  # the process dies while deleting the old copy
+        calls.append(path)
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        real(path, *args, **kwargs)
+
+    monkeypatch.setattr(shutil, "rmtree", crash_once)
+    with pytest.raises(KeyboardInterrupt):
+        write_dataset(out, small[1], {}, overwrite=True)
+    assert len(calls) == 1, "the crash hit something other than deleting the old copy"
+    assert len(load_dataset(out).episodes) == len(small[1]), "out does not hold the new dataset"
+
+
+def test_without_an_atomic_swap_a_crash_between_renames_is_pointed_to(tmp_path, small, monkeypatch):
+    import os
+
+    from dhg import dataset
+
+    out = write_dataset(tmp_path / "d", small[1][:1], {})
+    monkeypatch.setattr(dataset, "_exchange", lambda a, b: False)
+    real, calls = os.replace, []
+
+    def crash_second(a, b):
+        calls.append(b)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        real(a, b)
+
+    monkeypatch.setattr(os, "replace", crash_second)
+    with pytest.raises(KeyboardInterrupt):
+        write_dataset(out, small[1], {}, overwrite=True)
+    monkeypatch.undo()
+    with pytest.raises(DatasetError, match=r"\.d\..* beside it hold an interrupted rewrite"):
+        load_dataset(out)
+    (fresh,) = [p for p in tmp_path.glob(".d.*") if not p.name.endswith(".old")]
+    assert len(load_dataset(fresh).episodes) == len(small[1]), "the new dataset was not kept whole"
+
+
 METRICS_LOWER_IS_BETTER = [
     "completion_time_s",
     "mean_deviation_m",

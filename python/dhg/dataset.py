@@ -18,10 +18,13 @@ Virtual surgeons (``dhg synth``) and recordings of real people (``dhg record``) 
 
 from __future__ import annotations
 
+import ctypes
+import errno
 import hashlib
 import json
 import os
 import shutil
+import sys
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -163,8 +166,9 @@ def write_dataset(
     card_extra: dict[str, Any],
     overwrite: bool = False,
 ) -> Path:
-    """Writes a dataset folder atomically: everything goes to a temporary folder beside it, which
-    replaces ``out_dir`` only once complete. ``card_extra`` adds the volume, path and generator
+    """Writes a dataset folder atomically: everything goes to a temporary folder beside it, is
+    flushed to disk, and only then replaces ``out_dir`` in one atomic swap, so ``out_dir`` holds
+    the whole old dataset or the whole new one at every moment. ``card_extra`` adds the volume, path and generator
     sections of the card."""
     pa = _pa()
     import pyarrow.parquet as pq
@@ -237,13 +241,64 @@ def write_dataset(
             "files": files,
         }
         (tmp / CARD_FILE).write_text(json.dumps(card, indent=1))
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
+        _fsync_tree(tmp)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    _install(tmp, out)
     return out
+
+
+def _fsync_tree(folder: Path) -> None:
+    """Flushes a folder's files and the folder itself to disk (a power cut keeps them)."""
+    for f in folder.iterdir():
+        with open(f, "rb") as fh:
+            os.fsync(fh.fileno())
+    _fsync_dir(folder)
+
+
+def _fsync_dir(folder: Path) -> None:
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swaps two paths in one atomic step (Linux ``renameat2(RENAME_EXCHANGE)``). False where
+    the platform or file system cannot; the paths are then untouched."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False  # glibc < 2.28, or another libc
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    at_fdcwd, rename_exchange = -100, 2
+    if fn(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP, errno.EXDEV):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _install(tmp: Path, out: Path) -> None:
+    """Puts the complete folder ``tmp`` at ``out``. ``out`` always holds a whole dataset, old or
+    new: an existing one is swapped out in one atomic step, then deleted. Where no atomic swap
+    exists, ``out`` is missing for the moment between two renames, and a crash there leaves the
+    new dataset complete in ``tmp`` (which :func:`load_dataset` then points to)."""
+    if not out.exists():
+        os.replace(tmp, out)
+    elif _exchange(tmp, out):
+        shutil.rmtree(tmp, ignore_errors=True)  # tmp now holds the old dataset
+    else:
+        old = tmp.with_name(tmp.name + ".old")
+        os.replace(out, old)
+        os.replace(tmp, out)
+        shutil.rmtree(old, ignore_errors=True)
+    _fsync_dir(out.parent)
 
 
 def _fail(path: Path, what: str) -> DatasetError:
@@ -265,7 +320,9 @@ def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Da
     root = Path(path)
     card_path = root / CARD_FILE
     if not card_path.is_file():
-        raise _fail(root, f"no {CARD_FILE}: not a DHG dataset folder")
+        leftovers = sorted(p.name for p in root.parent.glob(f".{root.name}.*") if (p / CARD_FILE).is_file())
+        hint = f" ({', '.join(leftovers)} beside it hold an interrupted rewrite)" if leftovers else ""
+        raise _fail(root, f"no {CARD_FILE}: not a DHG dataset folder{hint}")
     try:
         card = json.loads(card_path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
