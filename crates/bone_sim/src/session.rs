@@ -44,6 +44,9 @@ const BREAKTHROUGH_DENSITY_FRACTION: f64 = 0.4;
 /// Cutting density (kg/m³) the cortex must reach in the cutting cap before a breakthrough can
 /// be detected (a grazing first contact is not "in the cortex" yet).
 const BREAKTHROUGH_ARM_KG_M3: f64 = 400.0;
+/// A proxy this far (m) behind the deepest point where it cut this cortex, along the drill axis,
+/// has been withdrawn: its empty cap is not a breakthrough.
+const WITHDRAWN_M: f64 = 0.1e-3;
 /// A plunge is the uncontrolled advance after a breakthrough. It ends once the tip has moved
 /// slower than this for `PLUNGE_END_TICKS` ticks. Controlled feeds are 1–4 mm/s; plunges run at
 /// tens of mm/s.
@@ -257,6 +260,8 @@ struct Breakthrough {
     in_cortex: bool,
     /// Highest cutting density seen while cutting this cortex (kg/m³).
     cortex_density_kg_m3: f64,
+    /// The deepest point (along the drill axis) at which the proxy has cut this cortex.
+    cut_m: Point3<f64>,
     point_m: Point3<f64>,
     still_ticks: u32,
 }
@@ -583,9 +588,13 @@ impl DrillingSession {
     ) {
         let bt = &mut self.breakthrough;
         let s = &mut self.state;
+        // A cap emptied by pulling back (pecking, bouncing off the bone) is a withdrawal: the
+        // cortex only gives way ahead of the deepest point the burr has cut in it.
+        let ahead = (self.proxy_m - bt.cut_m).dot(axis) > -WITHDRAWN_M;
         if bt.in_cortex
             && rpm > 0.0
             && push_ax > 0.0
+            && ahead
             && density < BREAKTHROUGH_DENSITY_FRACTION * bt.cortex_density_kg_m3
         {
             bt.in_cortex = false;
@@ -600,9 +609,13 @@ impl DrillingSession {
         if cutting && layer == Layer::Cortical && !s.plunging && density >= BREAKTHROUGH_ARM_KG_M3 {
             if !bt.in_cortex {
                 bt.cortex_density_kg_m3 = 0.0;
+                bt.cut_m = self.proxy_m;
             }
             bt.in_cortex = true;
             bt.cortex_density_kg_m3 = bt.cortex_density_kg_m3.max(density);
+            if (self.proxy_m - bt.cut_m).dot(axis) > 0.0 {
+                bt.cut_m = self.proxy_m;
+            }
         }
         if rpm <= 0.0 {
             bt.in_cortex = false;

@@ -369,3 +369,31 @@ fn a_wider_burr_removes_more_bone_and_bad_radii_are_refused_without_change() {
     let ratio = wide.state().removed_mass_kg / narrow.state().removed_mass_kg;
     assert!((2.5..6.0).contains(&ratio), "removed mass ratio {ratio}");
 }
+
+#[test]
+fn withdrawing_from_the_cortex_and_coming_back_is_not_a_breakthrough() {
+    // Pecking (or bouncing off the bone): drill 1 mm into the cortex, pull the running drill 2 mm
+    // back out, push it in again. Leaving the cut backwards is not the cortex giving way.
+    let (s, surface, _) = session(&[(Layer::Cortical, 1800.0, 4e-3)]);
+    let (_, mut s) = drill_until(s, surface, 1.5, 1250.0, surface + 1e-3, 20.0);
+    assert!(s.state().tip_m.z >= surface + 1e-3, "never reached 1 mm into the cortex");
+    for cycle in 0..3 {
+        let deep = s.state().tip_m.z;
+        let mut z = deep;
+        while z > deep - 2e-3 {
+            z -= 0.02e-3; // withdraw at 20 mm/s
+            s.tick(Some(&pose(z, true, 1250.0)));
+        }
+        while z < deep + 0.5e-3 {
+            z += 0.02e-3; // and come back at 20 mm/s, pressing on past the last cut
+            s.tick(Some(&pose(z, true, 1250.0)));
+        }
+        for _ in 0..200 {
+            s.tick(Some(&pose(z, true, 1250.0)));
+        }
+        let st = s.state();
+        assert_eq!(st.breakthroughs, 0, "cycle {cycle}: a withdrawal counted as a breakthrough");
+        assert_eq!(st.plunge_depth_m, 0.0, "cycle {cycle}");
+        assert!(st.cutting, "cycle {cycle}: back in the cortex and cutting");
+    }
+}
