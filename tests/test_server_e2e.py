@@ -167,19 +167,22 @@ def test_xray_views_metrics_and_an_own_path_over_zenoh(server):
 
 def test_control_refusals_say_what_was_wrong(server):
     _, endpoint = server
-    from dhg.errors import EngineError
+    from dhg.errors import EngineError, InvalidInputError
 
     with TraineeClient(endpoint, "ctl-1") as c:
+        with pytest.raises(EngineError, match="create it first") as refused:
+            c.set_guidance(0.5)
+        assert not isinstance(refused.value, InvalidInputError), "an unknown session is not bad input"
         c.create()
-        with pytest.raises(EngineError, match="gain"):
+        with pytest.raises(InvalidInputError, match="gain"):
             c.set_guidance(99.0)
-        with pytest.raises(EngineError, match="op"):
+        with pytest.raises(InvalidInputError, match="op"):
             c.control("dance")
         info = c.set_guidance(0.5)
         assert info["guidance_gain"] == 0.5
-        with pytest.raises(EngineError, match="burr_radius_m"):
+        with pytest.raises(InvalidInputError, match="burr_radius_m"):
             c.set_drill(0.05)
-        with pytest.raises(EngineError, match="burr_radius_m"):
+        with pytest.raises(InvalidInputError, match="burr_radius_m"):
             c.control("set_drill")
         assert c.control("info")["burr_radius_m"] == pytest.approx(1.25e-3), "a refusal changed the burr"
         assert c.set_drill(2e-3)["burr_radius_m"] == 2e-3

@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dhg import protocol
-from dhg.errors import EngineError, TransportError
+from dhg.errors import ERROR_KINDS, DhgError, EngineError, TransportError
 
 __all__ = ["TraineeClient", "feedback_tuple"]
 
@@ -44,6 +44,20 @@ def feedback_tuple(force_msg: dict[str, Any]) -> tuple:
         bool(fl & protocol.FLAGS["plunging"]),
         force_msg["plunge_depth_m"],
     )
+
+
+def _refusal(key: str, body: str) -> DhgError:
+    """The exception for an error reply ``{"error": ..., "kind": ...}``: the class of its kind
+    (:data:`dhg.errors.ERROR_KINDS`; ``invalid_input`` is an :class:`InvalidInputError`), else
+    :class:`EngineError`."""
+    try:
+        reply = json.loads(body)
+    except json.JSONDecodeError:
+        reply = None
+    if not isinstance(reply, dict):
+        return EngineError(f"{key}: {body}")
+    cls = ERROR_KINDS.get(str(reply.get("kind")), EngineError)
+    return cls(f"{key}: {reply.get('error', body)}")
 
 
 class TraineeClient:
@@ -179,11 +193,7 @@ class TraineeClient:
             else:
                 errors.append(r.err.payload.to_string())
         if errors and not out:
-            try:
-                message = json.loads(errors[0]).get("error", errors[0])
-            except json.JSONDecodeError:
-                message = errors[0]
-            raise EngineError(f"{key}: {message}")
+            raise _refusal(key, errors[0])
         if not out:
             raise TransportError(f"{key}: no reply within {timeout_s} s (is the server running and reachable?)")
         return out
@@ -195,8 +205,8 @@ class TraineeClient:
 
     def control(self, op: str, timeout_s: float = 2.0, **fields: Any) -> dict[str, Any]:
         """Sends a control request (``op``: create, reset, set_path, set_guidance, set_drill, close,
-        info) and
-        returns the session info. Refusals raise :class:`EngineError` with the server's reason."""
+        info) and returns the session info. A refusal raises with the server's reason: a bad value
+        as :class:`InvalidInputError`, an unknown session or a full server as :class:`EngineError`."""
         return self._json(self.keys["control"], {"op": op, **fields}, timeout_s)
 
     def create(

@@ -8,6 +8,7 @@ a caller would expect (``ValueError``), so ``except ValueError`` keeps working. 
 from __future__ import annotations
 
 __all__ = [
+    "ERROR_KINDS",
     "CTImportError",
     "DhgError",
     "EngineError",
@@ -49,3 +50,13 @@ class TransportError(DhgError, RuntimeError):
 
 class EngineError(DhgError, RuntimeError):
     """The real-time engine refused a request: not running, unknown session, or no free slot."""
+
+
+#: The exception class of each error kind of the native core (``SimError::kind``), used both for
+#: errors raised in-process and for the ``kind`` field of the server's error replies.
+ERROR_KINDS: dict[str, type[DhgError]] = {
+    "invalid_input": InvalidInputError,
+    "shape": ShapeError,
+    "transport": TransportError,
+    "engine": EngineError,
+}

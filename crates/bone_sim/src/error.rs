@@ -1,5 +1,6 @@
-//! The crate's one error type. Every fallible public function returns [`SimError`]; the
-//! Python layer maps it to exception classes in exactly one place (`python/errors.rs`).
+//! The crate's one error type. Every fallible public function returns [`SimError`]; its
+//! [`kind`](SimError::kind) names the category that the Python layer (`python/errors.rs`) and
+//! remote clients (the `kind` of an error reply) map to an exception class.
 
 use thiserror::Error;
 
@@ -84,6 +85,26 @@ pub enum SimError {
 
 /// Result alias used throughout the crate.
 pub type SimResult<T> = Result<T, SimError>;
+
+impl SimError {
+    /// The error's category, as written in the `kind` field of error replies on the wire
+    /// (`docs/protocol.md`): `invalid_input`, `shape`, `transport` or `engine`. Python maps each to
+    /// one exception class (`dhg.errors.ERROR_KINDS`).
+    #[must_use]
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Self::ShapeMismatch { .. } | Self::Empty { .. } => "shape",
+            Self::NonFinite { .. }
+            | Self::InvalidParameter { .. }
+            | Self::UnknownLayer { .. }
+            | Self::InvalidOption { .. }
+            | Self::InvalidGrid { .. }
+            | Self::Payload { .. } => "invalid_input",
+            Self::Transport(_) => "transport",
+            Self::Engine(_) => "engine",
+        }
+    }
+}
 
 /// Returns `Err(NonFinite)` unless `value` is finite.
 pub(crate) fn finite(what: &'static str, value: f64) -> SimResult<f64> {

@@ -1,30 +1,22 @@
 //! The one place where core errors become Python exceptions.
 //!
 //! The exception classes are defined in Python (`dhg/errors.py`) so they can subclass both
-//! `DhgError` and the matching builtin (`ValueError`); this module looks them up by name.
+//! `DhgError` and the matching builtin (`ValueError`); this module looks them up by the error's
+//! kind in `dhg.errors.ERROR_KINDS`.
 
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use crate::error::SimError;
 
-/// Converts a core error into the matching `dhg.errors` exception.
+/// Converts a core error into the `dhg.errors` exception of its kind (`dhg.errors.ERROR_KINDS`,
+/// the table remote clients use for error replies too).
 #[allow(clippy::needless_pass_by_value)] // by value so it fits `map_err`
 pub(crate) fn to_py(err: SimError) -> PyErr {
-    let class = match &err {
-        SimError::ShapeMismatch { .. } | SimError::Empty { .. } => "ShapeError",
-        SimError::NonFinite { .. }
-        | SimError::InvalidParameter { .. }
-        | SimError::UnknownLayer { .. }
-        | SimError::InvalidOption { .. }
-        | SimError::InvalidGrid { .. }
-        | SimError::Payload { .. } => "InvalidInputError",
-        SimError::Transport(_) => "TransportError",
-        SimError::Engine(_) => "EngineError",
-    };
     let message = err.to_string();
     Python::attach(|py| {
-        match py.import("dhg.errors").and_then(|m| m.getattr(class)) {
+        let class = py.import("dhg.errors").and_then(|m| m.getattr("ERROR_KINDS")?.get_item(err.kind()));
+        match class {
             Ok(cls) => PyErr::from_type(cls.cast_into().unwrap_or_else(|_| py.get_type::<PyValueError>()), message),
             // dhg.errors always ships with the extension; fall back to ValueError rather than fail.
             Err(_) => PyValueError::new_err(message),

@@ -94,9 +94,10 @@ fn reply(query: &Query, result: SimResult<Value>) {
     let key = query.key_expr().clone();
     let _ = match result {
         Ok(v) => query.reply(key, v.to_string()).encoding(Encoding::APPLICATION_JSON).wait(),
-        Err(e) => {
-            query.reply_err(json!({ "error": e.to_string() }).to_string()).encoding(Encoding::APPLICATION_JSON).wait()
-        }
+        Err(e) => query
+            .reply_err(json!({ "error": e.to_string(), "kind": e.kind() }).to_string())
+            .encoding(Encoding::APPLICATION_JSON)
+            .wait(),
     };
 }
 
