@@ -12,7 +12,9 @@
 //!   the bone around it (the removal model), and the proxy advances sideways as walls erode;
 //! - leaving the bone empties the cutting cap: the resistance collapses over the cap's length, the
 //!   proxy runs ahead to the device, and a push that is not held back plunges. The session reports
-//!   the breakthrough and measures the plunge;
+//!   the breakthrough and measures the plunge. A breakthrough needs a burr that bored at least
+//!   0.5 mm into the cortex and sits at the bottom of its bore: pulling back out of the cut
+//!   (pecking, bouncing off the bone) or skidding off the curved surface is not one;
 //! - every force passes the device's safety stage ([`ForceLimiter`]).
 //!
 //! A tick allocates nothing, takes no locks and does no I/O, as long as the bone's reserved
@@ -47,6 +49,10 @@ const BREAKTHROUGH_ARM_KG_M3: f64 = 400.0;
 /// A proxy this far (m) behind the deepest point where it cut this cortex, along the drill axis,
 /// has been withdrawn: its empty cap is not a breakthrough.
 const WITHDRAWN_M: f64 = 0.1e-3;
+/// Depth (m) the burr must have bored into a cortex, along its axis, before that cortex can give
+/// way. The cap arms about 0.3 mm before the burr touches, so crossing the phantom's thinnest
+/// cortex (1 mm, at the head) bores about 1.3 mm; a burr skidding on the surface bores < 0.4 mm.
+const MIN_BORE_M: f64 = 0.5e-3;
 /// A plunge is the uncontrolled advance after a breakthrough. It ends once the tip has moved
 /// slower than this for `PLUNGE_END_TICKS` ticks. Controlled feeds are 1–4 mm/s; plunges run at
 /// tens of mm/s.
@@ -260,8 +266,10 @@ struct Breakthrough {
     in_cortex: bool,
     /// Highest cutting density seen while cutting this cortex (kg/m³).
     cortex_density_kg_m3: f64,
-    /// The deepest point (along the drill axis) at which the proxy has cut this cortex.
+    /// The deepest point (along the drill axis) at which the proxy has cut since engaging this cortex.
     cut_m: Point3<f64>,
+    /// Where the proxy first engaged this cortex.
+    engage_m: Point3<f64>,
     point_m: Point3<f64>,
     still_ticks: u32,
 }
@@ -588,37 +596,47 @@ impl DrillingSession {
     ) {
         let bt = &mut self.breakthrough;
         let s = &mut self.state;
-        // A cap emptied by pulling back (pecking, bouncing off the bone) is a withdrawal: the
-        // cortex only gives way ahead of the deepest point the burr has cut in it.
-        let ahead = (self.proxy_m - bt.cut_m).dot(axis) > -WITHDRAWN_M;
+        // The bore: the line along the drill axis through its bottom. A burr whose centre is more
+        // than its diameter off that line no longer overlaps the bore: it is somewhere else.
+        let from_bottom = self.proxy_m - bt.cut_m;
+        let in_bore = (from_bottom - axis * from_bottom.dot(axis)).norm() < 2.0 * self.probe.radius_m();
         if bt.in_cortex
             && rpm > 0.0
             && push_ax > 0.0
-            && ahead
             && density < BREAKTHROUGH_DENSITY_FRACTION * bt.cortex_density_kg_m3
         {
-            bt.in_cortex = false;
-            bt.point_m = self.proxy_m;
-            bt.still_ticks = 0;
-            s.breakthroughs += 1;
-            s.plunging = true;
-            s.plunge_depth_m = 0.0;
+            // The cap emptied. The cortex gave way only if the burr bored into it and is at the
+            // bottom of its bore. Pulled back along the bore (pecking, bouncing off the bone),
+            // it stays armed for its return; slid off sideways or never bored in (a skid on the
+            // curved cortex), this contact is over.
+            let at_bottom = (self.proxy_m - bt.cut_m).dot(axis) > -WITHDRAWN_M;
+            let bored = (bt.cut_m - bt.engage_m).dot(axis) >= MIN_BORE_M;
+            if at_bottom && bored && in_bore {
+                bt.in_cortex = false;
+                bt.point_m = self.proxy_m;
+                bt.still_ticks = 0;
+                s.breakthroughs += 1;
+                s.plunging = true;
+                s.plunge_depth_m = 0.0;
+            } else if at_bottom || !in_bore {
+                bt.in_cortex = false;
+            }
         }
         // Arm on real engagement with cortex, and not while the last plunge is still running
-        // (the rest of the same cortex giving way is the same breakthrough).
+        // (the rest of the same cortex giving way is the same breakthrough). A drill stopped
+        // and restarted in its bore (cooling pauses) goes on with the same bore.
         if cutting && layer == Layer::Cortical && !s.plunging && density >= BREAKTHROUGH_ARM_KG_M3 {
-            if !bt.in_cortex {
+            if !bt.in_cortex || !in_bore {
                 bt.cortex_density_kg_m3 = 0.0;
                 bt.cut_m = self.proxy_m;
+                bt.engage_m = self.proxy_m;
             }
             bt.in_cortex = true;
             bt.cortex_density_kg_m3 = bt.cortex_density_kg_m3.max(density);
-            if (self.proxy_m - bt.cut_m).dot(axis) > 0.0 {
-                bt.cut_m = self.proxy_m;
-            }
         }
-        if rpm <= 0.0 {
-            bt.in_cortex = false;
+        // The bore's bottom: the deepest point cut since engaging, whatever the cap holds there.
+        if bt.in_cortex && cutting && (self.proxy_m - bt.cut_m).dot(axis) > 0.0 {
+            bt.cut_m = self.proxy_m;
         }
         if s.plunging {
             s.plunge_depth_m = s.plunge_depth_m.max((self.proxy_m - bt.point_m).dot(axis));

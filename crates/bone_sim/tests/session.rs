@@ -397,3 +397,72 @@ fn withdrawing_from_the_cortex_and_coming_back_is_not_a_breakthrough() {
         assert!(st.cutting, "cycle {cycle}: back in the cortex and cutting");
     }
 }
+
+#[test]
+fn a_burr_skidding_off_the_edge_of_the_cortex_is_not_a_breakthrough() {
+    // A cortical block filling x < 12 mm, z > 4 mm. The running burr touches down 2 mm from the
+    // edge, then the hand slides it sideways off the edge while still pressing: the cap empties
+    // without the burr ever having bored into the bone. A novice skidding on the curved femur does
+    // this; counting it as a breakthrough reported plunges where no cortex was ever crossed.
+    let n = 48;
+    let vol =
+        common::volume_from(
+            n,
+            |i, _, k| {
+                if i < n / 2 && k >= 8 {
+                    (Layer::Cortical, 1800.0)
+                } else {
+                    (Layer::Outside, -1000.0)
+                }
+            },
+        );
+    let (edge, surface, y) = (24.0 * H, 8.0 * H, 24.0 * H);
+    let path =
+        PlannedPath::new(Point3::new(edge - 2e-3, y, surface), Point3::new(edge - 2e-3, y, surface + 5e-3)).unwrap();
+    let mut s = DrillingSession::new(vol, path, SessionConfig::default()).unwrap();
+    let at = |x: f64, z: f64| Pose {
+        position_m: Point3::new(x, y, z),
+        orientation: UnitQuaternion::identity(),
+        drill_on: true,
+        spindle_rpm: 1250.0,
+    };
+    let r = s.config().burr_radius_m;
+    let (mut x, mut z) = (edge - 2e-3, surface - r - 1e-3);
+    while z < surface - r + 0.3e-3 {
+        z += 0.01e-3; // touch down at 10 mm/s, pressing 0.3 mm into the surface
+        s.tick(Some(&at(x, z)));
+    }
+    for _ in 0..100 {
+        s.tick(Some(&at(x, z)));
+    }
+    assert!(s.state().cutting, "the burr never engaged the cortex");
+    while x < edge + 3e-3 {
+        x += 0.01e-3; // slide sideways off the edge at 10 mm/s, still pressing
+        s.tick(Some(&at(x, z)));
+    }
+    for _ in 0..200 {
+        s.tick(Some(&at(x, z + 2e-3))); // and on into the air beyond the edge
+    }
+    assert!(s.state().tip_m.x > edge + r, "the burr never left the edge");
+    assert_eq!(s.state().breakthroughs, 0, "a skid off the edge counted as a breakthrough");
+    assert_eq!(s.state().plunge_depth_m, 0.0);
+}
+
+#[test]
+fn an_oblique_bore_through_the_cortex_is_one_breakthrough() {
+    // Hip pinning enters the lateral cortex obliquely: a bore 30° off the surface normal through
+    // 3 mm of cortex still breaks through once.
+    let (mut s, surface, t) = session(&[(Layer::Cortical, 1800.0, 3e-3)]);
+    let tilt = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 30f64.to_radians());
+    let axis = tilt * Vector3::z();
+    let start = Point3::new(CENTRE - 2e-3, CENTRE, surface - 2e-3);
+    let mut travel = 0.0;
+    while travel < 12e-3 && s.state().breakthroughs == 0 {
+        travel += 0.004e-3; // the hand advances at 4 mm/s along the tilted axis
+        let p = Pose { position_m: start + axis * travel, orientation: tilt, drill_on: true, spindle_rpm: 1250.0 };
+        s.tick(Some(&p));
+    }
+    let st = s.state();
+    assert_eq!(st.breakthroughs, 1, "no breakthrough after {:.1} mm of travel", travel * 1e3);
+    assert!(st.tip_m.z > surface + 0.5 * t, "broke through too early, at z {}", st.tip_m.z - surface);
+}
