@@ -13,7 +13,7 @@
 //! - leaving the bone empties the cutting cap: the resistance collapses over the cap's length, the
 //!   proxy runs ahead to the device, and a push that is not held back plunges. The session reports
 //!   the breakthrough and measures the plunge. A breakthrough needs a burr that bored at least
-//!   0.5 mm into the cortex and sits at the bottom of its bore: pulling back out of the cut
+//!   0.8 mm into the cortex and sits at the bottom of its bore: pulling back out of the cut
 //!   (pecking, bouncing off the bone) or skidding off the curved surface is not one;
 //! - every force passes the device's safety stage ([`ForceLimiter`]).
 //!
@@ -51,8 +51,9 @@ const BREAKTHROUGH_ARM_KG_M3: f64 = 400.0;
 const WITHDRAWN_M: f64 = 0.1e-3;
 /// Depth (m) the burr must have bored into a cortex, along its axis, before that cortex can give
 /// way. The cap arms about 0.3 mm before the burr touches, so crossing the phantom's thinnest
-/// cortex (1 mm, at the head) bores about 1.3 mm; a burr skidding on the surface bores < 0.4 mm.
-const MIN_BORE_M: f64 = 0.5e-3;
+/// cortex (1 mm, at the head) bores about 1.3 mm; novices skidding on the curved lateral cortex of
+/// the phantom bored up to 0.5 mm before the cap emptied.
+const MIN_BORE_M: f64 = 0.8e-3;
 /// A plunge is the uncontrolled advance after a breakthrough. It ends once the tip has moved
 /// slower than this for `PLUNGE_END_TICKS` ticks. Controlled feeds are 1–4 mm/s; plunges run at
 /// tens of mm/s.
@@ -266,7 +267,8 @@ struct Breakthrough {
     in_cortex: bool,
     /// Highest cutting density seen while cutting this cortex (kg/m³).
     cortex_density_kg_m3: f64,
-    /// The deepest point (along the drill axis) at which the proxy has cut since engaging this cortex.
+    /// The bore's bottom: the deepest level (along the drill axis) cut since engaging this
+    /// cortex, under where the burr last cut at that level.
     cut_m: Point3<f64>,
     /// Where the proxy first engaged this cortex.
     engage_m: Point3<f64>,
@@ -634,9 +636,13 @@ impl DrillingSession {
             bt.in_cortex = true;
             bt.cortex_density_kg_m3 = bt.cortex_density_kg_m3.max(density);
         }
-        // The bore's bottom: the deepest point cut since engaging, whatever the cap holds there.
-        if bt.in_cortex && cutting && (self.proxy_m - bt.cut_m).dot(axis) > 0.0 {
-            bt.cut_m = self.proxy_m;
+        // The bore's bottom: the deepest level cut since engaging, whatever the cap holds there,
+        // under the burr wherever it cuts at that level (a wandering hand widens its bore).
+        if bt.in_cortex && cutting {
+            let along = (self.proxy_m - bt.cut_m).dot(axis);
+            if along > -WITHDRAWN_M {
+                bt.cut_m = self.proxy_m - axis * along.min(0.0);
+            }
         }
         if s.plunging {
             s.plunge_depth_m = s.plunge_depth_m.max((self.proxy_m - bt.point_m).dot(axis));

@@ -466,3 +466,12 @@ fn an_oblique_bore_through_the_cortex_is_one_breakthrough() {
     assert_eq!(st.breakthroughs, 1, "no breakthrough after {:.1} mm of travel", travel * 1e3);
     assert!(st.tip_m.z > surface + 0.5 * t, "broke through too early, at z {}", st.tip_m.z - surface);
 }
+
+#[test]
+fn the_thinnest_cortex_of_the_phantom_still_breaks_through() {
+    // 1 mm of cortex (the phantom's head) over cancellous bone: the cap empties into softer bone
+    // after about 1.3 mm of bore, above the 0.8 mm a skid may bite.
+    let (s, surface, _) = session(&[(Layer::Cortical, 1800.0, 1e-3), (Layer::Cancellous, 300.0, 5e-3)]);
+    let (_, s) = drill_until(s, surface, 1.5, 1250.0, surface + 3e-3, 20.0);
+    assert_eq!(s.state().breakthroughs, 1);
+}
