@@ -246,6 +246,44 @@ def test_record_keeps_everything_up_to_the_last_flush_when_killed(server, tmp_pa
     assert ep.features[:, 7].max() > 0.0  # penetration depth reached into the bone
 
 
+def test_record_survives_a_server_crash_and_keeps_everything_on_ctrl_c(tmp_path):
+    from dhg.dataset import load_dataset
+
+    proc, endpoint = _serve("--idle-timeout", "5.0")
+    out = tmp_path / "rec"
+    rec = subprocess.Popen(
+        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", "crash-1", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )
+    try:
+        assert rec.stdout is not None and "recording" in rec.stdout.readline()
+        with TraineeClient(endpoint, "crash-1") as c:
+            a, d, q = _entry(c)
+            _stream(c, a + d * np.linspace(-2e-3, 4e-3, 1500)[:, None], q)
+            states = len(c.states)
+            proc.proc.send_signal(signal.SIGKILL)  # the server dies mid-session
+            proc.proc.wait(timeout=10)
+        time.sleep(1.5)  # the recorder keeps running against a dead server
+        assert rec.poll() is None, "the recorder died with the server"
+        rec.send_signal(signal.SIGINT)  # Ctrl-C: a final flush, then a clean exit
+        output, _ = rec.communicate(timeout=20)
+        assert rec.returncode == 0, output
+    finally:
+        for p in (rec, proc.proc):
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        proc.stop()
+    (ep,) = load_dataset(out).episodes
+    # Every 10 Hz state the trainee saw before the crash is in the dataset (the recorder is a
+    # second subscriber: allow for one record in flight at the kill).
+    assert len(ep.times_s) >= states - 1 >= 10, (len(ep.times_s), states)
+    assert ep.features[:, 7].max() > 0.0
+
+
 def test_cli_trainee_drills_and_reports(server, tmp_path):
     import json
 
