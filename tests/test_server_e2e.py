@@ -290,14 +290,16 @@ def test_cli_trainee_drills_and_reports(server, tmp_path):
     _, endpoint = server
     out = tmp_path / "run.json"
     r = subprocess.run(
-        [sys.executable, "-m", "dhg.cli", "trainee", "--connect", endpoint, "--duration", "2", "--json", str(out)],
+        [sys.executable, "-m", "dhg.cli", "trainee", "--connect", endpoint, "--duration", "2"]
+        + ["--drill-mm", "3.2", "--json", str(out)],
         capture_output=True,
         text=True,
         timeout=60,
     )
     assert r.returncode == 0, r.stderr
-    assert "pose→force" in r.stdout
+    assert "pose→force" in r.stdout and "drill diameter         3.2 mm" in r.stdout
     report = json.loads(out.read_text())
+    assert report["burr_radius_m"] == pytest.approx(1.6e-3)
     assert report["poses"] >= 1900
     assert report["latency"]["forces"] >= 1900
     assert report["latency"]["guidance"] >= 15
@@ -312,6 +314,10 @@ def test_trainee_without_a_server_fails_clearly():
     )
     assert r.returncode == 5, r.stderr
     assert "error:" in r.stderr and "Traceback" not in r.stderr
+    bad = subprocess.run(
+        [sys.executable, "-m", "dhg.cli", "trainee", "--drill-mm", "-2"], capture_output=True, text=True, timeout=60
+    )
+    assert bad.returncode == 3 and "--drill-mm" in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
 
 
 def test_serve_on_a_busy_port_exits_with_a_clear_message(server):

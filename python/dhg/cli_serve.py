@@ -242,6 +242,12 @@ def add_commands(sub: Any, epilog: str) -> None:
     p.add_argument("--guidance", choices=("on", "off"), default="on", help="feel the guidance force (default on)")
     p.add_argument("--gain", type=float, default=1.0, metavar="G", help="guidance gain when on (default 1)")
     p.add_argument("--duration", type=float, default=20.0, metavar="S", help="longest run in seconds (default 20)")
+    p.add_argument(
+        "--drill-mm",
+        type=float,
+        metavar="D",
+        help="drill (burr) diameter in mm, e.g. 3.2 for a large guide wire (default: the server's, 2.5 mm)",
+    )
     p.add_argument("--seed", type=int, default=0, help="the surgeon's style and tremor (default 0)")
     p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
     p.add_argument("--json", metavar="FILE", help="also write metrics and latencies as JSON")
@@ -294,12 +300,22 @@ def _cmd_trainee(args: argparse.Namespace) -> int:
 
     if args.duration <= 0:
         raise ValueError("--duration must be positive")
+    if args.drill_mm is not None and not 0.0 < args.drill_mm <= 40.0:
+        raise ValueError(f"--drill-mm must be a diameter in (0, 40] mm, got {args.drill_mm}")
+    burr_radius_m = None if args.drill_mm is None else args.drill_mm / 2 * 1e-3
     gain = args.gain if args.guidance == "on" else 0.0
     with TraineeClient(args.connect, args.session, prefix=args.prefix) as client:
         client.health(1.0)  # fails fast, with a clear message, when no server answers
         print(f"session {client.session_id}: {args.skill}, guidance {args.guidance} (gain {gain:g}), seed {args.seed}")
-        run = run_trainee(client, args.skill, gain, args.duration, args.seed)
-    report = {"session": run.session_id, "metrics": run.metrics, "latency": run.latency, "poses": run.poses_sent}
+        run = run_trainee(client, args.skill, gain, args.duration, args.seed, burr_radius_m=burr_radius_m)
+    print(f"  drill diameter         {run.burr_radius_m * 2e3:g} mm")
+    report = {
+        "session": run.session_id,
+        "burr_radius_m": run.burr_radius_m,
+        "metrics": run.metrics,
+        "latency": run.latency,
+        "poses": run.poses_sent,
+    }
     for k, v in run.metrics.items():
         print(f"  {k:22s} {v}")
     lat = run.latency

@@ -42,6 +42,8 @@ class TraineeRun:
     wall_s: float = 0.0
     server_health: dict[str, Any] = field(default_factory=dict)
     """The server's health report after the run, when the caller asked for it."""
+    burr_radius_m: float = 0.0
+    """The burr (drill tip) radius the session drilled with (m)."""
 
 
 def state_records(states: list[dict[str, Any]]) -> npt.NDArray[np.float64]:
@@ -60,12 +62,14 @@ def run_trainee(
     duration_s: float = 20.0,
     seed: int = 0,
     rules: TaskRules | None = None,
+    burr_radius_m: float | None = None,
 ) -> TraineeRun:
     """Creates the client's session (with ``guidance_gain``; 0 = unguided), drills for up to
     ``duration_s`` (s) or until the surgeon stops at B, and returns metrics and latencies.
-    The surgeon's style and noise come from ``seed``, so two runs with one seed are paired."""
+    The surgeon's style and noise come from ``seed``, so two runs with one seed are paired.
+    ``burr_radius_m`` (m) swaps the session's burr first; ``None`` keeps the server's."""
     rules = rules or TaskRules()
-    info = client.create(guidance_gain=guidance_gain)
+    info = client.create(guidance_gain=guidance_gain, burr_radius_m=burr_radius_m)
     path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))
     rng = np.random.default_rng(seed)
     surgeon = SurgeonController(path, sample_style(skill, rng), rng, rules)
@@ -119,4 +123,5 @@ def run_trainee(
         states=states,
         poses_sent=sent,
         wall_s=wall_s,
+        burr_radius_m=float(info["burr_radius_m"]),
     )
