@@ -45,6 +45,12 @@ def test_sessions_are_limited_and_controlled(engine):
         engine.control("bad id!", {"op": "create"})
     engine.control("a", {"op": "close"})
     assert engine.sessions() == ["b"]
+    # A slot is free again; a create with a bad value is refused whole and takes no slot.
+    with pytest.raises(InvalidInputError, match="gain"):
+        engine.control("c", {"op": "create", "guidance_gain": 9.0})
+    with pytest.raises(InvalidInputError, match="burr_radius_m"):
+        engine.control("c", {"op": "create", "burr_radius_m": 1.0})
+    assert engine.sessions() == ["b"], "a refused create left a session behind"
 
 
 def test_xray_of_a_session_and_bad_timeouts(engine):

@@ -152,15 +152,19 @@ pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> 
         };
         match op {
             "create" => {
+                // Everything is checked before the session exists: a refused create creates nothing.
                 let path = if req.get("entry_m").is_some() { Some(path_of(req)?) } else { None };
+                let gain = req.get("guidance_gain").map(|g| check_gain(g.as_f64().unwrap_or(f64::NAN))).transpose()?;
+                let burr =
+                    req.get("burr_radius_m").map(|r| check_burr_radius(r.as_f64().unwrap_or(f64::NAN))).transpose()?;
                 let (s, created) = reg.open(id, path)?;
-                if let Some(g) = req.get("guidance_gain") {
-                    let gain = check_gain(g.as_f64().unwrap_or(f64::NAN))?;
+                if let Some(gain) = gain {
                     reg.send(Command::SetGain { slot: s, gain })?;
                     reg.slots[s as usize].gain = gain;
                 }
-                if let Some(r) = req.get("burr_radius_m") {
-                    set_burr(&mut reg, s, r)?;
+                if let Some(radius_m) = burr {
+                    reg.send(Command::SetBurr { slot: s, radius_m })?;
+                    reg.slots[s as usize].burr_radius_m = radius_m;
                 }
                 drop(reg);
                 let mut info = session_info(shared, id)?;
