@@ -168,8 +168,8 @@ def write_dataset(
 ) -> Path:
     """Writes a dataset folder atomically: everything goes to a temporary folder beside it, is
     flushed to disk, and only then replaces ``out_dir`` in one atomic swap, so ``out_dir`` holds
-    the whole old dataset or the whole new one at every moment. ``card_extra`` adds the volume, path and generator
-    sections of the card."""
+    the whole old dataset or the whole new one at every moment. ``card_extra`` adds the volume,
+    path and generator sections of the card."""
     pa = _pa()
     import pyarrow.parquet as pq
 
