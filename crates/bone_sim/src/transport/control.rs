@@ -304,6 +304,29 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
     })
 }
 
+/// Declares `<p>/session/*/<leaf>`, answering each query with `handle(shared, session id, query)`.
+fn session_queryable(
+    session: &zenoh::Session,
+    shared: &Arc<Shared>,
+    leaf: &'static str,
+    handle: fn(&Shared, &str, &Query) -> SimResult<Value>,
+) -> SimResult<()> {
+    let s = shared.clone();
+    session
+        .declare_queryable(format!("{}/session/*/{leaf}", shared.prefix))
+        .callback(move |q| {
+            let r = match session_key(&s.prefix, q.key_expr().as_str()) {
+                Some((id, _)) => handle(&s, id, &q),
+                None => Err(SimError::Engine("bad key".into())),
+            };
+            reply(&q, r);
+        })
+        .background()
+        .wait()
+        .map_err(|e| SimError::Transport(format!("cannot declare the {leaf} queryable: {e}")))?;
+    Ok(())
+}
+
 /// Declares the pose subscriber, the unknown-key counter and the queryables. They live as long as
 /// the Zenoh session.
 pub(crate) fn declare(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResult<()> {
@@ -324,32 +347,8 @@ pub(crate) fn declare(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResu
         .background()
         .wait()
         .map_err(err("the key counter"))?;
-    let s = shared.clone();
-    session
-        .declare_queryable(format!("{p}/session/*/control"))
-        .callback(move |q| {
-            let r = match session_key(&s.prefix, q.key_expr().as_str()) {
-                Some((id, _)) => query_json(&q).and_then(|req| apply(&s, id, &req)),
-                None => Err(SimError::Engine("bad key".into())),
-            };
-            reply(&q, r);
-        })
-        .background()
-        .wait()
-        .map_err(err("the control queryable"))?;
-    let s = shared.clone();
-    session
-        .declare_queryable(format!("{p}/session/*/metrics"))
-        .callback(move |q| {
-            let r = match session_key(&s.prefix, q.key_expr().as_str()) {
-                Some((id, _)) => metrics(&s, id),
-                None => Err(SimError::Engine("bad key".into())),
-            };
-            reply(&q, r);
-        })
-        .background()
-        .wait()
-        .map_err(err("the metrics queryable"))?;
+    session_queryable(session, shared, "control", |s, id, q| query_json(q).and_then(|req| apply(s, id, &req)))?;
+    session_queryable(session, shared, "metrics", |s, id, _| metrics(s, id))?;
     let s = shared.clone();
     session
         .declare_queryable(format!("{p}/server/health"))
