@@ -51,8 +51,9 @@ class DeviceProfile:
 
 @dataclass(frozen=True)
 class CuttingLaw:
-    """Thrust and torque ``= ref · (n/n₀)^a · (f/f₀)^b · (ρ/ρ₀)^c``, calibrated so that a 2.5 mm
-    drill in cortical bone at 1250 rpm and 1.5 mm/s needs 17 N and 32 N·mm."""
+    """Thrust and torque ``= ref · (n/n₀)^a · (f/f₀)^b · (ρ/ρ₀)^c · (d/d₀)^e``, calibrated so that a
+    2.5 mm drill in cortical bone at 1250 rpm and 1.5 mm/s needs 17 N and 32 N·mm. The drill
+    diameter ``d`` is the burr's; ``e`` is 0.8 for thrust and 1.8 for torque (Shaw & Oxford 1957)."""
 
     thrust_ref_n: float = 17.0
     torque_ref_n_m: float = 0.032
@@ -63,6 +64,9 @@ class CuttingLaw:
     feed_exponent: float = 0.6
     density_exponent: float = 1.5
     max_feed_m_s: float = 0.05
+    reference_diameter_m: float = 2.5e-3
+    diameter_thrust_exponent: float = 0.8
+    diameter_torque_exponent: float = 1.8
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,9 @@
 //! Drilling resistance: thrust and torque as power laws of spindle speed, feed and density,
 //! `F = C · (n/n₀)^a · (f/f₀)^b · (ρ/ρ₀)^c`. This is the form used across the bone-drilling
 //! literature (review: Pandey & Panda 2013, J. Clin. Orthop. Trauma 4:15): thrust rises with
-//! feed (b > 0) and falls with spindle speed (a < 0).
+//! feed (b > 0) and falls with spindle speed (a < 0). The drill's diameter scales both as in
+//! Shaw & Oxford (1957, Trans. ASME 79:139): thrust ∝ d^0.8 and torque ∝ d^1.8, so a 3.2 mm
+//! drill needs ≈ 22 % more thrust and ≈ 56 % more torque than a 2.5 mm one at the same feed.
 //!
 //! Calibration (this project's): a 2.5 mm drill in dense cortical bone (ρ₀ = 1850 kg/m³) at
 //! n₀ = 1250 rpm and f₀ = 1.5 mm/s needs 17 N of thrust and 32 N·mm of torque. Across
@@ -31,6 +33,12 @@ pub struct CuttingLaw {
     pub density_exponent: f64,
     /// Fastest feed the drill can achieve in bone (m/s); caps the inverse law.
     pub max_feed_m_s: f64,
+    /// Drill diameter the references hold for (m).
+    pub reference_diameter_m: f64,
+    /// Diameter exponent of the thrust (Shaw & Oxford 1957: 0.8).
+    pub diameter_thrust_exponent: f64,
+    /// Diameter exponent of the torque (Shaw & Oxford 1957: 1.8).
+    pub diameter_torque_exponent: f64,
 }
 
 impl Default for CuttingLaw {
@@ -45,6 +53,9 @@ impl Default for CuttingLaw {
             feed_exponent: 0.6,
             density_exponent: 1.5,
             max_feed_m_s: 0.05,
+            reference_diameter_m: 2.5e-3,
+            diameter_thrust_exponent: 0.8,
+            diameter_torque_exponent: 1.8,
         }
     }
 }
@@ -63,6 +74,9 @@ impl CuttingLaw {
         positive("feed_exponent", self.feed_exponent)?;
         positive("density_exponent", self.density_exponent)?;
         positive("max_feed_m_s", self.max_feed_m_s)?;
+        positive("reference_diameter_m", self.reference_diameter_m)?;
+        positive("diameter_thrust_exponent", self.diameter_thrust_exponent)?;
+        positive("diameter_torque_exponent", self.diameter_torque_exponent)?;
         if !(self.speed_exponent.is_finite() && self.speed_exponent < 0.0) {
             return Err(SimError::InvalidParameter {
                 name: "speed_exponent",
@@ -78,39 +92,50 @@ impl CuttingLaw {
             * (density_kg_m3 / self.reference_density_kg_m3).powf(self.density_exponent)
     }
 
-    /// Thrust (N) to feed at `feed_m_s` with the spindle at `rpm` into bone of `density_kg_m3`.
+    /// `(d/d₀)^exponent` for a drill of `diameter_m`.
+    fn size(&self, diameter_m: f64, exponent: f64) -> f64 {
+        (diameter_m / self.reference_diameter_m).powf(exponent)
+    }
+
+    /// Thrust (N) to feed a drill of `diameter_m` at `feed_m_s` with the spindle at `rpm` into
+    /// bone of `density_kg_m3`.
     #[must_use]
-    pub fn thrust_n(&self, rpm: f64, feed_m_s: f64, density_kg_m3: f64) -> f64 {
-        if rpm <= 0.0 || feed_m_s <= 0.0 || density_kg_m3 <= 0.0 {
+    pub fn thrust_n(&self, rpm: f64, feed_m_s: f64, density_kg_m3: f64, diameter_m: f64) -> f64 {
+        if rpm <= 0.0 || feed_m_s <= 0.0 || density_kg_m3 <= 0.0 || diameter_m <= 0.0 {
             return 0.0;
         }
         self.thrust_ref_n
             * self.conditions(rpm, density_kg_m3)
+            * self.size(diameter_m, self.diameter_thrust_exponent)
             * (feed_m_s / self.reference_feed_m_s).powf(self.feed_exponent)
     }
 
     /// Cutting torque (N·m) under the same conditions.
     #[must_use]
-    pub fn torque_n_m(&self, rpm: f64, feed_m_s: f64, density_kg_m3: f64) -> f64 {
-        if rpm <= 0.0 || feed_m_s <= 0.0 || density_kg_m3 <= 0.0 {
+    pub fn torque_n_m(&self, rpm: f64, feed_m_s: f64, density_kg_m3: f64, diameter_m: f64) -> f64 {
+        if rpm <= 0.0 || feed_m_s <= 0.0 || density_kg_m3 <= 0.0 || diameter_m <= 0.0 {
             return 0.0;
         }
         self.torque_ref_n_m
             * self.conditions(rpm, density_kg_m3)
+            * self.size(diameter_m, self.diameter_torque_exponent)
             * (feed_m_s / self.reference_feed_m_s).powf(self.feed_exponent)
     }
 
-    /// The feed (m/s) that an axial thrust of `thrust_n` achieves: the inverse of
-    /// [`thrust_n`](Self::thrust_n), capped at `max_feed_m_s`.
+    /// The feed (m/s) that an axial thrust of `thrust_n` achieves with a drill of `diameter_m`:
+    /// the inverse of [`thrust_n`](Self::thrust_n), capped at `max_feed_m_s`.
     #[must_use]
-    pub fn feed_for_thrust_m_s(&self, rpm: f64, thrust_n: f64, density_kg_m3: f64) -> f64 {
-        if rpm <= 0.0 || thrust_n <= 0.0 || !thrust_n.is_finite() {
+    pub fn feed_for_thrust_m_s(&self, rpm: f64, thrust_n: f64, density_kg_m3: f64, diameter_m: f64) -> f64 {
+        if rpm <= 0.0 || thrust_n <= 0.0 || !thrust_n.is_finite() || diameter_m <= 0.0 {
             return 0.0;
         }
         if density_kg_m3 <= 0.0 {
             return self.max_feed_m_s;
         }
-        let ratio = thrust_n / (self.thrust_ref_n * self.conditions(rpm, density_kg_m3));
+        let resistance = self.thrust_ref_n
+            * self.conditions(rpm, density_kg_m3)
+            * self.size(diameter_m, self.diameter_thrust_exponent);
+        let ratio = thrust_n / resistance;
         (self.reference_feed_m_s * ratio.powf(1.0 / self.feed_exponent)).min(self.max_feed_m_s)
     }
 }
@@ -120,28 +145,48 @@ impl CuttingLaw {
 mod tests {
     use super::*;
 
+    /// The reference drill's diameter (m).
+    const D: f64 = 2.5e-3;
+
     #[test]
     fn calibrated_to_published_ranges() {
         let law = CuttingLaw::default();
         for rpm in [1000.0, 1250.0, 1500.0] {
             for feed in [1e-3, 1.5e-3, 2e-3] {
-                let f = law.thrust_n(rpm, feed, 1850.0);
-                let m = law.torque_n_m(rpm, feed, 1850.0) * 1e3;
+                let f = law.thrust_n(rpm, feed, 1850.0, D);
+                let m = law.torque_n_m(rpm, feed, 1850.0, D) * 1e3;
                 assert!((10.0..=25.0).contains(&f), "thrust {f} N at {rpm} rpm, {feed} m/s");
                 assert!((20.0..=45.0).contains(&m), "torque {m} N·mm at {rpm} rpm, {feed} m/s");
             }
         }
-        assert!(law.thrust_n(1250.0, 1.5e-3, 350.0) < 2.0);
+        assert!(law.thrust_n(1250.0, 1.5e-3, 350.0, D) < 2.0);
     }
 
     #[test]
     fn thrust_rises_with_feed_falls_with_speed_and_inverts() {
         let law = CuttingLaw::default();
-        assert!(law.thrust_n(1200.0, 2e-3, 1500.0) > law.thrust_n(1200.0, 1e-3, 1500.0));
-        assert!(law.thrust_n(2000.0, 1e-3, 1500.0) < law.thrust_n(1000.0, 1e-3, 1500.0));
-        let f = law.feed_for_thrust_m_s(1300.0, 12.0, 1600.0);
-        assert!((law.thrust_n(1300.0, f, 1600.0) - 12.0).abs() < 1e-9);
-        assert_eq!(law.feed_for_thrust_m_s(0.0, 12.0, 1600.0), 0.0);
-        assert_eq!(law.feed_for_thrust_m_s(1300.0, 12.0, 0.0), law.max_feed_m_s);
+        assert!(law.thrust_n(1200.0, 2e-3, 1500.0, D) > law.thrust_n(1200.0, 1e-3, 1500.0, D));
+        assert!(law.thrust_n(2000.0, 1e-3, 1500.0, D) < law.thrust_n(1000.0, 1e-3, 1500.0, D));
+        let f = law.feed_for_thrust_m_s(1300.0, 12.0, 1600.0, D);
+        assert!((law.thrust_n(1300.0, f, 1600.0, D) - 12.0).abs() < 1e-9);
+        assert_eq!(law.feed_for_thrust_m_s(0.0, 12.0, 1600.0, D), 0.0);
+        assert_eq!(law.feed_for_thrust_m_s(1300.0, 12.0, 0.0, D), law.max_feed_m_s);
+    }
+
+    #[test]
+    fn a_wider_drill_needs_more_thrust_and_torque_as_shaw_and_oxford() {
+        let law = CuttingLaw::default();
+        let (t25, t32) = (law.thrust_n(1250.0, 1.5e-3, 1850.0, D), law.thrust_n(1250.0, 1.5e-3, 1850.0, 3.2e-3));
+        let (m25, m32) = (law.torque_n_m(1250.0, 1.5e-3, 1850.0, D), law.torque_n_m(1250.0, 1.5e-3, 1850.0, 3.2e-3));
+        assert!((t32 / t25 - 1.28_f64.powf(0.8)).abs() < 1e-12, "thrust ratio {}", t32 / t25);
+        assert!((m32 / m25 - 1.28_f64.powf(1.8)).abs() < 1e-12, "torque ratio {}", m32 / m25);
+        // So the same push feeds a wider drill more slowly, and the inverse still inverts.
+        let (f25, f32) =
+            (law.feed_for_thrust_m_s(1250.0, 15.0, 1850.0, D), law.feed_for_thrust_m_s(1250.0, 15.0, 1850.0, 3.2e-3));
+        assert!(f32 < f25);
+        assert!((law.thrust_n(1250.0, f32, 1850.0, 3.2e-3) - 15.0).abs() < 1e-9);
+        assert_eq!(law.thrust_n(1250.0, 1.5e-3, 1850.0, 0.0), 0.0);
+        assert!(CuttingLaw { diameter_torque_exponent: 0.0, ..law.clone() }.validate().is_err());
+        assert!(CuttingLaw { reference_diameter_m: f64::NAN, ..law }.validate().is_err());
     }
 }

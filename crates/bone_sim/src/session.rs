@@ -483,7 +483,7 @@ impl DrillingSession {
         if cutting {
             // The axial push is the thrust: the cutting law says how fast it feeds.
             let thrust = k * push_ax / scale;
-            let f = cfg.cutting.feed_for_thrust_m_s(rpm, thrust, zone.density_kg_m3);
+            let f = cfg.cutting.feed_for_thrust_m_s(rpm, thrust, zone.density_kg_m3, 2.0 * cfg.burr_radius_m);
             let advance = (f * dt).min(push_ax).min(cfg.max_proxy_speed_m_s * dt);
             self.proxy_m += axis * advance;
             feed = advance / dt;
@@ -514,7 +514,8 @@ impl DrillingSession {
             spring * k + if apart { (v_proxy - v_device) * cfg.coupling_damping_n_s_per_m } else { Vector3::zeros() };
 
         let (thrust, torque) = if cutting {
-            (cfg.cutting.thrust_n(rpm, feed, zone.density_kg_m3), cfg.cutting.torque_n_m(rpm, feed, zone.density_kg_m3))
+            let (rho, d) = (zone.density_kg_m3, 2.0 * cfg.burr_radius_m);
+            (cfg.cutting.thrust_n(rpm, feed, rho, d), cfg.cutting.torque_n_m(rpm, feed, rho, d))
         } else {
             (0.0, 0.0)
         };

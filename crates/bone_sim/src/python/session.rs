@@ -20,7 +20,7 @@ pub(crate) const RECORD_COLUMNS: usize = FEATURE_COUNT + 2;
 
 /// Every configurable number of a session, by its flat key (nested ones as `device.x`, ...): the
 /// one list both directions of the dict conversion use.
-fn config_fields(c: &mut SessionConfig) -> [(&'static str, &mut f64); 26] {
+fn config_fields(c: &mut SessionConfig) -> [(&'static str, &mut f64); 29] {
     [
         ("burr_radius_m", &mut c.burr_radius_m),
         ("coupling_stiffness_n_per_m", &mut c.coupling_stiffness_n_per_m),
@@ -43,6 +43,9 @@ fn config_fields(c: &mut SessionConfig) -> [(&'static str, &mut f64); 26] {
         ("cutting.feed_exponent", &mut c.cutting.feed_exponent),
         ("cutting.density_exponent", &mut c.cutting.density_exponent),
         ("cutting.max_feed_m_s", &mut c.cutting.max_feed_m_s),
+        ("cutting.reference_diameter_m", &mut c.cutting.reference_diameter_m),
+        ("cutting.diameter_thrust_exponent", &mut c.cutting.diameter_thrust_exponent),
+        ("cutting.diameter_torque_exponent", &mut c.cutting.diameter_torque_exponent),
         ("thermal.heat_capacity_j_per_k", &mut c.thermal.heat_capacity_j_per_k),
         ("thermal.thermal_resistance_k_per_w", &mut c.thermal.thermal_resistance_k_per_w),
         ("thermal.heat_fraction", &mut c.thermal.heat_fraction),
