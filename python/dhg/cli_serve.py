@@ -228,7 +228,9 @@ def add_commands(sub: Any, epilog: str) -> None:
         help="a virtual trainee that drills through a running dhg-serve",
         description="Connects to a running dhg-serve, creates a session and drills A→B as a virtual "
         "surgeon (the operator model of 'dhg synth') who feels the force the server renders, guidance "
-        "included. Prints the skill metrics and the pose→force and pose→guidance latencies at the end.\n\n"
+        "included, and reads the guidance as an instruction: it leans into a cue that pushes the drill back "
+        "(the expert pressed harder) and eases off one that pulls it in. Prints the skill metrics and the "
+        "pose→force and pose→guidance latencies at the end.\n\n"
         "  dhg trainee --skill novice --guidance on  --seed 3\n"
         "  dhg trainee --skill novice --guidance off --seed 3   # the same hand, unguided",
         epilog=EPILOG + epilog,

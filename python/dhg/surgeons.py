@@ -14,6 +14,14 @@ depends on what they *perceived* one reaction delay ago. The phases are:
    and pull back. A late reaction and a loose arm make a deeper plunge;
 5. stop near B and switch the drill off.
 
+Guidance (``dhg trainee``): the server adds a cue to the rendered force, the predicted expert
+force minus the trainee's (Fekri et al. 2021). Along the drill this is a force-matching cue: it
+pushes back where the expert pressed harder and pulls in where the expert eased off. A purely
+passive hand would read "press harder" as resistance and back away. So a trainee who has been
+told what the cue means leans into it: after the reaction delay, the push grows while the cue
+pushes back and shrinks while it pulls in, until the cue is nulled
+(:attr:`SurgeonStyle.cue_follow_per_s`).
+
 Human motor behaviour: physiological tremor of 8–12 Hz (Elble 1990), signal-dependent noise on
 the push (Harris & Wolpert 1998), a reaction delay to force changes, and lateral drift from
 limited steadiness. Styles are drawn per subject (:func:`sample_style`).
@@ -59,6 +67,11 @@ TRACK_STIFFNESS_N_PER_M = 300.0
 """How stiffly the arm follows an intended position (N/m), for approach and holding."""
 LATERAL_STIFFNESS_N_PER_M = 250.0
 """How stiffly the arm holds the drill on the path laterally (N/m)."""
+MAX_PUSH_N = 3.0
+"""Most axial push any subject applies, however strongly a guidance cue asks for more (N)."""
+CUE_LEAK_PER_S = 0.2
+"""How fast the lean a cue built up fades once the cue is gone (1/s): a remembered instruction
+fades, and a model biased in one direction cannot wind the push up for ever."""
 
 
 @dataclass(frozen=True)
@@ -98,6 +111,10 @@ class SurgeonStyle:
     """How far before B the subject aims to stop (m; negative = past B)."""
     spindle_rpm: float
     """Spindle speed used (rpm)."""
+    cue_follow_per_s: float = 0.0
+    """How briskly the subject leans into a guidance cue (1/s): a cue pushing the drill back
+    (the expert pressed harder) adds push, one pulling it in takes push away, at this rate times
+    the cue (N) per second, until the cue is nulled. 0 = a passive hand that only feels the cue."""
 
     def to_dict(self) -> dict[str, float | str | bool]:
         """JSON-ready form."""
@@ -128,6 +145,7 @@ def sample_style(skill: Skill, rng: np.random.Generator) -> SurgeonStyle:
             caution_temp_c=u(44.0, 46.0),
             stop_margin_m=u(0.3e-3, 1.2e-3),
             spindle_rpm=u(1100.0, 1400.0),
+            cue_follow_per_s=3.0,
         )
     if skill == "novice":
         return SurgeonStyle(
@@ -148,6 +166,7 @@ def sample_style(skill: Skill, rng: np.random.Generator) -> SurgeonStyle:
             caution_temp_c=u(55.0, 60.0),
             stop_margin_m=u(-2.5e-3, 0.0),
             spindle_rpm=u(900.0, 1600.0),
+            cue_follow_per_s=2.0,
         )
     raise ValueError(f"skill must be 'expert' or 'novice', got {skill!r}")
 
@@ -240,6 +259,8 @@ class SurgeonController:
         self.drill_off_t: float | None = None
         self.max_plunge = 0.0
         self.fb_hist: list[tuple] = []
+        self.cue_hist: list[float] = []
+        self.lean = 0.0  # N: push added in response to the guidance cue
         self.tick = 0
 
     @property
@@ -253,14 +274,24 @@ class SurgeonController:
         end = self.drill_off_t if self.drill_off_t is not None else self.tick * self.dt
         return end - (self.drill_on_t or 0.0)
 
-    def step(self, feedback: tuple, force_n: tuple[float, float, float]) -> tuple[float, ...] | None:
-        """The pose row (x, y, z, qw, qx, qy, qz, drill_on, spindle_rpm) for this tick, or None."""
+    def step(
+        self,
+        feedback: tuple,
+        force_n: tuple[float, float, float],
+        cue_n: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> tuple[float, ...] | None:
+        """The pose row (x, y, z, qw, qx, qy, qz, drill_on, spindle_rpm) for this tick, or None.
+
+        ``force_n`` is the whole force the device renders (N, world frame); ``cue_n`` is the
+        guidance share of it (N), which the surgeon also reads as an instruction (see the module
+        docs). Without guidance it is zero."""
         if self.done:
             return None
         style, rng, dt, tick = self.style, self.rng, self.dt, self.tick
         d, e1, e2 = self.d, self.e1, self.e2
         t = tick * dt
         self.fb_hist.append(feedback)
+        self.cue_hist.append(cue_n[0] * d[0] + cue_n[1] * d[1] + cue_n[2] * d[2])
         seen = self.fb_hist[max(0, tick - self.delay)]
         _, _, _, p_depth, _, p_temp, p_layer, _, p_bt, _, _ = seen
         self.max_plunge = max(self.max_plunge, feedback[10])
@@ -302,12 +333,16 @@ class SurgeonController:
                 if self.hold_s is None:
                     self.hold_s = self.s - (1e-3 if t < self.retract_until else 0.0)
                 intent_s = self.hold_s
-                self.push = 0.0
+                self.push = self.lean = 0.0
             else:
                 self.hold_s = None
                 # Integral control of the push towards the preferred feed, within the ceiling.
                 self.push += 2.4 * style.feed_gain * (style.feed_m_s - speed) / style.feed_m_s * dt * ceiling
                 self.push = min(max(self.push, 0.0), ceiling)
+                # Lean into the cue as perceived a reaction delay ago: a cue along -d (pushing the
+                # drill back) means the expert pressed harder.
+                cue_seen = self.cue_hist[max(0, tick - self.delay)]
+                self.lean += (-style.cue_follow_per_s * cue_seen - CUE_LEAK_PER_S * self.lean) * dt
             self.drill_on = not self.cooling
             if p_depth >= self.length - style.stop_margin_m:
                 self.phase, self.phase_t0 = "stop", t
@@ -330,7 +365,8 @@ class SurgeonController:
         if intent_s is not None:
             drive = TRACK_STIFFNESS_N_PER_M * (intent_s - self.s)
         else:
-            drive = self.push * (1.0 + style.noise_fraction * self.noise_state * 5.0)
+            push = min(max(self.push + self.lean, 0.0), MAX_PUSH_N)
+            drive = push * (1.0 + style.noise_fraction * self.noise_state * 5.0)
         damping = style.hand_damping_n_s_per_m
         self.vs += (drive + f_ax - damping * self.vs) / HAND_MASS_KG * dt
         aim_u = self.drift_u + style.tremor_m * math.sin(self.w_tremor * t + self.tremor_phase[0])

@@ -7,6 +7,8 @@ server's 1 kHz force messages. It paces itself at 1 kHz on absolute deadlines.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -15,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dhg.client import TraineeClient, feedback_tuple
+from dhg.errors import InvalidInputError
 from dhg.surgeons import SurgeonController, sample_style, skill_metrics
 from dhg.task import PlannedPath, TaskRules
 
@@ -63,16 +66,24 @@ def run_trainee(
     seed: int = 0,
     rules: TaskRules | None = None,
     burr_radius_m: float | None = None,
+    cue_follow_per_s: float | None = None,
 ) -> TraineeRun:
     """Creates the client's session (with ``guidance_gain``; 0 = unguided), drills for up to
     ``duration_s`` (s) or until the surgeon stops at B, and returns metrics and latencies.
     The surgeon's style and noise come from ``seed``, so two runs with one seed are paired.
-    ``burr_radius_m`` (m) swaps the session's burr first; ``None`` keeps the server's."""
+    ``burr_radius_m`` (m) swaps the session's burr first; ``None`` keeps the server's.
+    ``cue_follow_per_s`` (1/s) overrides how briskly the surgeon leans into the guidance cue
+    (:attr:`dhg.surgeons.SurgeonStyle.cue_follow_per_s`); 0 is a passive hand that only feels it."""
     rules = rules or TaskRules()
+    if cue_follow_per_s is not None and not (math.isfinite(cue_follow_per_s) and cue_follow_per_s >= 0):
+        raise InvalidInputError(f"cue_follow_per_s must be a finite rate >= 0 (1/s), got {cue_follow_per_s!r}")
     info = client.create(guidance_gain=guidance_gain, burr_radius_m=burr_radius_m)
     path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))
     rng = np.random.default_rng(seed)
-    surgeon = SurgeonController(path, sample_style(skill, rng), rng, rules)
+    style = sample_style(skill, rng)
+    if cue_follow_per_s is not None:
+        style = dataclasses.replace(style, cue_follow_per_s=float(cue_follow_per_s))
+    surgeon = SurgeonController(path, style, rng, rules)
     a = path.entry_m
     resting = (a[0], a[1], a[2], -0.025, 0.0, 37.0, 0, False, 0, False, 0.0)
     period_ns = 1_000_000
@@ -86,7 +97,8 @@ def run_trainee(
         latest = client.force
         fb = feedback_tuple(latest) if latest is not None else resting
         force = latest["force_n"] if latest is not None else (0.0, 0.0, 0.0)
-        row = surgeon.step(fb, force)
+        cue = latest["guidance_n"] if latest is not None else (0.0, 0.0, 0.0)
+        row = surgeon.step(fb, force, cue)
         if row is None:
             break
         client.send_row(row)
