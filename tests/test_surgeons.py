@@ -7,7 +7,8 @@ import dataclasses
 import numpy as np
 
 from dhg.layers import Layer
-from dhg.surgeons import SurgeonController, sample_style
+from dhg.surgeons import SurgeonController, layer_runs, planned_breakthrough_depth_m, sample_style
+from dhg.volume import DrilledVolume
 from dhg.task import PlannedPath
 
 PATH = PlannedPath(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.08]))
@@ -68,3 +69,36 @@ def test_without_a_cue_the_hand_is_the_unguided_one():
         return out
 
     assert rows(True) == rows(False)
+
+
+def _expert_push_at(depth_m: float, breakthrough_depth_m: float | None, seconds: float = 2.0) -> float:
+    """How far an expert's hand travels (m) in the last ``seconds`` of 5 s (after the approach and
+    alignment) while the tip is perceived in cortex at ``depth_m`` with nothing resisting: a
+    measure of how hard it pushes."""
+    rng = np.random.default_rng(8)
+    style = dataclasses.replace(sample_style("expert", rng), noise_fraction=0.0, caution_temp_c=90.0)
+    surgeon = SurgeonController(PATH, style, rng, breakthrough_depth_m=breakthrough_depth_m)
+    feedback = (0.0, 0.0, depth_m, depth_m, 0.0, 37.0, int(Layer.CORTICAL), True, 0, False, 0.0)
+    rows = [surgeon.step(feedback, (0.0, 0.0, 0.0)) for _ in range(5000)]
+    assert surgeon.phase == "feed" and rows[-1] is not None
+    return float(rows[-1][2] - rows[-int(seconds * 1000)][2])
+
+
+def test_an_expert_eases_off_before_the_planned_breakthrough():
+    """1.5 mm into the cortex: an expert whose plan says the cortex gives at 1.7 mm pushes only
+    the light push, one whose plan says 6 mm still pushes firmly."""
+    near = _expert_push_at(1.5e-3, breakthrough_depth_m=1.7e-3)
+    far = _expert_push_at(1.5e-3, breakthrough_depth_m=6e-3)
+    assert near < 0.5 * far, f"near {near * 1e3:.1f} mm vs far {far * 1e3:.1f} mm"
+
+
+def test_the_planned_breakthrough_is_where_the_first_cortex_ends_less_the_burr(coarse_phantom):
+    bone = DrilledVolume(coarse_phantom.volume)
+    runs = layer_runs(bone, coarse_phantom.path)
+    first_cortex_end = next(end for name, _, end in runs if name == "cortical")
+    planned = planned_breakthrough_depth_m(coarse_phantom.volume, coarse_phantom.path, 1.25e-3)
+    assert planned is not None
+    assert abs(planned - (first_cortex_end - 1.25e-3)) <= 0.25e-3
+    # A path through air crosses no cortex.
+    far = np.array([1.0, 1.0, 1.0])
+    assert planned_breakthrough_depth_m(coarse_phantom.volume, PlannedPath(far, far + 0.01), 1.25e-3) is None

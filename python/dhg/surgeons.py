@@ -9,7 +9,9 @@ depends on what they *perceived* one reaction delay ago. The phases are:
 2. align and spin up the drill;
 3. feed: the push is regulated towards a preferred feed but never exceeds a layer-dependent
    ceiling (firm in cortical bone, light in cancellous bone and marrow); experts ease off as the
-   cortex thins and stop to let the drill cool as the tip nears 47 °C; novices hesitate;
+   cortex thins, having read from the planning CT where along the path it ends
+   (:func:`planned_breakthrough_depth_m`), and stop to let the drill cool as the tip nears
+   47 °C; novices hesitate;
 4. breakthrough: once the surgeon feels the cortex give (after the reaction delay), they hold
    and pull back. A late reaction and a loose arm make a deeper plunge;
 5. stop near B and switch the drill off.
@@ -44,7 +46,7 @@ from dhg.errors import InvalidInputError
 from dhg.layers import Layer
 from dhg.session import DrillingSession
 from dhg.task import PlannedPath, TaskRules
-from dhg.volume import DrilledVolume
+from dhg.volume import DrilledVolume, Volume
 
 __all__ = [
     "DrillRun",
@@ -52,6 +54,7 @@ __all__ = [
     "SurgeonController",
     "SurgeonStyle",
     "layer_runs",
+    "planned_breakthrough_depth_m",
     "run_episode",
     "sample_style",
     "scripted_stylus",
@@ -67,6 +70,8 @@ TRACK_STIFFNESS_N_PER_M = 300.0
 """How stiffly the arm follows an intended position (N/m), for approach and holding."""
 LATERAL_STIFFNESS_N_PER_M = 250.0
 """How stiffly the arm holds the drill on the path laterally (N/m)."""
+GENERIC_BREAKTHROUGH_DEPTH_M = 2.2e-3
+"""Tip depth at which a surgeon without a plan expects the first cortex to give (m)."""
 MAX_PUSH_N = 3.0
 """Most axial push any subject applies, however strongly a guidance cue asks for more (N)."""
 CUE_LEAK_PER_S = 0.2
@@ -101,6 +106,8 @@ class SurgeonStyle:
     """Lateral wander of the aim (SD, m): steadiness."""
     anticipates_breakthrough: bool
     """Eases off to the light push as the cortex thins (experts)."""
+    anticipation_m: float
+    """How far before the planned breakthrough depth the subject eases off (m)."""
     hesitations_per_s: float
     """Rate of pauses while feeding (1/s)."""
     hesitation_s: float
@@ -146,6 +153,7 @@ def sample_style(skill: Skill, rng: np.random.Generator) -> SurgeonStyle:
             stop_margin_m=u(0.3e-3, 1.2e-3),
             spindle_rpm=u(1100.0, 1400.0),
             cue_follow_per_s=3.0,
+            anticipation_m=u(0.2e-3, 0.6e-3),  # drawn last: the draws above stay as they were
         )
     if skill == "novice":
         return SurgeonStyle(
@@ -167,6 +175,7 @@ def sample_style(skill: Skill, rng: np.random.Generator) -> SurgeonStyle:
             stop_margin_m=u(-2.5e-3, 0.0),
             spindle_rpm=u(900.0, 1600.0),
             cue_follow_per_s=2.0,
+            anticipation_m=0.0,
         )
     raise ValueError(f"skill must be 'expert' or 'novice', got {skill!r}")
 
@@ -216,14 +225,25 @@ class SurgeonController:
     :meth:`step` takes what the stylus reports this tick (the session feedback tuple: tip x, y, z
     (m), depth (m), deviation (m), temperature (°C), layer id, cutting, breakthroughs, plunging,
     plunge depth (m)) and the force felt (N), and returns the next pose row, or ``None`` once the
-    surgeon has finished. The surgeon acts on what it perceived one reaction delay ago. It drives a
+    surgeon has finished. ``breakthrough_depth_m`` is the tip depth along A→B (m) at which the
+    plan shows the burr leaving the first cortex (:func:`planned_breakthrough_depth_m`);
+    anticipating surgeons ease off :attr:`SurgeonStyle.anticipation_m` before it. The surgeon acts on what it perceived one reaction delay ago. It drives a
     local session (:func:`run_episode`) and a remote server (``dhg trainee``) alike.
     """
 
     def __init__(
-        self, path: PlannedPath, style: SurgeonStyle, rng: np.random.Generator, rules: TaskRules | None = None
+        self,
+        path: PlannedPath,
+        style: SurgeonStyle,
+        rng: np.random.Generator,
+        rules: TaskRules | None = None,
+        breakthrough_depth_m: float | None = None,
     ) -> None:
         self.style, self.rng, self.path = style, rng, path
+        # Where the plan says the cortex gives (tip depth, m); without a plan, a typical 3 mm cortex.
+        self.breakthrough_depth_m = (
+            GENERIC_BREAKTHROUGH_DEPTH_M if breakthrough_depth_m is None else float(breakthrough_depth_m)
+        )
         self.rules = rules or TaskRules()
         self.a, self.d = path.entry_m, path.direction
         self.e1, self.e2 = _basis(self.d)
@@ -317,7 +337,8 @@ class SurgeonController:
             back = self.fb_hist[max(0, tick - self.delay - 50)]
             speed = (p_depth - back[3]) / 0.05
             ceiling = style.push_cortical_n if p_layer == Layer.CORTICAL else style.push_soft_n
-            if style.anticipates_breakthrough and p_layer == Layer.CORTICAL and p_depth > 2.2e-3:
+            easing = p_depth > self.breakthrough_depth_m - style.anticipation_m
+            if style.anticipates_breakthrough and p_layer == Layer.CORTICAL and easing:
                 ceiling = style.push_soft_n  # the cortex is thinning: ease off before it gives
             if p_bt > self.seen_breakthroughs:
                 self.seen_breakthroughs = p_bt
@@ -405,7 +426,8 @@ def run_episode(
     session.reset()
     native = session._s
     path: PlannedPath = session.path
-    surgeon = SurgeonController(path, style, rng, rules)
+    planned = planned_breakthrough_depth_m(session.volume, path, session.config.burr_radius_m)
+    surgeon = SurgeonController(path, style, rng, rules, breakthrough_depth_m=planned)
     max_ticks = surgeon.max_ticks
     records: list[npt.NDArray[np.float64]] = []
     raw_poses = np.empty((max_ticks, 9)) if keep_raw else None
@@ -561,6 +583,23 @@ def layer_runs(bone: DrilledVolume, path: PlannedPath, step_m: float = 0.25e-3) 
             runs.append((Layer(int(ids[start])).name.lower(), float(depths[start]), float(depths[i - 1])))
             start = i
     return runs
+
+
+def planned_breakthrough_depth_m(
+    volume: Volume, path: PlannedPath, burr_radius_m: float, step_m: float = 0.25e-3
+) -> float | None:
+    """The tip depth along A→B (m) at which a burr of ``burr_radius_m`` (m) leaves the first
+    cortical layer on the path, as a surgeon reads it off the planning CT: the end of the first
+    cortical run of the pristine bone, less the radius (the burr's front leads its centre).
+    ``None`` when the path crosses no cortex."""
+    depths = np.arange(0.0, path.length_m + step_m / 2, step_m)
+    cortical = volume.layer_at(path.point_at(depths)) == int(Layer.CORTICAL)
+    if not cortical.any():
+        return None
+    first = int(np.argmax(cortical))
+    after = np.flatnonzero(~cortical[first:])
+    end = depths[first + after[0]] - step_m / 2 if after.size else path.length_m
+    return float(end - burr_radius_m)
 
 
 def scripted_stylus(

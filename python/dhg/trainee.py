@@ -67,13 +67,16 @@ def run_trainee(
     rules: TaskRules | None = None,
     burr_radius_m: float | None = None,
     cue_follow_per_s: float | None = None,
+    breakthrough_depth_m: float | None = None,
 ) -> TraineeRun:
     """Creates the client's session (with ``guidance_gain``; 0 = unguided), drills for up to
     ``duration_s`` (s) or until the surgeon stops at B, and returns metrics and latencies.
     The surgeon's style and noise come from ``seed``, so two runs with one seed are paired.
     ``burr_radius_m`` (m) swaps the session's burr first; ``None`` keeps the server's.
     ``cue_follow_per_s`` (1/s) overrides how briskly the surgeon leans into the guidance cue
-    (:attr:`dhg.surgeons.SurgeonStyle.cue_follow_per_s`); 0 is a passive hand that only feels it."""
+    (:attr:`dhg.surgeons.SurgeonStyle.cue_follow_per_s`); 0 is a passive hand that only feels it.
+    ``breakthrough_depth_m`` (m) is where the trainee's plan says the first cortex gives
+    (:func:`dhg.surgeons.planned_breakthrough_depth_m`); ``None``: the surgeons' generic 2.2 mm."""
     rules = rules or TaskRules()
     if cue_follow_per_s is not None and not (math.isfinite(cue_follow_per_s) and cue_follow_per_s >= 0):
         raise InvalidInputError(f"cue_follow_per_s must be a finite rate >= 0 (1/s), got {cue_follow_per_s!r}")
@@ -83,7 +86,7 @@ def run_trainee(
     style = sample_style(skill, rng)
     if cue_follow_per_s is not None:
         style = dataclasses.replace(style, cue_follow_per_s=float(cue_follow_per_s))
-    surgeon = SurgeonController(path, style, rng, rules)
+    surgeon = SurgeonController(path, style, rng, rules, breakthrough_depth_m=breakthrough_depth_m)
     a = path.entry_m
     resting = (a[0], a[1], a[2], -0.025, 0.0, 37.0, 0, False, 0, False, 0.0)
     period_ns = 1_000_000
