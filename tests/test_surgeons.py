@@ -8,8 +8,8 @@ import numpy as np
 
 from dhg.layers import Layer
 from dhg.surgeons import SurgeonController, layer_runs, planned_breakthrough_depth_m, sample_style
-from dhg.volume import DrilledVolume
 from dhg.task import PlannedPath
+from dhg.volume import DrilledVolume
 
 PATH = PlannedPath(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.08]))
 
@@ -61,8 +61,10 @@ def test_without_a_cue_the_hand_is_the_unguided_one():
         feedback = (0.0, 0.0, 0.0, 0.0, 0.0, 37.0, 0, False, 0, False, 0.0)
         out = []
         for _ in range(3000):
-            step = surgeon.step(feedback, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)) if with_cue else surgeon.step(
-                feedback, (0.0, 0.0, 0.0)
+            step = (
+                surgeon.step(feedback, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+                if with_cue
+                else surgeon.step(feedback, (0.0, 0.0, 0.0))
             )
             assert step is not None
             out.append(step)

@@ -225,10 +225,12 @@ class SurgeonController:
     :meth:`step` takes what the stylus reports this tick (the session feedback tuple: tip x, y, z
     (m), depth (m), deviation (m), temperature (°C), layer id, cutting, breakthroughs, plunging,
     plunge depth (m)) and the force felt (N), and returns the next pose row, or ``None`` once the
-    surgeon has finished. ``breakthrough_depth_m`` is the tip depth along A→B (m) at which the
-    plan shows the burr leaving the first cortex (:func:`planned_breakthrough_depth_m`);
-    anticipating surgeons ease off :attr:`SurgeonStyle.anticipation_m` before it. The surgeon acts on what it perceived one reaction delay ago. It drives a
-    local session (:func:`run_episode`) and a remote server (``dhg trainee``) alike.
+    surgeon has finished. The surgeon acts on what it perceived one reaction delay ago. It drives
+    a local session (:func:`run_episode`) and a remote server (``dhg trainee``) alike.
+
+    ``breakthrough_depth_m`` is the tip depth along A→B (m) at which the plan shows the burr
+    leaving the first cortex (:func:`planned_breakthrough_depth_m`); anticipating surgeons ease
+    off :attr:`SurgeonStyle.anticipation_m` before it.
     """
 
     def __init__(

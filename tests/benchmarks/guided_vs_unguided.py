@@ -51,7 +51,12 @@ def main() -> None:
             for gain in (args.gain, 0.0):
                 with TraineeClient(f"tcp/127.0.0.1:{port}", session_id=f"eval-{seed}-{gain:g}") as client:
                     run = run_trainee(
-                        client, "novice", guidance_gain=gain, duration_s=args.duration, seed=seed, cue_follow_per_s=follow
+                        client,
+                        "novice",
+                        guidance_gain=gain,
+                        duration_s=args.duration,
+                        seed=seed,
+                        cue_follow_per_s=follow,
                     )
                 row = [run.metrics[key] * scale for key, _, scale in COLUMNS]
                 results[gain].append(row)
