@@ -242,7 +242,7 @@ class SurgeonController:
         breakthrough_depth_m: float | None = None,
     ) -> None:
         self.style, self.rng, self.path = style, rng, path
-        # Where the plan says the cortex gives (tip depth, m); without a plan, a typical 3 mm cortex.
+        # Where the plan says the cortex gives (tip depth, m); without a plan, ~3.5 mm of cortex and a 2.5 mm burr.
         self.breakthrough_depth_m = (
             GENERIC_BREAKTHROUGH_DEPTH_M if breakthrough_depth_m is None else float(breakthrough_depth_m)
         )
