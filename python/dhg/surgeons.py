@@ -576,8 +576,12 @@ def straight_line_drill(
 
 def layer_runs(bone: DrilledVolume, path: PlannedPath, step_m: float = 0.25e-3) -> list[tuple[str, float, float]]:
     """The pristine layers along A→B as runs (name, start depth (m), end depth (m))."""
+    return _layer_runs(bone.volume, path, step_m)
+
+
+def _layer_runs(volume: Volume, path: PlannedPath, step_m: float) -> list[tuple[str, float, float]]:
     depths = np.arange(0.0, path.length_m + step_m / 2, step_m)
-    ids = bone.volume.layer_at(path.point_at(depths))
+    ids = volume.layer_at(path.point_at(depths))
     runs: list[tuple[str, float, float]] = []
     start = 0
     for i in range(1, len(ids) + 1):
@@ -594,14 +598,12 @@ def planned_breakthrough_depth_m(
     cortical layer on the path, as a surgeon reads it off the planning CT: the end of the first
     cortical run of the pristine bone, less the radius (the burr's front leads its centre).
     ``None`` when the path crosses no cortex."""
-    depths = np.arange(0.0, path.length_m + step_m / 2, step_m)
-    cortical = volume.layer_at(path.point_at(depths)) == int(Layer.CORTICAL)
-    if not cortical.any():
+    ends = (end for name, _, end in _layer_runs(volume, path, step_m) if name == "cortical")
+    end = next(ends, None)
+    if end is None:
         return None
-    first = int(np.argmax(cortical))
-    after = np.flatnonzero(~cortical[first:])
-    end = depths[first + after[0]] - step_m / 2 if after.size else path.length_m
-    return float(end - burr_radius_m)
+    # The boundary lies between the run's last sample and the next one.
+    return float(min(end + step_m / 2, path.length_m) - burr_radius_m)
 
 
 def scripted_stylus(
