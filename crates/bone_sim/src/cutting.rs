@@ -97,6 +97,11 @@ impl CuttingLaw {
         (diameter_m / self.reference_diameter_m).powf(exponent)
     }
 
+    /// Thrust (N) at the reference feed: the feed law's scale for these conditions and drill.
+    fn thrust_at_reference_feed_n(&self, rpm: f64, density_kg_m3: f64, diameter_m: f64) -> f64 {
+        self.thrust_ref_n * self.conditions(rpm, density_kg_m3) * self.size(diameter_m, self.diameter_thrust_exponent)
+    }
+
     /// Thrust (N) to feed a drill of `diameter_m` at `feed_m_s` with the spindle at `rpm` into
     /// bone of `density_kg_m3`.
     #[must_use]
@@ -104,9 +109,7 @@ impl CuttingLaw {
         if rpm <= 0.0 || feed_m_s <= 0.0 || density_kg_m3 <= 0.0 || diameter_m <= 0.0 {
             return 0.0;
         }
-        self.thrust_ref_n
-            * self.conditions(rpm, density_kg_m3)
-            * self.size(diameter_m, self.diameter_thrust_exponent)
+        self.thrust_at_reference_feed_n(rpm, density_kg_m3, diameter_m)
             * (feed_m_s / self.reference_feed_m_s).powf(self.feed_exponent)
     }
 
@@ -132,10 +135,7 @@ impl CuttingLaw {
         if density_kg_m3 <= 0.0 {
             return self.max_feed_m_s;
         }
-        let resistance = self.thrust_ref_n
-            * self.conditions(rpm, density_kg_m3)
-            * self.size(diameter_m, self.diameter_thrust_exponent);
-        let ratio = thrust_n / resistance;
+        let ratio = thrust_n / self.thrust_at_reference_feed_n(rpm, density_kg_m3, diameter_m);
         (self.reference_feed_m_s * ratio.powf(1.0 / self.feed_exponent)).min(self.max_feed_m_s)
     }
 }
