@@ -3,11 +3,17 @@ with a clear error, and it stops cleanly (no Zenoh peers involved beyond loopbac
 
 from __future__ import annotations
 
+import itertools
+
+import numpy as np
 import pytest
 
 from dhg import _bone_sim, serve
 from dhg.errors import EngineError, InvalidInputError
+from dhg.layers import Layer
 from dhg.live_demo import free_port
+from dhg.surgeons import planned_breakthrough_depth_m
+from dhg.trainee import planned_depth_from_info
 
 
 @pytest.fixture()
@@ -51,6 +57,35 @@ def test_sessions_are_limited_and_controlled(engine):
     with pytest.raises(InvalidInputError, match="burr_radius_m"):
         engine.control("c", {"op": "create", "burr_radius_m": 1.0})
     assert engine.sessions() == ["b"], "a refused create left a session behind"
+
+
+def test_session_info_reports_the_planned_layers_along_its_path(engine, coarse_phantom):
+    vol, path = coarse_phantom.volume, coarse_phantom.path
+    info = engine.control("a", {"op": "create"})
+    step = info["path_layer_step_m"]
+    # The layers as numpy samples them from the volume, one sample per step from A.
+    depths = np.arange(0.0, path.length_m + step / 2, step)
+    ids = vol.layer_at(path.point_at(depths))
+    names = [Layer(int(i)).name.lower() for i in ids]
+    boundaries = [0, *(i for i in range(1, len(ids)) if ids[i] != ids[i - 1]), len(ids)]
+    expected = [(names[a], depths[a], depths[b - 1]) for a, b in itertools.pairwise(boundaries)]
+    got = [(r["layer"], r["start_m"], r["end_m"]) for r in info["path_layers"]]
+    assert [g[0] for g in got] == [e[0] for e in expected]
+    assert np.allclose([g[1:] for g in got], [e[1:] for e in expected], atol=1e-12)
+    assert "cortical" in [g[0] for g in got]
+    # The trainee reads the planned breakthrough off it, as the offline surgeons read the CT.
+    planned = planned_depth_from_info(info)
+    assert planned is not None
+    assert planned == pytest.approx(planned_breakthrough_depth_m(vol, path, info["burr_radius_m"]), abs=1e-12)
+    # A wider burr's front reaches the end of the cortex sooner.
+    wider = engine.control("a", {"op": "set_drill", "burr_radius_m": 2e-3})
+    assert planned_depth_from_info(wider) == pytest.approx(planned - (2e-3 - 1.25e-3), abs=1e-12)
+    # A path through air has no cortex to plan for.
+    far = [1.0, 1.0, 1.0]
+    air = engine.control("a", {"op": "set_path", "entry_m": far, "target_m": [1.0, 1.0, 1.01]})
+    assert {r["layer"] for r in air["path_layers"]} == {"outside"}
+    assert planned_depth_from_info(air) is None
+    assert planned_depth_from_info({"entry_m": far, "target_m": far}) is None  # a server without layers
 
 
 def test_xray_of_a_session_and_bad_timeouts(engine):

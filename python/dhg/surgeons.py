@@ -35,7 +35,7 @@ the path without force feedback, and :func:`scripted_stylus` pushes a stylus alo
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from typing import Literal
 
@@ -53,6 +53,7 @@ __all__ = [
     "Episode",
     "SurgeonController",
     "SurgeonStyle",
+    "breakthrough_depth_from_runs",
     "layer_runs",
     "planned_breakthrough_depth_m",
     "run_episode",
@@ -580,15 +581,9 @@ def layer_runs(bone: DrilledVolume, path: PlannedPath, step_m: float = 0.25e-3) 
 
 
 def _layer_runs(volume: Volume, path: PlannedPath, step_m: float) -> list[tuple[str, float, float]]:
-    depths = np.arange(0.0, path.length_m + step_m / 2, step_m)
-    ids = volume.layer_at(path.point_at(depths))
-    runs: list[tuple[str, float, float]] = []
-    start = 0
-    for i in range(1, len(ids) + 1):
-        if i == len(ids) or ids[i] != ids[start]:
-            runs.append((Layer(int(ids[start])).name.lower(), float(depths[start]), float(depths[i - 1])))
-            start = i
-    return runs
+    # The core samples the path (one implementation, shared with the server's session info).
+    runs = volume._vol.layer_runs(tuple(path.entry_m), tuple(path.target_m), step_m)
+    return [(Layer(layer).name.lower(), start, end) for layer, start, end in runs]
 
 
 def planned_breakthrough_depth_m(
@@ -598,12 +593,20 @@ def planned_breakthrough_depth_m(
     cortical layer on the path, as a surgeon reads it off the planning CT: the end of the first
     cortical run of the pristine bone, less the radius (the burr's front leads its centre).
     ``None`` when the path crosses no cortex."""
-    ends = (end for name, _, end in _layer_runs(volume, path, step_m) if name == "cortical")
-    end = next(ends, None)
+    return breakthrough_depth_from_runs(_layer_runs(volume, path, step_m), path.length_m, burr_radius_m, step_m)
+
+
+def breakthrough_depth_from_runs(
+    runs: Iterable[tuple[str, float, float]], path_length_m: float, burr_radius_m: float, step_m: float
+) -> float | None:
+    """:func:`planned_breakthrough_depth_m` from layer runs (name, start (m), end (m)) sampled
+    every ``step_m`` (m) along a path of ``path_length_m`` (m), such as a server session's
+    ``path_layers``. ``None`` when no run is cortical."""
+    end = next((end for name, _, end in runs if name == "cortical"), None)
     if end is None:
         return None
     # The boundary lies between the run's last sample and the next one.
-    return float(min(end + step_m / 2, path.length_m) - burr_radius_m)
+    return float(min(end + step_m / 2, path_length_m) - burr_radius_m)
 
 
 def scripted_stylus(

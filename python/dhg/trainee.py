@@ -18,10 +18,10 @@ import numpy.typing as npt
 
 from dhg.client import TraineeClient, feedback_tuple
 from dhg.errors import InvalidInputError
-from dhg.surgeons import SurgeonController, sample_style, skill_metrics
+from dhg.surgeons import SurgeonController, breakthrough_depth_from_runs, sample_style, skill_metrics
 from dhg.task import PlannedPath, TaskRules
 
-__all__ = ["TraineeRun", "run_trainee", "state_records"]
+__all__ = ["TraineeRun", "planned_depth_from_info", "run_trainee", "state_records"]
 
 
 @dataclass
@@ -58,6 +58,20 @@ def state_records(states: list[dict[str, Any]]) -> npt.NDArray[np.float64]:
     return np.array([[s["time_s"], *s["features"], float(bool(s["flags"] & FLAGS["drill_on"]))] for s in states])
 
 
+def planned_depth_from_info(info: dict[str, Any]) -> float | None:
+    """The planned breakthrough depth (m) for a session, from the info its control query returns:
+    the end of the first cortical run in ``path_layers`` less the session's burr radius. ``None``
+    when the info has no layers (an older server) or the path crosses no cortex."""
+    layers = info.get("path_layers")
+    if not layers:
+        return None
+    entry, target = np.array(info["entry_m"], dtype=float), np.array(info["target_m"], dtype=float)
+    runs = [(str(r["layer"]), float(r["start_m"]), float(r["end_m"])) for r in layers]
+    return breakthrough_depth_from_runs(
+        runs, float(np.linalg.norm(target - entry)), float(info["burr_radius_m"]), float(info["path_layer_step_m"])
+    )
+
+
 def run_trainee(
     client: TraineeClient,
     skill: Literal["expert", "novice"] = "novice",
@@ -76,12 +90,16 @@ def run_trainee(
     ``cue_follow_per_s`` (1/s) overrides how briskly the surgeon leans into the guidance cue
     (:attr:`dhg.surgeons.SurgeonStyle.cue_follow_per_s`); 0 is a passive hand that only feels it.
     ``breakthrough_depth_m`` (m) is where the trainee's plan says the first cortex gives
-    (:func:`dhg.surgeons.planned_breakthrough_depth_m`); ``None``: the surgeons' generic 2.2 mm."""
+    (:func:`dhg.surgeons.planned_breakthrough_depth_m`); ``None`` reads it off the planned layers
+    the server reports for the session (``path_layers``), or, where it reports none, uses the
+    surgeons' generic 2.2 mm."""
     rules = rules or TaskRules()
     if cue_follow_per_s is not None and not (math.isfinite(cue_follow_per_s) and cue_follow_per_s >= 0):
         raise InvalidInputError(f"cue_follow_per_s must be a finite rate >= 0 (1/s), got {cue_follow_per_s!r}")
     info = client.create(guidance_gain=guidance_gain, burr_radius_m=burr_radius_m)
     path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))
+    if breakthrough_depth_m is None:
+        breakthrough_depth_m = planned_depth_from_info(info)
     rng = np.random.default_rng(seed)
     style = sample_style(skill, rng)
     if cue_follow_per_s is not None:

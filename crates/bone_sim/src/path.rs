@@ -5,6 +5,25 @@ use parry3d::query::PointQuery;
 use parry3d::shape::Segment;
 
 use crate::error::{finite, SimError, SimResult};
+use crate::volume::layer::Layer;
+use crate::volume::Volume;
+
+/// The finest sampling step [`PlannedPath::layer_runs`] takes (m): bounds the work to about a
+/// million samples per metre of path.
+pub const MIN_LAYER_STEP_M: f64 = 1e-6;
+
+/// A stretch of the path over which the pristine bone reads one layer: the samples from
+/// `start_m` to `end_m` (depths from A, m). A boundary lies between one run's end and the next
+/// run's start.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LayerRun {
+    /// The layer every sample of the run reads.
+    pub layer: Layer,
+    /// Depth of the run's first sample (m).
+    pub start_m: f64,
+    /// Depth of the run's last sample (m).
+    pub end_m: f64,
+}
 
 /// A straight planned path from the entry point A to the target B (m, world frame).
 #[derive(Debug, Clone)]
@@ -84,6 +103,33 @@ impl PlannedPath {
         let rel = parry3d::math::Point::from((p - self.entry_m).cast::<f32>());
         f64::from(self.segment.distance_to_local_point(&rel, true))
     }
+
+    /// The pristine layers along A → B, as a surgeon reads them off the planning CT: samples
+    /// every `step_m` (m) from A to B (the last at most `step_m / 2` past B), merged into runs.
+    ///
+    /// # Errors
+    /// A step that is not finite or below [`MIN_LAYER_STEP_M`].
+    pub fn layer_runs(&self, volume: &Volume, step_m: f64) -> SimResult<Vec<LayerRun>> {
+        if !(step_m.is_finite() && step_m >= MIN_LAYER_STEP_M) {
+            return Err(SimError::InvalidParameter {
+                name: "layer sampling step (m)",
+                value: step_m,
+                reason: "must be finite and at least 1e-6 m",
+            });
+        }
+        // As many samples as numpy's arange(0, L + step/2, step) gives, so Python agrees.
+        let n = ((self.length_m + step_m / 2.0) / step_m).ceil() as usize;
+        let mut runs: Vec<LayerRun> = Vec::new();
+        for i in 0..n {
+            let depth_m = i as f64 * step_m;
+            let layer = volume.layer_at(&(self.entry_m + self.direction * depth_m))?;
+            match runs.last_mut() {
+                Some(run) if run.layer == layer => run.end_m = depth_m,
+                _ => runs.push(LayerRun { layer, start_m: depth_m, end_m: depth_m }),
+            }
+        }
+        Ok(runs)
+    }
 }
 
 #[cfg(test)]
@@ -101,5 +147,26 @@ mod tests {
         assert!((path.deviation_m(&q) - 0.01).abs() < 1e-7);
         assert!(PlannedPath::new(Point3::origin(), Point3::origin()).is_err());
         assert!(PlannedPath::new(Point3::new(f64::NAN, 0.0, 0.0), Point3::new(1.0, 0.0, 0.0)).is_err());
+    }
+
+    #[test]
+    fn layer_runs_cover_the_path_in_order() {
+        // A cube of 20 cortical voxels (0.5 mm, centres 2.0 to 11.5 mm) with 4 voxels of air around.
+        let vol = crate::volume::test_support::uniform_block(28, 0.5e-3, Layer::Cortical, 1500.0, 4);
+        let c = 7e-3;
+        let path = PlannedPath::new(Point3::new(0.0, c, c), Point3::new(13.5e-3, c, c)).unwrap();
+        let runs = path.layer_runs(&vol, 0.1e-3).unwrap();
+        let names: Vec<Layer> = runs.iter().map(|r| r.layer).collect();
+        assert_eq!(names, [Layer::Outside, Layer::Cortical, Layer::Outside]);
+        // Runs tile the samples: each starts one step after the previous one ends.
+        for w in runs.windows(2) {
+            assert!((w[1].start_m - w[0].end_m - 0.1e-3).abs() < 1e-12);
+        }
+        // The cortex's voxels span 1.75 to 11.75 mm; its samples lie within 0.1 mm inside.
+        assert!((runs[1].start_m - 1.8e-3).abs() < 0.06e-3, "{runs:?}");
+        assert!((runs[1].end_m - 11.7e-3).abs() < 0.06e-3, "{runs:?}");
+        assert!((runs[2].end_m - 13.5e-3).abs() < 0.06e-3, "{runs:?}");
+        assert!(path.layer_runs(&vol, 0.0).is_err());
+        assert!(path.layer_runs(&vol, f64::NAN).is_err());
     }
 }

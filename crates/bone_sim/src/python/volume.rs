@@ -10,6 +10,7 @@ use pyo3::types::PyDict;
 use super::convert::{detached, image, points};
 use super::errors::IntoPyResult;
 use crate::error::SimError;
+use crate::path::PlannedPath;
 use crate::removal::{Burr, Cut, RemovalReport};
 use crate::volume::drilled::DrilledVolume;
 use crate::volume::grid::Grid;
@@ -219,6 +220,20 @@ impl PyVolume {
         points_m: PyReadonlyArray2<'_, f64>,
     ) -> PyResult<Bound<'py, PyArray1<u8>>> {
         Ok(per_point(&points_m, |p| self.inner.layer_at(p).map(crate::Layer::id))?.into_pyarray(py))
+    }
+
+    /// The pristine layers along the path A → B (m) sampled every `step_m` (m), as runs
+    /// (layer id, first sample's depth (m), last sample's depth (m)).
+    fn layer_runs(
+        &self,
+        py: Python<'_>,
+        entry_m: [f64; 3],
+        target_m: [f64; 3],
+        step_m: f64,
+    ) -> PyResult<Vec<(u8, f64, f64)>> {
+        let path = PlannedPath::new(entry_m.into(), target_m.into()).py()?;
+        let runs = detached(py, || path.layer_runs(&self.inner, step_m)).py()?;
+        Ok(runs.iter().map(|r| (r.layer.id(), r.start_m, r.end_m)).collect())
     }
 
     /// HU at each world point (N, 3) in metres.

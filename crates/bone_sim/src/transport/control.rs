@@ -118,20 +118,32 @@ fn path_of(v: &Value) -> SimResult<PlannedPath> {
     PlannedPath::new(point(v, "entry_m")?, point(v, "target_m")?)
 }
 
+/// The step (m) at which a session's info samples the pristine layers along its path.
+const PATH_LAYER_STEP_M: f64 = 0.25e-3;
+
 fn session_info(shared: &Shared, id: &str) -> SimResult<Value> {
-    let reg = lock(&shared.registry);
-    let slot = reg.slot_of(id).ok_or_else(|| SimError::Engine(format!("no session {id:?}")))?;
-    let info = &reg.slots[slot as usize];
-    let (a, b) = (info.path.entry_m(), info.path.target_m());
-    Ok(json!({
-        "session": id,
-        "slot": slot,
-        "guidance_gain": info.gain,
-        "burr_radius_m": info.burr_radius_m,
-        "entry_m": [a.x, a.y, a.z],
-        "target_m": [b.x, b.y, b.z],
-        "poses_received": info.poses_received,
-    }))
+    let (mut info, path) = {
+        let reg = lock(&shared.registry);
+        let slot = reg.slot_of(id).ok_or_else(|| SimError::Engine(format!("no session {id:?}")))?;
+        let info = &reg.slots[slot as usize];
+        let (a, b) = (info.path.entry_m(), info.path.target_m());
+        let v = json!({
+            "session": id,
+            "slot": slot,
+            "guidance_gain": info.gain,
+            "burr_radius_m": info.burr_radius_m,
+            "entry_m": [a.x, a.y, a.z],
+            "target_m": [b.x, b.y, b.z],
+            "poses_received": info.poses_received,
+        });
+        (v, info.path.clone())
+    };
+    // Sampled outside the registry lock: the pose subscriber needs it at 1 kHz per client.
+    let runs = path.layer_runs(&shared.volume, PATH_LAYER_STEP_M)?;
+    info["path_layer_step_m"] = json!(PATH_LAYER_STEP_M);
+    info["path_layers"] =
+        runs.iter().map(|r| json!({ "layer": r.layer.name(), "start_m": r.start_m, "end_m": r.end_m })).collect();
+    Ok(info)
 }
 
 /// Swaps the burr of `slot`; `value` must be a radius (m) in (0, 0.02].

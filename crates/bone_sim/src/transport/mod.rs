@@ -117,6 +117,8 @@ pub struct Shared {
     pub(crate) tick_thread: std::sync::OnceLock<std::thread::Thread>,
     pub(crate) config: ServerConfig,
     pub(crate) started: Instant,
+    /// The pristine bone, for the planned layers a session's info reports.
+    pub(crate) volume: Arc<Volume>,
 }
 
 /// Locks a mutex, recovering the data if a panicking thread poisoned it (every update here keeps
@@ -173,6 +175,7 @@ impl Server {
             tick_thread: std::sync::OnceLock::new(),
             config,
             started: Instant::now(),
+            volume: volume.clone(),
         });
         control::declare(&session, &shared)?;
         let comm = comm::spawn(session.clone(), shared.clone(), link.outputs)?;
