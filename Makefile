@@ -6,33 +6,42 @@ SHELL := /bin/bash
 PYTHON ?= python3
 LOCK := requirements.lock
 LOCK_HASH := $(shell sha256sum $(LOCK) | cut -c1-16)
-# The virtualenv is cached outside the clone, keyed by the lock file's hash; .venv links to it.
+# Third-party packages live in a virtualenv cached outside the clone, keyed by the lock file's
+# hash (torch alone is several GB). .venv is the clone's own small virtualenv: it sees the cached
+# packages through a .pth file and holds only dhg, so two clones never import each other's code.
 DHG_CACHE ?= $(HOME)/.cache/dhg
-VENV_CACHE := $(DHG_CACHE)/venv-$(LOCK_HASH)
+DEPS := $(DHG_CACHE)/venv-$(LOCK_HASH)
 VENV := .venv
 VPY := $(VENV)/bin/python
 # One cargo target dir shared by clones (a cache: a machine without it just builds from scratch).
 export CARGO_TARGET_DIR ?= $(DHG_CACHE)/target
 export VIRTUAL_ENV := $(abspath $(VENV))
+PURELIB := import sysconfig; print(sysconfig.get_paths()["purelib"])
 
 .PHONY: help venv build demo test test-rust test-python lint bench clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
 
-$(VENV)/.ready-$(LOCK_HASH): $(LOCK)
-	@if [ ! -f $(VENV_CACHE)/.complete ]; then \
-	  echo ">> creating virtualenv $(VENV_CACHE) from $(LOCK)"; \
-	  rm -rf $(VENV_CACHE) && mkdir -p $(DHG_CACHE) && \
-	  $(PYTHON) -m venv $(VENV_CACHE) && \
-	  $(VENV_CACHE)/bin/python -m pip install -q --upgrade pip && \
-	  $(VENV_CACHE)/bin/python -m pip install -q -r $(LOCK) && \
-	  touch $(VENV_CACHE)/.complete; \
+$(VENV)/.clone-ready-$(LOCK_HASH): $(LOCK)
+	@if [ ! -f $(DEPS)/.complete ]; then \
+	  echo ">> creating virtualenv $(DEPS) from $(LOCK)"; \
+	  rm -rf $(DEPS) && mkdir -p $(DHG_CACHE) && \
+	  $(PYTHON) -m venv $(DEPS) && \
+	  $(DEPS)/bin/python -m pip install -q --upgrade pip && \
+	  $(DEPS)/bin/python -m pip install -q -r $(LOCK) && \
+	  touch $(DEPS)/.complete; \
 	fi
-	@rm -rf $(VENV) && ln -s $(VENV_CACHE) $(VENV)
+	@# Earlier checkouts installed dhg into the shared virtualenv; only a clone's .venv holds it now.
+	@if ls -d $(DEPS)/lib/python*/site-packages/dhg-*.dist-info >/dev/null 2>&1; then \
+	  $(DEPS)/bin/python -m pip uninstall -q -y dhg; fi
+	@rm -rf $(VENV) && $(DEPS)/bin/python -m venv --without-pip $(VENV)
+	@$(DEPS)/bin/python -c '$(PURELIB)' > "$$($(VPY) -c '$(PURELIB)')/zz_dhg_deps.pth"
+	@# The standalone dev tools, so an activated .venv has them (pytest: python -m pytest).
+	@for tool in maturin ruff; do ln -sf $(abspath $(DEPS))/bin/$$tool $(VENV)/bin/$$tool; done
 	@touch $@
 
-venv: $(VENV)/.ready-$(LOCK_HASH) ## create .venv with the pinned dependencies
+venv: $(VENV)/.clone-ready-$(LOCK_HASH) ## create .venv with the pinned dependencies
 
 build: venv ## build the Rust extension into .venv (maturin develop --release)
 	PIP_QUIET=1 $(VENV)/bin/maturin develop --release -q
