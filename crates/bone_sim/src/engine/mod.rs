@@ -11,8 +11,12 @@
 //! starts the slot's tick as soon as it arrives, once the budget holds a period (less the
 //! [`EARLY_PERIODS`] it may borrow). So a steady 1 kHz client gets each force computed from the
 //! pose that just arrived, whatever its phase, while a client sending faster still gets 1 kHz.
-//! Without a fresh pose the slot ticks when a period is due, after waiting [`GRACE_PERIODS`] for
-//! a streaming client's late pose. A silent client still gets 1 kHz. A tick a whole period or
+//! Without a fresh pose the slot ticks when a period is due; a streaming client's slot first
+//! waits [`GRACE_PERIODS`] past one period since its last tick for the late pose. A silent client
+//! still gets 1 kHz. After a stall, a client's delayed poses arrive in a burst, out of phase: a
+//! pose that would wait more than [`MAX_POSE_WAIT_PERIODS`] for the budget waits for the schedule
+//! instead, and the client's next pose, back in phase, ticks at once. So a jittery client gets
+//! 1 kHz on average, not up to [`LOCK_RATE`]. A tick a whole period or
 //! more late skips the missed periods and counts them, and the budget banks at most
 //! `1 + GRACE_PERIODS` periods, so a stall never buys a burst. The pose subscriber unparks the
 //! tick thread when it hands over a pose.
@@ -56,8 +60,25 @@ pub const GRACE_PERIODS: f64 = 0.3;
 /// its phase drift onto its client's within tens of periods. A client sending faster than 1 kHz
 /// gets at most 1.02 kHz; without poses a slot ticks at exactly 1 kHz.
 pub const LOCK_RATE: f64 = 1.02;
+/// Longest (in periods) a fresh pose waits for its slot's budget. Past it the slot is out of
+/// phase with its client, and it re-locks by waiting for the client's next pose (see
+/// [`TickCore::tick_due`]) instead of ticking every pose late while the 2 % catch up.
+pub const MAX_POSE_WAIT_PERIODS: f64 = 0.3;
+/// A slot due within this many periods (1 ns) is due now: float rounding must not cost a wake-up.
+const DUE_SLACK_PERIODS: f64 = 1e-6;
 /// Most periods a slot may bank (so a pause never buys a burst of ticks).
 const MAX_TOKENS: f64 = 1.0 + GRACE_PERIODS;
+
+/// Periods from now until a slot ticks without a fresh pose: once a period is owed; a streaming
+/// slot (its last tick had a fresh pose) first waits [`GRACE_PERIODS`] past one period since that
+/// tick for the client's late pose, with at least as much budget as a fresh pose needs.
+fn timer_until(streaming: bool, tokens: f64, elapsed: f64) -> f64 {
+    if streaming {
+        (1.0 + GRACE_PERIODS - elapsed).max(1.0 - EARLY_PERIODS - (tokens + elapsed))
+    } else {
+        1.0 - (tokens + elapsed)
+    }
+}
 
 /// `seconds` rounded up to whole microseconds (waking a hair early would find nothing due).
 fn ceil_us(seconds: f64) -> Duration {
@@ -308,23 +329,32 @@ impl TickCore {
             // Periods owed since the last tick (uncapped: 2 or more means whole periods missed).
             let owed = clock.tokens + elapsed;
             let fresh = s.pose_pending();
-            let wait = if self.streaming[i] { GRACE_PERIODS } else { 0.0 };
+            let timer = timer_until(self.streaming[i], clock.tokens, elapsed);
             // A fresh pose counts time slightly fast, so the slot's phase drifts onto the pose's.
-            let (have, need, rate) = if fresh {
-                (clock.tokens + elapsed * LOCK_RATE, 1.0 - EARLY_PERIODS, LOCK_RATE)
+            let have = if fresh { clock.tokens + elapsed * LOCK_RATE } else { owed };
+            let until = if fresh {
+                let short = (1.0 - EARLY_PERIODS - have) / LOCK_RATE;
+                // Waiting longer means the slot is out of phase with its client (its poses came in a
+                // burst after a stall): this pose waits for the schedule, and the client's next pose,
+                // in phase, ticks the moment it arrives.
+                if short <= MAX_POSE_WAIT_PERIODS {
+                    short
+                } else {
+                    timer
+                }
             } else {
-                (owed, 1.0 + wait, 1.0)
+                timer
             };
-            if have < need {
-                let until = ceil_us((need - have) / rate * period_s);
-                next = next.min(now + until);
+            if until > DUE_SLACK_PERIODS {
+                next = next.min(now + ceil_us(until * period_s));
                 continue;
             }
-            let late_s = ((owed - 1.0 - wait).max(0.0)) * period_s;
-            let late_ns = (late_s * 1e9) as u64;
+            // How far past its schedule the slot ticks: the thread woke late (a fresh pose is on time).
+            let late_periods = (-timer).max(0.0);
+            let late_ns = (late_periods * period_s * 1e9) as u64;
             stats.lateness.record(late_ns);
             stats.max_lateness_ns.fetch_max(late_ns, Ordering::Relaxed);
-            let behind = (owed - 1.0 - wait).floor();
+            let behind = late_periods.floor();
             if behind >= 1.0 {
                 stats.missed.fetch_add(behind as u64, Ordering::Relaxed);
             }
@@ -332,9 +362,7 @@ impl TickCore {
             ticked += 1;
             *clock = SlotClock { last: now, tokens: have.min(MAX_TOKENS) - 1.0 };
             self.streaming[i] = fresh;
-            let wait = if fresh { GRACE_PERIODS } else { 0.0 };
-            let until = ceil_us((1.0 + wait - clock.tokens).max(0.0) * period_s);
-            next = next.min(now + until);
+            next = next.min(now + ceil_us(timer_until(fresh, clock.tokens, 0.0) * period_s));
         }
         self.stats.sessions.store(active, Ordering::Relaxed);
         self.stats.ticks.fetch_add(u64::from(ticked), Ordering::Relaxed);
