@@ -37,8 +37,12 @@ $(VENV)/.clone-ready-$(LOCK_HASH): $(LOCK)
 	  $(DEPS)/bin/python -m pip uninstall -q -y dhg; fi
 	@rm -rf $(VENV) && $(DEPS)/bin/python -m venv --without-pip $(VENV)
 	@$(DEPS)/bin/python -c '$(PURELIB)' > "$$($(VPY) -c '$(PURELIB)')/zz_dhg_deps.pth"
-	@# The standalone dev tools, so an activated .venv has them (pytest: python -m pytest).
+	@# The tools, so an activated .venv has them: the standalone binaries linked, and the Python
+	@# ones as wrappers that run .venv's python (theirs in the cache could not import dhg).
 	@for tool in maturin ruff; do ln -sf $(abspath $(DEPS))/bin/$$tool $(VENV)/bin/$$tool; done
+	@for pair in "pytest pytest" "torchrun torch.distributed.run"; do set -- $$pair; \
+	  printf '#!/bin/sh\nexec "$$(dirname "$$0")/python" -m %s "$$@"\n' $$2 > $(VENV)/bin/$$1; \
+	  chmod +x $(VENV)/bin/$$1; done
 	@touch $@
 
 venv: $(VENV)/.clone-ready-$(LOCK_HASH) ## create .venv with the pinned dependencies

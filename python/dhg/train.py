@@ -258,7 +258,6 @@ def train(
     for name, sl in (("train", split.train), ("val", split.val), ("test", split.test)):
         metrics[name] = _evaluate(net, xn[sl], yn[sl], force_pos, cpu, scaler.span[0:3])
     if rank == 0:
-        (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
         plot_losses(history, run / "loss.png", title=f"{mcfg.preset}: RMSE (normalised) per epoch")
         predictor = ForcePredictor(net, scaler, mcfg).eval()
         test_x = x[split.test][:1000]
@@ -266,6 +265,10 @@ def train(
             predicted = predictor(test_x).numpy()
         plot_forces(y[split.test][:1000, 0:3].numpy(), predicted, run / "forces.png", title=f"{mcfg.preset}: test set")
         export_model(predictor, mcfg, metrics, run / "model.ts")
+        # Last: a run with metrics.json is finished (dhg ablate reuses it), so it must have the rest.
+        tmp = run / "metrics.json.tmp"
+        tmp.write_text(json.dumps(metrics, indent=1))
+        os.replace(tmp, run / "metrics.json")
     if ddp:
         import torch.distributed as dist
 
