@@ -300,6 +300,10 @@ def test_cli_trainee_drills_and_reports(server, tmp_path):
     assert "pose→force" in r.stdout and "drill diameter         3.2 mm" in r.stdout
     report = json.loads(out.read_text())
     assert report["burr_radius_m"] == pytest.approx(1.6e-3)
+    # The trainee planned its breakthrough from the session's layers: inside the path's first mm's.
+    planned = report["planned_breakthrough_depth_m"]
+    assert planned is not None and 0.0 < planned < 0.01
+    assert f"planned breakthrough   {planned * 1e3:.3f} mm" in r.stdout
     assert report["poses"] >= 1900
     assert report["latency"]["forces"] >= 1900
     assert report["latency"]["guidance"] >= 15

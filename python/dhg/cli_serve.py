@@ -229,7 +229,9 @@ def add_commands(sub: Any, epilog: str) -> None:
         description="Connects to a running dhg-serve, creates a session and drills A→B as a virtual "
         "surgeon (the operator model of 'dhg synth') who feels the force the server renders, guidance "
         "included, and reads the guidance as an instruction: it leans into a cue that pushes the drill back "
-        "(the expert pressed harder) and eases off one that pulls it in. Prints the skill metrics and the "
+        "(the expert pressed harder) and eases off one that pulls it in. An expert eases off shortly before "
+        "the depth where the session's planned layers (from the server's CT) show the burr leaving the "
+        "first cortex. Prints the skill metrics and the "
         "pose→force and pose→guidance latencies at the end.\n\n"
         "  dhg trainee --skill novice --guidance on  --seed 3\n"
         "  dhg trainee --skill novice --guidance off --seed 3   # the same hand, unguided",
@@ -311,9 +313,14 @@ def _cmd_trainee(args: argparse.Namespace) -> int:
         print(f"session {client.session_id}: {args.skill}, guidance {args.guidance} (gain {gain:g}), seed {args.seed}")
         run = run_trainee(client, args.skill, gain, args.duration, args.seed, burr_radius_m=burr_radius_m)
     print(f"  drill diameter         {run.burr_radius_m * 2e3:g} mm")
+    planned = run.planned_breakthrough_depth_m
+    print(
+        f"  planned breakthrough   {'none (no cortex on the path)' if planned is None else f'{planned * 1e3:.3f} mm'}"
+    )
     report = {
         "session": run.session_id,
         "burr_radius_m": run.burr_radius_m,
+        "planned_breakthrough_depth_m": run.planned_breakthrough_depth_m,
         "metrics": run.metrics,
         "latency": run.latency,
         "poses": run.poses_sent,

@@ -47,6 +47,9 @@ class TraineeRun:
     """The server's health report after the run, when the caller asked for it."""
     burr_radius_m: float = 0.0
     """The burr (drill tip) radius the session drilled with (m)."""
+    planned_breakthrough_depth_m: float | None = None
+    """The tip depth (m) at which the trainee planned the first cortex to give (``None``: the
+    generic 2.2 mm, for lack of a cortex on the path or of layers in the session info)."""
 
 
 def state_records(states: list[dict[str, Any]]) -> npt.NDArray[np.float64]:
@@ -157,4 +160,5 @@ def run_trainee(
         poses_sent=sent,
         wall_s=wall_s,
         burr_radius_m=float(info["burr_radius_m"]),
+        planned_breakthrough_depth_m=breakthrough_depth_m,
     )
