@@ -88,6 +88,20 @@ def test_bad_volumes_are_clear_errors():
         dhg.HuMapping.from_dict({"bogus": 1.0})
 
 
+def test_layer_runs_along_a_path_through_the_block():
+    v = block()  # bone voxels 2..13 at 0.5 mm: centres 1.0 to 6.5 mm, faces at 0.75 and 6.75 mm
+    runs = v.layer_runs([0.0, 0.004, 0.004], [0.0075, 0.004, 0.004], step_m=0.2e-3)
+    assert [layer for layer, _, _ in runs] == [Layer.OUTSIDE, Layer.CORTICAL, Layer.OUTSIDE]
+    assert runs[1][1:] == pytest.approx((0.8e-3, 6.6e-3), abs=1e-12)
+    assert runs[2][2] == pytest.approx(7.4e-3, abs=1e-12)  # the last sample lies within step/2 of B
+    with pytest.raises(InvalidInputError, match="step"):
+        v.layer_runs([0.0, 0.004, 0.004], [0.0075, 0.004, 0.004], step_m=0.0)
+    with pytest.raises(InvalidInputError, match="entry"):
+        v.layer_runs([np.nan, 0.004, 0.004], [0.0075, 0.004, 0.004])
+    with pytest.raises(ShapeError, match="one point"):
+        v.layer_runs([[0.0, 0.004, 0.004]] * 2, [0.0075, 0.004, 0.004])
+
+
 def test_errors_are_dhg_and_value_errors():
     with pytest.raises(ValueError):
         block().layer_at([np.nan] * 3)

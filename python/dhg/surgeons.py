@@ -581,8 +581,7 @@ def layer_runs(bone: DrilledVolume, path: PlannedPath, step_m: float = 0.25e-3) 
 
 
 def _layer_runs(volume: Volume, path: PlannedPath, step_m: float) -> list[tuple[str, float, float]]:
-    # The core samples the path (one implementation, shared with the server's session info).
-    runs = volume._vol.layer_runs(tuple(path.entry_m), tuple(path.target_m), step_m)
+    runs = volume.layer_runs(path.entry_m, path.target_m, step_m)
     return [(Layer(layer).name.lower(), start, end) for layer, start, end in runs]
 
 

@@ -123,6 +123,14 @@ def as_points(points_m: npt.ArrayLike, what: str = "points_m") -> npt.NDArray[np
     return np.ascontiguousarray(arr)
 
 
+def _one_point(point_m: npt.ArrayLike, what: str) -> tuple[float, float, float]:
+    """Coerces one world point (3,) in metres to a tuple."""
+    arr = as_points(point_m, what)
+    if len(arr) != 1:
+        raise ShapeError(f"{what} must be one point of shape (3,), got {np.shape(point_m)}")
+    return (float(arr[0, 0]), float(arr[0, 1]), float(arr[0, 2]))
+
+
 def _numeric_3d(array: npt.ArrayLike, what: str) -> np.ndarray:
     arr = np.asarray(array)
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
@@ -260,6 +268,15 @@ class Volume:
     def layer_at(self, points_m: npt.ArrayLike) -> npt.NDArray[np.uint8]:
         """Layer id at world points (m), nearest voxel; 0 outside the volume."""
         return self._vol.layer_at(as_points(points_m))
+
+    def layer_runs(
+        self, entry_m: npt.ArrayLike, target_m: npt.ArrayLike, step_m: float = 0.25e-3
+    ) -> list[tuple[int, float, float]]:
+        """The layers along the straight path entry → target (world points, m), sampled every
+        ``step_m`` (m) from the entry and merged into runs: (layer id, depth of the run's first
+        sample (m), depth of its last (m)). The server's session info reports the same runs."""
+        a, b = _one_point(entry_m, "entry_m"), _one_point(target_m, "target_m")
+        return self._vol.layer_runs(a, b, float(step_m))
 
     def hu_at(self, points_m: npt.ArrayLike, interp: Interp = "linear") -> npt.NDArray[np.float64]:
         """HU at world points (m); air (-1024) outside the volume."""
