@@ -86,6 +86,9 @@ def test_session_info_reports_the_planned_layers_along_its_path(engine, coarse_p
     assert {r["layer"] for r in air["path_layers"]} == {"outside"}
     assert planned_depth_from_info(air) is None
     assert planned_depth_from_info({"entry_m": far, "target_m": far}) is None  # a server without layers
+    # A path of a thousand kilometres through the bone is sampled only where the volume is.
+    long = engine.control("a", {"op": "set_path", "entry_m": list(path.entry_m), "target_m": [1e6, 0.0, 0.0]})
+    assert long["path_layers"][-1]["layer"] == "outside" and long["path_layers"][-1]["end_m"] > 9.9e5
 
 
 def test_xray_of_a_session_and_bad_timeouts(engine):

@@ -5,6 +5,7 @@ use parry3d::query::PointQuery;
 use parry3d::shape::Segment;
 
 use crate::error::{finite, SimError, SimResult};
+use crate::volume::grid::Grid;
 use crate::volume::layer::Layer;
 use crate::volume::Volume;
 
@@ -54,6 +55,13 @@ impl PlannedPath {
         }
         let ab = target_m - entry_m;
         let length_m = ab.norm();
+        if !length_m.is_finite() {
+            return Err(SimError::InvalidParameter {
+                name: "path length (m)",
+                value: length_m,
+                reason: "entry and target must be a finite distance apart",
+            });
+        }
         if length_m < 1e-4 {
             return Err(SimError::InvalidParameter {
                 name: "path length (m)",
@@ -118,17 +126,57 @@ impl PlannedPath {
             });
         }
         // As many samples as numpy's arange(0, L + step/2, step) gives, so Python agrees.
-        let n = ((self.length_m + step_m / 2.0) / step_m).ceil() as usize;
+        let n = ((self.length_m + step_m / 2.0) / step_m).ceil().max(1.0) as usize;
+        let last_m = (n - 1) as f64 * step_m;
         let mut runs: Vec<LayerRun> = Vec::new();
-        for i in 0..n {
-            let depth_m = i as f64 * step_m;
-            let layer = volume.layer_at(&(self.entry_m + self.direction * depth_m))?;
-            match runs.last_mut() {
-                Some(run) if run.layer == layer => run.end_m = depth_m,
-                _ => runs.push(LayerRun { layer, start_m: depth_m, end_m: depth_m }),
+        let mut add = |layer: Layer, from_m: f64, to_m: f64| match runs.last_mut() {
+            Some(run) if run.layer == layer => run.end_m = to_m,
+            _ => runs.push(LayerRun { layer, start_m: from_m, end_m: to_m }),
+        };
+        // Only samples near the grid are looked up, so a path of any length costs what the
+        // volume's size allows; the rest read outside.
+        let inside = self
+            .span_near(volume.grid(), last_m)
+            .map(|(lo, hi)| ((lo / step_m).ceil() as usize, ((hi / step_m).floor() as usize).min(n - 1)));
+        match inside {
+            Some((first, last)) if first <= last => {
+                if first > 0 {
+                    add(Layer::Outside, 0.0, (first - 1) as f64 * step_m);
+                }
+                for i in first..=last {
+                    let depth_m = i as f64 * step_m;
+                    add(volume.layer_at(&(self.entry_m + self.direction * depth_m))?, depth_m, depth_m);
+                }
+                if last + 1 < n {
+                    add(Layer::Outside, (last + 1) as f64 * step_m, last_m);
+                }
             }
+            _ => add(Layer::Outside, 0.0, last_m),
         }
         Ok(runs)
+    }
+
+    /// The depths (m, within `0..=max_depth_m`) between which the path passes within a voxel of
+    /// `grid`'s voxels (a slab test in index space), or `None` where it never does.
+    fn span_near(&self, grid: &Grid, max_depth_m: f64) -> Option<(f64, f64)> {
+        let a = grid.world_to_index(&self.entry_m);
+        let per_m = grid.world_to_index(&(self.entry_m + self.direction)) - a;
+        let dims = grid.dims();
+        let (mut lo, mut hi) = (0.0_f64, max_depth_m);
+        for k in 0..3 {
+            // Nearest-voxel lookups hit the grid for index coordinates in [-0.5, dims - 0.5).
+            let (min, max) = (-1.5, dims[k] as f64 + 0.5);
+            if per_m[k].abs() < 1e-12 {
+                if !(min..=max).contains(&a[k]) {
+                    return None;
+                }
+            } else {
+                let (t1, t2) = ((min - a[k]) / per_m[k], (max - a[k]) / per_m[k]);
+                lo = lo.max(t1.min(t2));
+                hi = hi.min(t1.max(t2));
+            }
+        }
+        (lo <= hi).then_some((lo, hi))
     }
 }
 
@@ -168,5 +216,47 @@ mod tests {
         assert!((runs[2].end_m - 13.5e-3).abs() < 0.06e-3, "{runs:?}");
         assert!(path.layer_runs(&vol, 0.0).is_err());
         assert!(path.layer_runs(&vol, f64::NAN).is_err());
+    }
+
+    /// Every sample looked up, the plain way the clipped sampling must agree with.
+    fn every_sample(path: &PlannedPath, vol: &Volume, step_m: f64) -> Vec<(Layer, f64, f64)> {
+        let n = ((path.length_m() + step_m / 2.0) / step_m).ceil() as usize;
+        let mut runs: Vec<(Layer, f64, f64)> = Vec::new();
+        for i in 0..n {
+            let d = i as f64 * step_m;
+            let layer = vol.layer_at(&(path.entry_m() + path.direction() * d)).unwrap();
+            match runs.last_mut() {
+                Some(r) if r.0 == layer => r.2 = d,
+                _ => runs.push((layer, d, d)),
+            }
+        }
+        runs
+    }
+
+    #[test]
+    fn layer_runs_look_up_only_near_the_grid_and_agree_with_every_sample() {
+        let vol = crate::volume::test_support::uniform_block(28, 0.5e-3, Layer::Cortical, 1500.0, 4);
+        let c = 7e-3;
+        // Oblique paths that start and end well outside the grid, one that misses it, one inside.
+        let cases = [
+            (Point3::new(-0.02, -0.01, c), Point3::new(0.03, 0.025, c + 0.004)),
+            (Point3::new(0.03, c, -0.02), Point3::new(-0.01, c + 0.001, 0.04)),
+            (Point3::new(-0.02, 0.05, c), Point3::new(0.03, 0.05, c)),
+            (Point3::new(3e-3, 4e-3, 5e-3), Point3::new(9e-3, 10e-3, 11e-3)),
+        ];
+        for (a, b) in cases {
+            let path = PlannedPath::new(a, b).unwrap();
+            for step in [0.1e-3, 0.25e-3, 0.7e-3] {
+                let got: Vec<(Layer, f64, f64)> =
+                    path.layer_runs(&vol, step).unwrap().iter().map(|r| (r.layer, r.start_m, r.end_m)).collect();
+                assert_eq!(got, every_sample(&path, &vol, step), "{a} -> {b} every {step} m");
+            }
+        }
+        // A path a thousand kilometres long costs what the grid's size allows, not 4e9 lookups.
+        let far = PlannedPath::new(Point3::new(-1e-3, c, c), Point3::new(1e6, c, c)).unwrap();
+        let runs = far.layer_runs(&vol, 0.25e-3).unwrap();
+        assert_eq!(runs.iter().map(|r| r.layer).collect::<Vec<_>>(), [Layer::Outside, Layer::Cortical, Layer::Outside]);
+        assert!(runs[2].end_m >= 1e6 - 0.25e-3);
+        assert!(PlannedPath::new(Point3::new(-1e300, 0.0, 0.0), Point3::new(1e300, 0.0, 0.0)).is_err());
     }
 }
