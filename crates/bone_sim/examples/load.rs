@@ -140,6 +140,12 @@ fn run(args: &Args) -> Result<(), String> {
     let (f_off, g_off) = (echo_offset(&FORCE), echo_offset(&GUIDANCE));
     let forces = Arc::new(AtomicU64::new(0));
     let guidance = Arc::new(AtomicU64::new(0));
+    let warmup_ticks = 2000u64;
+    let total = warmup_ticks + (args.seconds * 1000.0) as u64;
+    // Forces are counted by the pose they echo: those of the measured poses (seq warmup + 1 ..
+    // total), less the last one, whose session goes on ticking at 1 kHz without a newer pose. So
+    // forces per pose is the session's tick rate over its client's: 1 when locked.
+    let counted_seqs = (warmup_ticks + 1)..total;
     let mut clients = Vec::with_capacity(args.clients);
     for c in 0..args.clients {
         let zc = zenoh::Config::from_json5(&conf).map_err(|e| e.to_string())?;
@@ -167,14 +173,20 @@ fn run(args: &Args) -> Result<(), String> {
         let last_seq = AtomicU64::new(u64::MAX);
         let last_echo = AtomicU64::new(u64::MAX);
         let (l1, m1, n1) = (lat.clone(), measuring.clone(), forces.clone());
+        let counted = counted_seqs.clone();
         let fsub = session
             .declare_subscriber(format!("{base_key}/force"))
             .callback(move |s| {
                 let b = s.payload().to_bytes();
-                if m1.load(Ordering::Relaxed) == 1 && b.len() >= f_off + 8 {
-                    let echoed = u64::from_le_bytes(b[f_off..f_off + 8].try_into().unwrap());
-                    let seq = u64::from(u32::from_le_bytes(b[4..8].try_into().unwrap()));
+                if b.len() < f_off + 8 {
+                    return;
+                }
+                let seq = u64::from(u32::from_le_bytes(b[4..8].try_into().unwrap()));
+                if counted.contains(&seq) {
                     n1.fetch_add(1, Ordering::Relaxed);
+                }
+                if m1.load(Ordering::Relaxed) == 1 {
+                    let echoed = u64::from_le_bytes(b[f_off..f_off + 8].try_into().unwrap());
                     if echoed > 0 && last_seq.swap(seq, Ordering::Relaxed) != seq {
                         l1.lock().unwrap().force_ns.push(now_ns().saturating_sub(echoed));
                     }
@@ -200,8 +212,6 @@ fn run(args: &Args) -> Result<(), String> {
         clients.push(Client { session, key: base_key, publisher, entry, dir, orientation, _subs: vec![fsub, gsub] });
     }
     eprintln!("{} clients connected; streaming for 2 s of warm-up plus {} s", clients.len(), args.seconds);
-    let warmup_ticks = 2000u64;
-    let total = warmup_ticks + (args.seconds * 1000.0) as u64;
     let cpu0 = args.server_pid.and_then(cpu_ticks);
     let mut measured_from = Instant::now();
     let start = Instant::now();
@@ -242,12 +252,14 @@ fn run(args: &Args) -> Result<(), String> {
         (Some(a), Some(b)) => json!(((b - a) as f64 / clk) / (window_s + 2.3)),
         _ => Value::Null,
     };
-    let expected = (window_s * 1000.0) as u64 * clients.len() as u64;
+    let expected = (counted_seqs.end - counted_seqs.start) * clients.len() as u64;
+    let received = forces.load(Ordering::Relaxed);
     let report = json!({
         "clients": clients.len(),
         "seconds": window_s,
-        "forces_received": forces.load(Ordering::Relaxed),
+        "forces_received": received,
         "forces_expected": expected,
+        "forces_per_pose": received as f64 / expected as f64,
         "guidance_received": guidance.load(Ordering::Relaxed),
         "pose_to_force_ms": { "p50": quantile_ms(&mut l.force_ns, 0.5), "p99": quantile_ms(&mut l.force_ns, 0.99), "p999": quantile_ms(&mut l.force_ns, 0.999) },
         "pose_to_guidance_ms": { "p50": quantile_ms(&mut l.guidance_ns, 0.5), "p99": quantile_ms(&mut l.guidance_ns, 0.99) },
