@@ -4,6 +4,7 @@ engine and model worker), the test process is the client."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -98,6 +99,13 @@ def test_a_1khz_client_gets_its_forces_and_10hz_guidance(server):
     g = guidance[-1]
     assert np.linalg.norm(g["predicted_force_n"]) > 0.0
     assert g["model_latency_s"] > 0.0
+    # dhg-serve's status line gives the model's round trip and inference time, median and tail (ms).
+    proc = server[0]
+    pattern = r"model up p50/p99 ([\d.]+)/([\d.]+) ms .* inference p50/p99 ([\d.]+)/([\d.]+) ms"
+    _wait(lambda: any(re.search(pattern, line) for line in proc.lines), 3.0)
+    m = next(m for line in reversed(proc.lines) if (m := re.search(pattern, line)))
+    rt50, rt99, inf50, inf99 = (float(x) for x in m.groups())
+    assert 0 < rt50 <= rt99 and 0 < inf50 <= inf99 and inf50 <= rt99, m.group(0)
 
 
 def test_every_force_is_finite_and_within_the_device_limit(server):

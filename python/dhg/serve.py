@@ -366,7 +366,8 @@ class RunningServer:
             h = s["engine"]
             m = h["model"]
             model = (
-                f"model {'up' if m['available'] else 'DOWN'} p99 {m['latency_p99_s'] * 1e3:.1f} ms"
+                f"model {'up' if m['available'] else 'DOWN'} p50/p99 {m['latency_p50_s'] * 1e3:.1f}/"
+                f"{m['latency_p99_s'] * 1e3:.1f} ms"
                 if m["queries"]
                 else "model idle"
             )
@@ -380,7 +381,8 @@ class RunningServer:
             ms = s["model_service"]
             parts.append(
                 f"model service answered {ms['answered']} in {ms['batches']} batches, "
-                f"refused {ms['refused']}, inference p99 {ms['inference_p99_s'] * 1e3:.1f} ms"
+                f"refused {ms['refused']}, inference p50/p99 {ms['inference_p50_s'] * 1e3:.1f}/"
+                f"{ms['inference_p99_s'] * 1e3:.1f} ms"
             )
         return " || ".join(parts)
 
