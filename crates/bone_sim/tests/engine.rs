@@ -291,6 +291,34 @@ mod schedule {
     }
 
     #[test]
+    fn a_prediction_leaves_as_guidance_when_applied_not_at_the_next_tick() {
+        let (mut core, mut link, _, t0) = started();
+        drain(&mut link);
+        link.commands
+            .push(Command::Prediction {
+                slot: 0,
+                generation: 1,
+                window_seq: 1,
+                predicted_n: [0.0, 0.0, 0.2],
+                latency_s: 0.004,
+                pose_client_time_ns: 7,
+            })
+            .unwrap();
+        // Half a period before the slot is due (the tick thread woken by the reply): no tick, but
+        // the guidance message is out.
+        assert_eq!(core.tick_due(t0 + us(500)).0, 0);
+        assert_eq!(core.commands_applied(), 1);
+        let out = drain(&mut link);
+        assert!(
+            matches!(out.as_slice(), [Output::Guidance { msg, .. }] if msg.window_seq == 1 && msg.pose_client_time_ns == 7),
+            "{out:?}"
+        );
+        assert_eq!(core.tick_due(t0 + us(600)).0, 0);
+        assert_eq!(core.commands_applied(), 0);
+        assert!(drain(&mut link).is_empty());
+    }
+
+    #[test]
     fn without_poses_a_slot_ticks_once_per_period() {
         let (mut core, _link, _, t0) = started();
         assert_eq!(core.tick_due(t0 + us(999)).0, 0);

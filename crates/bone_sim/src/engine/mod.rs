@@ -168,6 +168,8 @@ pub struct TickCore {
     snapshot: triple_buffer::Input<Snapshot>,
     default_path: PlannedPath,
     stats: Arc<TickStats>,
+    /// Commands the last [`TickCore::tick_due`] applied.
+    applied: usize,
 }
 
 /// The comm side's ends of the handoff structures.
@@ -216,6 +218,7 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
         snapshot: snap_tx,
         default_path: config.default_path.clone(),
         stats: stats.clone(),
+        applied: 0,
     };
     let link = EngineLink { commands: commands_tx, outputs: outputs_rx, poses, snapshot: snap_rx, stats };
     Ok((core, link))
@@ -301,12 +304,21 @@ impl TickCore {
     }
 
     fn apply_commands(&mut self) {
+        self.applied = 0;
         for _ in 0..COMMANDS_PER_TICK {
             match self.commands.pop() {
                 Ok(cmd) => self.apply(cmd),
                 Err(_) => break,
             }
+            self.applied += 1;
         }
+    }
+
+    /// Commands the last [`tick_due`](Self::tick_due) (or [`tick`](Self::tick)) applied. A model
+    /// prediction emits its guidance message as it is applied, not at the slot's next tick.
+    #[must_use]
+    pub fn commands_applied(&self) -> usize {
+        self.applied
     }
 
     /// Applies waiting commands, then ticks every active slot that is due at `now` (see the
@@ -395,8 +407,9 @@ pub struct TickThread {
 
 impl TickThread {
     /// Starts ticking `core` (see the module docs for the schedule); `notify` is unparked after
-    /// every wake-up that ticked a slot (the comm thread, so outputs leave without polling delay).
-    /// Unpark [`thread`](Self::thread) after handing over a pose.
+    /// every wake-up that ticked a slot or applied a command (the comm thread, so outputs leave
+    /// without polling delay). Unpark [`thread`](Self::thread) after handing over a pose or a
+    /// command whose effect should not wait for the slot's next tick (a model prediction).
     ///
     /// # Errors
     /// The thread could not be spawned.
@@ -418,6 +431,8 @@ impl TickThread {
                     let (ticked, next) = core.tick_due(woke);
                     if ticked > 0 {
                         core.stats.busy.record(woke.elapsed().as_nanos() as u64);
+                    }
+                    if ticked > 0 || core.applied > 0 {
                         if let Some(t) = &notify {
                             t.unpark();
                         }

@@ -185,6 +185,11 @@ impl Comm {
             };
             if lock(&shared.registry).send(cmd).is_ok() {
                 shared.counters.model_replies.fetch_add(1, Ordering::Relaxed);
+                // The guidance message leaves as the prediction is applied: now, not at the
+                // session's next tick (up to 1 ms away, more for a paused client).
+                if let Some(t) = shared.tick_thread.get() {
+                    t.unpark();
+                }
             }
             let mut m = lock(&shared.model);
             m.last_reply = Some(Instant::now());

@@ -1,0 +1,86 @@
+"""Forward-pass time of the guidance model as the model service runs it (``GuidanceModel.predict``),
+back to back and with a pause before each call. With one trainee the service runs one window
+every 100 ms, and between calls other processes evict the model's weights from the CPU caches
+(3.2 MB for fusion-2x256). Prints one JSON line per case (ms).
+
+    python tests/benchmarks/bench_inference.py [--model PATH] [--dataset DIR] [--threads 1]
+        [--batches 1,16,64] [--gaps-ms 0,100] [--calls 200]
+
+Windows come from a dataset's records (``--dataset``, real value ranges) or else uniformly from
+the model's own scaling range.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+import torch
+
+from dhg.export import load_model
+from dhg.features import FEATURE_NAMES
+from dhg.models import default_model_path
+
+
+def windows_from(dataset: str | None, model, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n windows (n, window, 9) in SI units."""
+    w = model.window
+    if dataset:
+        import pyarrow.parquet as pq
+
+        t = pq.read_table(f"{dataset}/records.parquet", columns=list(FEATURE_NAMES))
+        x = np.stack([t[c].to_numpy().astype(np.float32) for c in FEATURE_NAMES], axis=1)
+        starts = rng.integers(0, len(x) - w, size=n)
+        return np.stack([x[s : s + w] for s in starts])
+    buffers = dict(model.module.named_buffers())
+    lo = np.zeros(len(FEATURE_NAMES), np.float32)
+    span = np.ones(len(FEATURE_NAMES), np.float32)
+    idx = buffers["in_idx"].numpy()
+    lo[idx], span[idx] = buffers["in_lo"].numpy(), buffers["in_span"].numpy()
+    return (lo + span * rng.random((n, w, len(FEATURE_NAMES)))).astype(np.float32)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", default=str(default_model_path()))
+    p.add_argument("--dataset", help="a dataset folder to draw windows from")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (dhg-serve's default on 2 cores: 1)")
+    p.add_argument("--batches", default="1,16,64")
+    p.add_argument("--gaps-ms", default="0,100", help="pause before each call (ms)")
+    p.add_argument("--calls", type=int, default=200)
+    p.add_argument("--device", default="cpu")
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    model = load_model(args.model, device=args.device)
+    rng = np.random.default_rng(0)
+    pool = windows_from(args.dataset, model, 4096, rng)
+    for _ in range(3):  # TorchScript's profiling executor optimises on the first calls
+        model.predict(pool[:1])
+    for gap_ms in (float(g) for g in args.gaps_ms.split(",")):
+        for batch in (int(b) for b in args.batches.split(",")):
+            times = []
+            for k in range(args.calls):
+                x = pool[(k * batch) % (len(pool) - batch) :][:batch]
+                if gap_ms:
+                    time.sleep(gap_ms * 1e-3)
+                t0 = time.perf_counter()
+                model.predict(x)
+                times.append(time.perf_counter() - t0)
+            t = np.array(times[5:]) * 1e3
+            row = {
+                "model": model.meta.get("preset"),
+                "device": model.device,
+                "threads": args.threads,
+                "windows": "dataset" if args.dataset else "uniform",
+                "batch": batch,
+                "gap_ms": gap_ms,
+                "p50_ms": round(float(np.percentile(t, 50)), 3),
+                "p99_ms": round(float(np.percentile(t, 99)), 3),
+            }
+            print(json.dumps(row), flush=True)
+
+
+if __name__ == "__main__":
+    main()
