@@ -4,10 +4,12 @@ every 100 ms, and between calls other processes evict the model's weights from t
 (3.2 MB for fusion-2x256). Prints one JSON line per case (ms).
 
     python tests/benchmarks/bench_inference.py [--model PATH] [--dataset DIR] [--threads 1]
-        [--batches 1,16,64] [--gaps-ms 0,100] [--calls 200]
+        [--batches 1,16,64] [--gaps-ms 0,100] [--calls 200] [--flush-denormal] [--int8]
 
 Windows come from a dataset's records (``--dataset``, real value ranges) or else uniformly from
-the model's own scaling range.
+the model's own scaling range. ``--flush-denormal`` flushes denormals to zero on the calling
+thread. ``--int8`` times an int8 dynamically quantised copy (LSTM and head) instead and prints how
+far its predictions move from the exported model's (N).
 """
 
 from __future__ import annotations
@@ -42,6 +44,21 @@ def windows_from(dataset: str | None, model, n: int, rng: np.random.Generator) -
     return (lo + span * rng.random((n, w, len(FEATURE_NAMES)))).astype(np.float32)
 
 
+def int8_copy(model):
+    """The exported model rebuilt in eager mode with int8 dynamic quantisation of the LSTM and head."""
+    import dataclasses
+
+    from dhg.model import ForcePredictor, LSTMRegressor, MinMaxScaler, ModelConfig
+
+    names = {f.name for f in dataclasses.fields(ModelConfig)}
+    raw = model.meta["model_config"]
+    cfg = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in raw.items() if k in names})
+    eager = ForcePredictor(LSTMRegressor(cfg), MinMaxScaler(), cfg)
+    eager.load_state_dict(model.module.state_dict())
+    eager.eval()
+    return torch.ao.quantization.quantize_dynamic(eager, {torch.nn.LSTM, torch.nn.Linear}, dtype=torch.qint8)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", default=str(default_model_path()))
@@ -51,13 +68,26 @@ def main() -> None:
     p.add_argument("--gaps-ms", default="0,100", help="pause before each call (ms)")
     p.add_argument("--calls", type=int, default=200)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--flush-denormal", action="store_true", help="flush denormals to zero (this thread)")
+    p.add_argument("--int8", action="store_true", help="time an int8 dynamically quantised copy instead")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
+    torch.set_flush_denormal(args.flush_denormal)
     model = load_model(args.model, device=args.device)
     rng = np.random.default_rng(0)
     pool = windows_from(args.dataset, model, 4096, rng)
+    predict = model.predict
+    if args.int8:
+        quantised = int8_copy(model)
+
+        def predict(x: np.ndarray) -> np.ndarray:
+            with torch.no_grad():
+                return quantised(torch.from_numpy(np.ascontiguousarray(x))).double().numpy()
+
+        d = np.abs(predict(pool) - model.predict(pool))
+        print(json.dumps({"int8_vs_fp32_rms_n": float(np.sqrt((d**2).mean())), "int8_vs_fp32_max_n": float(d.max())}))
     for _ in range(3):  # TorchScript's profiling executor optimises on the first calls
-        model.predict(pool[:1])
+        predict(pool[:1])
     for gap_ms in (float(g) for g in args.gaps_ms.split(",")):
         for batch in (int(b) for b in args.batches.split(",")):
             times = []
@@ -66,7 +96,7 @@ def main() -> None:
                 if gap_ms:
                     time.sleep(gap_ms * 1e-3)
                 t0 = time.perf_counter()
-                model.predict(x)
+                predict(x)
                 times.append(time.perf_counter() - t0)
             t = np.array(times[5:]) * 1e3
             row = {
@@ -74,6 +104,8 @@ def main() -> None:
                 "device": model.device,
                 "threads": args.threads,
                 "windows": "dataset" if args.dataset else "uniform",
+                "int8": args.int8,
+                "flush_denormal": args.flush_denormal,
                 "batch": batch,
                 "gap_ms": gap_ms,
                 "p50_ms": round(float(np.percentile(t, 50)), 3),

@@ -46,6 +46,11 @@ fn send(link: &mut EngineLink, slot: usize, generation: u32, seq: u32, z: f64) {
     link.poses[slot].write(PoseSample { pose: Some(pose_at(z)), seq, client_time_ns: u64::from(seq) * 10, generation });
 }
 
+/// A model reply for slot 0, generation 1, that took 4 ms.
+fn prediction(window_seq: u32, predicted_n: [f64; 3], pose_client_time_ns: u64) -> Command {
+    Command::Prediction { slot: 0, generation: 1, window_seq, predicted_n, latency_s: 0.004, pose_client_time_ns }
+}
+
 fn drain(link: &mut EngineLink) -> Vec<Output> {
     let mut out = Vec::new();
     while let Ok(o) = link.outputs.pop() {
@@ -109,16 +114,7 @@ fn guidance_is_prediction_minus_feedback_scaled_clamped_and_mixed_in() {
     let feedback = core.session(0).unwrap().state().force_n;
     // The model says the expert felt 0.3 N less push-back along z than the trainee does now.
     let predicted = [feedback.x, feedback.y, feedback.z + 0.3];
-    link.commands
-        .push(Command::Prediction {
-            slot: 0,
-            generation: 1,
-            window_seq: 1,
-            predicted_n: predicted,
-            latency_s: 0.004,
-            pose_client_time_ns: 5,
-        })
-        .unwrap();
+    link.commands.push(prediction(1, predicted, 5)).unwrap();
     let out = press_hold(&mut core, &mut link, surface + 1e-3, 100);
     let g = out.iter().find_map(|o| if let Output::Guidance { msg, .. } = o { Some(*msg) } else { None }).unwrap();
     assert!((g.guidance_n.z - 0.3).abs() < 1e-6, "{g:?}");
@@ -133,16 +129,7 @@ fn guidance_is_prediction_minus_feedback_scaled_clamped_and_mixed_in() {
     assert!((last.force_n - (fb + last.guidance_n)).norm() < 0.05, "{last:?} vs {fb:?}");
 
     // A wild prediction is clamped to the 0.88 N guidance limit.
-    link.commands
-        .push(Command::Prediction {
-            slot: 0,
-            generation: 1,
-            window_seq: 2,
-            predicted_n: [50.0, 0.0, 0.0],
-            latency_s: 0.004,
-            pose_client_time_ns: 6,
-        })
-        .unwrap();
+    link.commands.push(prediction(2, [50.0, 0.0, 0.0], 6)).unwrap();
     let f = forces(&press_hold(&mut core, &mut link, surface + 1e-3, 300));
     assert!(f.iter().all(|m| m.guidance_n.norm() <= 0.88 + 1e-9));
     assert!(f.last().unwrap().guidance_n.norm() > 0.87);
@@ -164,16 +151,7 @@ fn without_replies_guidance_fades_out_and_the_model_is_reported_unavailable() {
     activate(&mut link, 0, 1, 1.0);
     press(&mut core, &mut link, surface, 1e-3, 100);
     let fb = core.session(0).unwrap().state().force_n;
-    link.commands
-        .push(Command::Prediction {
-            slot: 0,
-            generation: 1,
-            window_seq: 1,
-            predicted_n: [fb.x + 0.5, fb.y, fb.z],
-            latency_s: 0.004,
-            pose_client_time_ns: 1,
-        })
-        .unwrap();
+    link.commands.push(prediction(1, [fb.x + 0.5, fb.y, fb.z], 1)).unwrap();
     let f = forces(&press_hold(&mut core, &mut link, surface + 1e-3, 1000));
     // Live for the 0.35 s timeout, then faded at 8 N/s: gone well before 1 s.
     assert!(f[200].flags & flags::MODEL_AVAILABLE != 0 && f[200].guidance_n.x > 0.4);
@@ -189,16 +167,7 @@ fn gain_zero_publishes_guidance_but_renders_none() {
     let (mut core, mut link, surface) = engine(1);
     activate(&mut link, 0, 1, 0.0);
     press(&mut core, &mut link, surface, 1e-3, 100);
-    link.commands
-        .push(Command::Prediction {
-            slot: 0,
-            generation: 1,
-            window_seq: 1,
-            predicted_n: [0.5, 0.0, 0.0],
-            latency_s: 0.004,
-            pose_client_time_ns: 1,
-        })
-        .unwrap();
+    link.commands.push(prediction(1, [0.5, 0.0, 0.0], 1)).unwrap();
     let out = press_hold(&mut core, &mut link, surface + 1e-3, 100);
     let g = out.iter().find_map(|o| if let Output::Guidance { msg, .. } = o { Some(*msg) } else { None }).unwrap();
     assert!(g.guidance_n.norm() > 0.1 && g.gain == 0.0);
@@ -294,16 +263,7 @@ mod schedule {
     fn a_prediction_leaves_as_guidance_when_applied_not_at_the_next_tick() {
         let (mut core, mut link, _, t0) = started();
         drain(&mut link);
-        link.commands
-            .push(Command::Prediction {
-                slot: 0,
-                generation: 1,
-                window_seq: 1,
-                predicted_n: [0.0, 0.0, 0.2],
-                latency_s: 0.004,
-                pose_client_time_ns: 7,
-            })
-            .unwrap();
+        link.commands.push(prediction(1, [0.0, 0.0, 0.2], 7)).unwrap();
         // Half a period before the slot is due (the tick thread woken by the reply): no tick, but
         // the guidance message is out.
         assert_eq!(core.tick_due(t0 + us(500)).0, 0);
