@@ -397,6 +397,31 @@ mod schedule {
     }
 
     #[test]
+    fn a_spinning_thread_that_looks_every_5_us_ticks_the_jittery_client_at_1_khz_too() {
+        // The same client, but the thread calls `tick_due` every 5 µs (`WaitMode::Spin`) instead
+        // of only when asked: a pose deferred at its arrival must stay deferred.
+        let (mut core, mut link, surface, t0) = started();
+        let arrivals = jittery_arrivals_us(10_000);
+        let (mut ticks, mut at_once, mut k) = (1u64, 0usize, 0usize);
+        let mut now = t0 + us(5);
+        while now <= t0 + us(10_000_000) {
+            let mut arrived = false;
+            while k < arrivals.len() && t0 + us(arrivals[k]) <= now {
+                send(&mut link, 0, 1, k as u32 + 1, surface - 1e-3);
+                (k, arrived) = (k + 1, true);
+            }
+            let n = core.tick_due(now).0;
+            ticks += u64::from(n);
+            at_once += usize::from(arrived && n > 0);
+            drain(&mut link);
+            now += us(5);
+        }
+        eprintln!("{ticks} ticks in 10 000 periods; {at_once} of 10 000 poses ticked within 5 µs");
+        assert!((9_990..=10_002).contains(&ticks), "{ticks} ticks in 10 000 periods: the session's clock drifted");
+        assert!(at_once >= 9_000, "only {at_once} of 10 000 poses ticked on arrival");
+    }
+
+    #[test]
     fn a_whole_period_late_counts_missed_ticks_and_buys_no_burst() {
         let (mut core, link, _, t0) = started();
         assert_eq!(core.tick_due(t0 + us(3500)).0, 1); // due at 1 ms: 2.5 periods late

@@ -14,8 +14,9 @@
 //! Without a fresh pose the slot ticks when a period is due; a streaming client's slot first
 //! waits [`GRACE_PERIODS`] past one period since its last tick for the late pose. A silent client
 //! still gets 1 kHz. After a stall, a client's delayed poses arrive in a burst, out of phase: a
-//! pose that would wait more than [`MAX_POSE_WAIT_PERIODS`] for the budget waits for the schedule
-//! instead, and the client's next pose, back in phase, ticks at once. So a jittery client gets
+//! pose that would wait more than [`MAX_POSE_WAIT_PERIODS`] for the budget (judged when the
+//! thread first sees it) waits for the schedule instead, and the client's next pose, back in
+//! phase, ticks at once. So a jittery client gets
 //! 1 kHz on average, not up to [`LOCK_RATE`]. A tick a whole period or
 //! more late skips the missed periods and counts them, and the budget banks at most
 //! `1 + GRACE_PERIODS` periods, so a stall never buys a burst. The pose subscriber unparks the
@@ -163,6 +164,8 @@ pub struct TickCore {
     clock: Vec<Option<SlotClock>>,
     /// Per slot: whether its last tick used a fresh pose (it may wait [`GRACE`] for the next).
     streaming: Vec<bool>,
+    /// Per slot: when the waiting pose was first seen (its arrival, as near as the thread knows).
+    seen: Vec<Instant>,
     commands: rtrb::Consumer<Command>,
     outputs: rtrb::Producer<Output>,
     snapshot: triple_buffer::Input<Snapshot>,
@@ -212,6 +215,7 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
     let core = TickCore {
         clock: vec![None; slots.len()],
         streaming: vec![false; slots.len()],
+        seen: vec![Instant::now(); slots.len()],
         slots,
         commands: commands_rx,
         outputs: outputs_tx,
@@ -340,6 +344,9 @@ impl TickCore {
             let elapsed = now.saturating_duration_since(clock.last).as_secs_f64() / period_s;
             // Periods owed since the last tick (uncapped: 2 or more means whole periods missed).
             let owed = clock.tokens + elapsed;
+            if s.poll_pose() {
+                self.seen[i] = now;
+            }
             let fresh = s.pose_pending();
             let timer = timer_until(self.streaming[i], clock.tokens, elapsed);
             // A fresh pose counts time slightly fast, so the slot's phase drifts onto the pose's.
@@ -348,8 +355,11 @@ impl TickCore {
                 let short = (1.0 - EARLY_PERIODS - have) / LOCK_RATE;
                 // Waiting longer means the slot is out of phase with its client (its poses came in a
                 // burst after a stall): this pose waits for the schedule, and the client's next pose,
-                // in phase, ticks the moment it arrives.
-                if short <= MAX_POSE_WAIT_PERIODS {
+                // in phase, ticks the moment it arrives. Judged as of the pose's arrival (`short`
+                // then was `short + waited`), so how often the thread looks changes nothing: a
+                // spinning thread would otherwise tick every deferred pose once `short` shrank.
+                let waited = now.saturating_duration_since(self.seen[i]).as_secs_f64() / period_s;
+                if short + waited <= MAX_POSE_WAIT_PERIODS {
                     short
                 } else {
                     timer

@@ -21,6 +21,8 @@ pub(crate) struct Slot {
     guidance: GuidanceMixer,
     output: ForceLimiter,
     poses: triple_buffer::Output<PoseSample>,
+    /// Whether the pose in `poses`' output buffer is newer than the last one ticked.
+    fresh: bool,
     pose_seq: u32,
     pose_time_ns: u64,
     record_seq: u32,
@@ -65,6 +67,7 @@ impl Slot {
             guidance: GuidanceMixer::new(guidance, 0.0),
             output,
             poses,
+            fresh: false,
             pose_seq: 0,
             pose_time_ns: 0,
             record_seq: 0,
@@ -73,9 +76,17 @@ impl Slot {
         })
     }
 
-    /// Whether a pose newer than the last one used is waiting.
+    /// Takes in the newest pose if one came since the last call; returns whether one did.
+    pub(crate) fn poll_pose(&mut self) -> bool {
+        let newer = self.poses.update();
+        self.fresh |= newer;
+        newer
+    }
+
+    /// Whether a pose newer than the last one ticked is waiting (as of the last
+    /// [`poll_pose`](Self::poll_pose)).
     pub(crate) fn pose_pending(&self) -> bool {
-        self.poses.updated()
+        self.fresh
     }
 
     /// Starts a fresh session: undrilled bone, new state, no guidance.
@@ -135,7 +146,8 @@ impl Slot {
     /// One 1 ms tick: newest pose in, force (and every 100th tick the state) out.
     pub(crate) fn tick(&mut self, idx: u16, mut emit: impl FnMut(Output)) {
         let mut fresh = None;
-        if self.poses.update() {
+        self.poll_pose();
+        if std::mem::take(&mut self.fresh) {
             let s = *self.poses.peek_output_buffer();
             if s.generation == self.generation {
                 if let Some(p) = s.pose {
