@@ -31,6 +31,27 @@ def test_unknown_server_settings_are_refused_with_the_allowed_keys(coarse_phanto
         _bone_sim.Server(coarse_phantom.volume._vol, list(p.entry_m), list(p.target_m), conf, server={"idle": 1.0})
     with pytest.raises(InvalidInputError, match="max_sessions"):
         _bone_sim.Server(coarse_phantom.volume._vol, list(p.entry_m), list(p.target_m), conf, max_sessions=0)
+    with pytest.raises(InvalidInputError, match="wait.*'sleep', 'spin'"):
+        _bone_sim.Server(coarse_phantom.volume._vol, list(p.entry_m), list(p.target_m), conf, wait="poll")
+
+
+def test_a_spinning_engine_ticks_its_sessions_says_so_and_stops(coarse_phantom):
+    import time
+
+    conf = serve.zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
+    srv = serve.start_engine(coarse_phantom.volume, coarse_phantom.path, conf, serve.ServerSettings(wait="spin"))
+    try:
+        srv.control("a", {"op": "create"})
+        t0 = time.monotonic()
+        while srv.health(window_s=1.0)["ticks"] < 50:
+            assert time.monotonic() - t0 < 10, "a spinning engine did not tick"
+            time.sleep(0.01)
+        h = srv.health()
+        assert h["tick_wait"] == "spin"
+        assert h["ticks"] <= (time.monotonic() - t0) * 1000 + 100, "spinning ticked faster than 1 kHz"
+    finally:
+        srv.stop()
+    assert not srv.running
 
 
 def test_sessions_are_limited_and_controlled(engine):

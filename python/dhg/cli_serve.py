@@ -128,6 +128,16 @@ def serve_parser() -> argparse.ArgumentParser:
         metavar="G",
         help="guidance gain of new sessions, 0..4; 0 = computed and published but not felt (default 1)",
     )
+    p.add_argument(
+        "--wait",
+        choices=("sleep", "spin"),
+        default=d.wait,
+        help="how the 1 kHz tick thread and the force publisher wait between events. 'sleep' (default) "
+        "leaves idle cores idle; each force then pays the host's wake-up latency (tens of µs on bare "
+        "metal with real-time scheduling, up to milliseconds on a virtual machine). 'spin' busy-waits "
+        "instead, keeping two cores at 100 %%: use it on a machine with cores to spare that cannot "
+        "give the tick thread SCHED_FIFO, never on a 2-core machine",
+    )
     p.add_argument("--status-every", type=float, default=5.0, metavar="S", help="status line period (default 5 s)")
     return p
 
@@ -154,6 +164,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         idle_timeout_s=args.idle_timeout,
         model_timeout_s=args.model_timeout,
         guidance_gain=args.guidance_gain,
+        wait=args.wait,
     )
     options = serve.ServeOptions(
         role=args.role,

@@ -68,6 +68,10 @@ class ServerSettings:
     """Fastest change of the guidance share (N/s): a lost model fades out over ~0.1 s."""
     guidance_timeout_s: float = 0.35
     """A model answer older than this is dropped and guidance fades out (s)."""
+    wait: str = "sleep"
+    """How the 1 kHz tick thread and the force publisher wait: ``"sleep"`` (idle cores stay idle),
+    or ``"spin"`` (each keeps a core at 100 %, so no wake-up latency is added to a force; for hosts
+    with cores to spare and no real-time scheduling)."""
 
     def native(self) -> dict[str, float]:
         """The flat dict ``dhg._bone_sim.Server`` takes."""
@@ -302,6 +306,7 @@ def start_engine(
         max_sessions=s.max_sessions,
         server=s.native(),
         session=flat,
+        wait=s.wait,
     )
 
 
@@ -372,7 +377,8 @@ class RunningServer:
                 else "model idle"
             )
             parts.append(
-                f"sessions {h['sessions']}/{h['max_sessions']} | tick{' (rt)' if h['tick_realtime'] else ''} "
+                f"sessions {h['sessions']}/{h['max_sessions']} | tick{' (rt)' if h['tick_realtime'] else ''}"
+                f"{' (spin)' if h['tick_wait'] == 'spin' else ''} "
                 f"p99 {h['tick_lateness_p99_s'] * 1e6:.0f} µs "
                 f"late, busy p99 {h['tick_busy_p99_s'] * 1e6:.0f} µs | missed {h['missed_ticks']} "
                 f"(total {h['missed_ticks_total']}) | {model} | poses {h['poses']}"

@@ -3,7 +3,7 @@ and the Rust load tool (``crates/bone_sim/examples/load.rs``) streaming 1 kHz po
 many trainees. Prints one JSON line per run (latencies in ms, server CPU in cores).
 
     cargo build --release -p bone_sim --example load
-    python tests/benchmarks/bench_server.py --seconds 60 --clients 1,16,64 [--load PATH]
+    python tests/benchmarks/bench_server.py --seconds 60 --clients 1,16,64 [--load PATH] [--wait spin]
 """
 
 from __future__ import annotations
@@ -24,10 +24,15 @@ def main() -> None:
     p.add_argument("--clients", default="1,16,64")
     p.add_argument("--load", default=str(target / "release/examples/load"), help="the load tool binary")
     p.add_argument("--out", help="also append the JSON lines to this file")
+    p.add_argument("--wait", default="sleep", choices=("sleep", "spin"), help="dhg-serve --wait (default sleep)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="dhg-serve --device (default auto)")
     args = p.parse_args()
     for n in (int(c) for c in args.clients.split(",")):
         endpoint = f"tcp/127.0.0.1:{free_port()}"
-        serve_args = ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30"]
+        serve_args = ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30",
+                      "--wait", args.wait]  # fmt: skip
+        if args.device:
+            serve_args += ["--device", args.device]
         server = ServerProcess(serve_args, echo=False)
         try:
             r = subprocess.run(
@@ -39,7 +44,9 @@ def main() -> None:
             server.stop()
         if r.returncode != 0:
             raise SystemExit(f"load tool failed ({r.returncode}): {r.stderr}")
-        line = json.dumps({"cpus": os.cpu_count(), **json.loads(r.stdout)})
+        line = json.dumps(
+            {"cpus": os.cpu_count(), "wait": args.wait, "device": args.device or "auto", **json.loads(r.stdout)}
+        )
         print(line, flush=True)
         if args.out:
             with open(args.out, "a") as fh:

@@ -265,7 +265,13 @@ fn run(args: &Args) -> Result<(), String> {
         "pose_to_guidance_ms": { "p50": quantile_ms(&mut l.guidance_ns, 0.5), "p99": quantile_ms(&mut l.guidance_ns, 0.99) },
         "tick_lateness_ms": { "p99": health["tick_lateness_p99_s"].as_f64().unwrap_or(f64::NAN) * 1e3, "p999": health["tick_lateness_p999_s"].as_f64().unwrap_or(f64::NAN) * 1e3 },
         "missed_ticks": health["missed_ticks"],
+        // Ticks per session per second of the server's window: above 1000 means sessions ran
+        // fast (simulated time ahead of the wall clock), below it that ticks were missed.
+        "session_tick_hz": health["ticks"].as_f64().unwrap_or(f64::NAN)
+            / health["window_s"].as_f64().unwrap_or(f64::NAN)
+            / clients.len() as f64,
         "tick_realtime": health["tick_realtime"],
+        "tick_wait": health["tick_wait"],
         "server_cpu_cores": cpu,
         "client_late_sends": late_sends,
     });

@@ -8,7 +8,7 @@ mod common;
 use std::sync::atomic::Ordering;
 
 use bone_sim::engine::handoff::{Command, Output, PoseSample};
-use bone_sim::engine::{build, EngineConfig, EngineLink, TickCore, TickThread};
+use bone_sim::engine::{build, EngineConfig, EngineLink, TickCore, TickThread, WaitMode};
 use bone_sim::protocol::flags;
 use bone_sim::{Layer, PlannedPath, Pose};
 use common::{slab, H};
@@ -224,11 +224,35 @@ fn poses_and_predictions_of_an_earlier_owner_of_the_slot_are_ignored() {
 fn the_tick_thread_ticks_and_stops() {
     let (core, mut link, _) = engine(1);
     activate(&mut link, 0, 1, 1.0);
-    let mut t = TickThread::spawn(core, None).unwrap();
+    let mut t = TickThread::spawn(core, None, WaitMode::Sleep).unwrap();
     while link.stats.ticks.load(Ordering::Relaxed) < 20 {
         std::thread::yield_now();
     }
     t.stop();
+    let n = link.stats.ticks.load(Ordering::Relaxed);
+    std::thread::sleep(std::time::Duration::from_millis(5));
+    assert_eq!(link.stats.ticks.load(Ordering::Relaxed), n, "ticked after stop()");
+}
+
+#[test]
+fn a_spinning_tick_thread_uses_a_pose_nobody_woke_it_for_ticks_at_most_1_khz_and_stops() {
+    let (core, mut link, surface) = engine(1);
+    activate(&mut link, 0, 1, 1.0);
+    let t0 = std::time::Instant::now();
+    let mut t = TickThread::spawn(core, None, WaitMode::Spin).unwrap();
+    // Handed over without an unpark: only a thread that keeps looking finds it.
+    send(&mut link, 0, 1, 7, surface - 1e-3);
+    let mut echoed = false;
+    while !echoed {
+        assert!(t0.elapsed().as_secs() < 5, "the pose was never used");
+        echoed = drain(&mut link).iter().any(|o| matches!(o, Output::Force { msg, .. } if msg.pose_seq == 7));
+    }
+    std::thread::sleep(std::time::Duration::from_millis(50));
+    t.stop();
+    let elapsed_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let ticks = link.stats.ticks.load(Ordering::Relaxed) as f64;
+    // Spinning must not tick faster: the budget allows one tick per 1 ms plus the bank (1.3).
+    assert!(ticks >= 1.0 && ticks <= elapsed_ms + 2.0, "{ticks} ticks in {elapsed_ms:.1} ms");
     let n = link.stats.ticks.load(Ordering::Relaxed);
     std::thread::sleep(std::time::Duration::from_millis(5));
     assert_eq!(link.stats.ticks.load(Ordering::Relaxed), n, "ticked after stop()");

@@ -95,6 +95,42 @@ struct SlotClock {
     tokens: f64,
 }
 
+/// How the tick and comm threads wait for their next event.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum WaitMode {
+    /// Sleep until the next deadline or wake-up: idle cores stay idle (the default).
+    #[default]
+    Sleep,
+    /// Busy-wait: the tick and comm threads each keep a core at 100 %, so that no wake-up
+    /// latency (0.05 to several ms on a virtual machine without real-time scheduling) is added to
+    /// a force. For hosts with cores to spare; on a 2-core machine it starves everything else.
+    /// The tick thread then keeps normal scheduling (see [`TickThread::spawn`]).
+    Spin,
+}
+
+impl WaitMode {
+    /// The mode's name in settings and health reports: `"sleep"` or `"spin"`.
+    #[must_use]
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Sleep => "sleep",
+            Self::Spin => "spin",
+        }
+    }
+
+    /// The mode named `name` (`"sleep"` or `"spin"`).
+    ///
+    /// # Errors
+    /// Any other name.
+    pub fn from_name(name: &str) -> SimResult<Self> {
+        match name {
+            "sleep" => Ok(Self::Sleep),
+            "spin" => Ok(Self::Spin),
+            _ => Err(SimError::InvalidOption { name: "wait", value: name.to_owned(), allowed: "'sleep', 'spin'" }),
+        }
+    }
+}
+
 /// Engine settings.
 #[derive(Debug, Clone)]
 pub struct EngineConfig {
@@ -110,6 +146,8 @@ pub struct EngineConfig {
     pub default_gain: f64,
     /// Drilled bricks each session may hold before a tick would allocate.
     pub reserve_bricks: usize,
+    /// How the tick and comm threads wait.
+    pub wait: WaitMode,
 }
 
 impl EngineConfig {
@@ -123,6 +161,7 @@ impl EngineConfig {
             guidance: GuidanceParams::default(),
             default_gain: 1.0,
             reserve_bricks: 1024,
+            wait: WaitMode::Sleep,
         }
     }
 
@@ -387,7 +426,10 @@ impl TickCore {
             next = next.min(now + ceil_us(timer_until(fresh, clock.tokens, 0.0) * period_s));
         }
         self.stats.sessions.store(active, Ordering::Relaxed);
-        self.stats.ticks.fetch_add(u64::from(ticked), Ordering::Relaxed);
+        if ticked > 0 {
+            // Skipped when idle: a spinning tick thread calls this every few hundred ns.
+            self.stats.ticks.fetch_add(u64::from(ticked), Ordering::Relaxed);
+        }
         (ticked, next)
     }
 
@@ -419,23 +461,33 @@ impl TickThread {
     /// Starts ticking `core` (see the module docs for the schedule); `notify` is unparked after
     /// every wake-up that ticked a slot or applied a command (the comm thread, so outputs leave
     /// without polling delay). Unpark [`thread`](Self::thread) after handing over a pose or a
-    /// command whose effect should not wait for the slot's next tick (a model prediction).
+    /// command whose effect should not wait for the slot's next tick (a model prediction). With
+    /// [`WaitMode::Spin`] the thread never sleeps: it checks for due slots, fresh poses and
+    /// commands continuously.
     ///
     /// # Errors
     /// The thread could not be spawned.
-    pub fn spawn(mut core: TickCore, notify: Option<Thread>) -> SimResult<Self> {
+    pub fn spawn(mut core: TickCore, notify: Option<Thread>, wait: WaitMode) -> SimResult<Self> {
         let stop = Arc::new(AtomicBool::new(false));
         let flag = stop.clone();
         let handle = thread::Builder::new()
             .name("dhg-tick".into())
             .spawn(move || {
-                core.stats.realtime.store(u64::from(realtime::promote()), Ordering::Relaxed);
+                // Never both: the kernel's real-time throttling (sched_rt_runtime_us, 95 % by
+                // default) would stop a spinning SCHED_FIFO thread for 50 ms every second.
+                let rt = wait == WaitMode::Sleep && realtime::promote();
+                core.stats.realtime.store(u64::from(rt), Ordering::Relaxed);
                 let mut wake = Instant::now();
                 while !flag.load(Ordering::Relaxed) {
                     let now = Instant::now();
                     if now < wake {
-                        // Woken early by the pose subscriber (or spuriously: the loop checks).
-                        thread::park_timeout(wake - now);
+                        match wait {
+                            // Woken early by the pose subscriber (or spuriously: the loop checks).
+                            WaitMode::Sleep => thread::park_timeout(wake - now),
+                            // `tick_due` is cheap when nothing is due (a few ns per slot) and
+                            // sees a fresh pose or command the moment it lands.
+                            WaitMode::Spin => std::hint::spin_loop(),
+                        }
                     }
                     let woke = Instant::now();
                     let (ticked, next) = core.tick_due(woke);

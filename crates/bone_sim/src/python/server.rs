@@ -11,7 +11,7 @@ use super::errors::IntoPyResult;
 use super::session::{config_from_dict, set_flat_fields};
 use super::volume::{xray_tuple, PyVolume, Views};
 use crate::engine::guidance::GuidanceParams;
-use crate::engine::EngineConfig;
+use crate::engine::{EngineConfig, WaitMode};
 use crate::error::SimError;
 use crate::path::PlannedPath;
 use crate::protocol::LAYOUTS;
@@ -54,9 +54,10 @@ fn json_to_py(py: Python<'_>, v: &serde_json::Value) -> PyResult<Py<PyAny>> {
 impl PyServer {
     /// Starts the engine on `volume` with the default path `entry_m` → `target_m` (m) and opens
     /// its Zenoh session from `zenoh_json5`. `server` is a flat dict of the keys of
-    /// `dhg.serve.ServerSettings`; `session` a flat `dhg.SessionConfig` dict.
+    /// `dhg.serve.ServerSettings`; `session` a flat `dhg.SessionConfig` dict. `wait` is how the
+    /// tick and publisher threads wait: `"sleep"`, or `"spin"` (two cores busy, no wake-up latency).
     #[new]
-    #[pyo3(signature = (volume, entry_m, target_m, zenoh_json5, prefix="dhg", max_sessions=16, server=None, session=None))]
+    #[pyo3(signature = (volume, entry_m, target_m, zenoh_json5, prefix="dhg", max_sessions=16, server=None, session=None, wait="sleep"))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -68,10 +69,12 @@ impl PyServer {
         max_sessions: usize,
         server: Option<&Bound<'_, PyDict>>,
         session: Option<&Bound<'_, PyDict>>,
+        wait: &str,
     ) -> PyResult<Self> {
         let path = PlannedPath::new(entry_m.into(), target_m.into()).py()?;
         let mut engine = EngineConfig::new(path);
         engine.max_sessions = max_sessions;
+        engine.wait = WaitMode::from_name(wait).py()?;
         engine.session = config_from_dict(session)?;
         let mut cfg =
             ServerConfig { prefix: prefix.to_owned(), idle_timeout_s: 5.0, model_timeout_s: 0.25, zenoh_json5 };

@@ -1,5 +1,6 @@
 //! The comm thread: drains the tick thread's outputs, publishes them, keeps each session's window
-//! of records and sends the model queries. It sleeps until the tick thread unparks it.
+//! of records and sends the model queries. It sleeps until the tick thread unparks it, or spins
+//! ([`WaitMode::Spin`]).
 
 use std::collections::VecDeque;
 use std::sync::atomic::Ordering;
@@ -15,6 +16,7 @@ use zenoh::Wait;
 use super::{lock, Shared};
 use crate::engine::handoff::{Command, Output};
 use crate::engine::stats::HistogramSnapshot;
+use crate::engine::WaitMode;
 use crate::error::{SimError, SimResult};
 use crate::protocol::{self, WINDOW_RECORDS};
 use crate::record::FEATURE_COUNT;
@@ -219,10 +221,14 @@ impl Comm {
         lock(&self.shared.registry).sweep_idle(idle);
     }
 
-    fn run(&mut self, mut outputs: rtrb::Consumer<Output>) {
+    fn run(&mut self, mut outputs: rtrb::Consumer<Output>, wait: WaitMode) {
         let mut next_housekeeping = Instant::now();
         while !self.shared.stopping.load(Ordering::Acquire) {
-            thread::park_timeout(Duration::from_millis(5));
+            match wait {
+                // The tick thread unparks this thread after each wake-up that produced output.
+                WaitMode::Sleep => thread::park_timeout(Duration::from_millis(5)),
+                WaitMode::Spin => std::hint::spin_loop(),
+            }
             while let Ok(out) = outputs.pop() {
                 self.handle(out);
             }
@@ -240,6 +246,7 @@ pub(crate) fn spawn(
     session: zenoh::Session,
     shared: Arc<Shared>,
     outputs: rtrb::Consumer<Output>,
+    wait: WaitMode,
 ) -> SimResult<JoinHandle<()>> {
     let querier = session
         .declare_querier(format!("{}/model/predict", shared.prefix))
@@ -252,6 +259,6 @@ pub(crate) fn spawn(
     let mut comm = Comm { session, shared, outlets: (0..slots).map(|_| None).collect(), querier };
     thread::Builder::new()
         .name("dhg-comm".into())
-        .spawn(move || comm.run(outputs))
+        .spawn(move || comm.run(outputs, wait))
         .map_err(|e| SimError::Engine(format!("cannot start the comm thread: {e}")))
 }

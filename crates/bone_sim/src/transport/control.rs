@@ -295,6 +295,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
         "tick_lateness_max_s": n(&shared.stats.max_lateness_ns) as f64 * 1e-9,
         "dropped_outputs": n(&shared.stats.dropped_outputs),
         "tick_realtime": n(&shared.stats.realtime) == 1,
+        "tick_wait": shared.wait.name(),
         "poses": n(&c.poses),
         "refused": {
             "wrong_size": n(&c.wrong_size),

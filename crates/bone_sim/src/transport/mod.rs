@@ -25,7 +25,7 @@ use zenoh::Wait;
 
 use crate::engine::handoff::Command;
 use crate::engine::stats::TickStats;
-use crate::engine::{self, EngineConfig, Snapshot, TickThread};
+use crate::engine::{self, EngineConfig, Snapshot, TickThread, WaitMode};
 use crate::error::{SimError, SimResult};
 use crate::volume::drilled::DrilledVolume;
 use crate::volume::Volume;
@@ -116,6 +116,8 @@ pub struct Shared {
     /// The tick thread, unparked by the pose subscriber after it hands over a pose.
     pub(crate) tick_thread: std::sync::OnceLock<std::thread::Thread>,
     pub(crate) config: ServerConfig,
+    /// How the tick and comm threads wait (for the health report).
+    pub(crate) wait: WaitMode,
     pub(crate) started: Instant,
     /// The pristine bone, for the planned layers a session's info reports.
     pub(crate) volume: Arc<Volume>,
@@ -174,12 +176,13 @@ impl Server {
             stopping: AtomicBool::new(false),
             tick_thread: std::sync::OnceLock::new(),
             config,
+            wait: engine_config.wait,
             started: Instant::now(),
             volume: volume.clone(),
         });
         control::declare(&session, &shared)?;
-        let comm = comm::spawn(session.clone(), shared.clone(), link.outputs)?;
-        let tick = TickThread::spawn(core, Some(comm.thread().clone()))?;
+        let comm = comm::spawn(session.clone(), shared.clone(), link.outputs, engine_config.wait)?;
+        let tick = TickThread::spawn(core, Some(comm.thread().clone()), engine_config.wait)?;
         // Until this is set the tick thread still polls every period; after, poses wake it.
         if let Some(t) = tick.thread() {
             let _ = shared.tick_thread.set(t.clone());
