@@ -4,6 +4,7 @@ many trainees. Prints one JSON line per run (latencies in ms, server CPU in core
 
     cargo build --release -p bone_sim --example load
     python tests/benchmarks/bench_server.py --seconds 60 --clients 1,16,64 [--load PATH] [--wait spin]
+        [--device cpu] [--lowlatency]
 """
 
 from __future__ import annotations
@@ -12,9 +13,13 @@ import argparse
 import json
 import os
 import subprocess
+import tempfile
 from pathlib import Path
 
 from dhg.live_demo import ServerProcess, free_port
+
+# The `transport` section of Zenoh's low-latency mode (it excludes QoS; both ends must ask for it).
+LOWLATENCY = {"unicast": {"lowlatency": True, "qos": {"enabled": False}}}
 
 
 def main() -> None:
@@ -26,6 +31,11 @@ def main() -> None:
     p.add_argument("--out", help="also append the JSON lines to this file")
     p.add_argument("--wait", default="sleep", choices=("sleep", "spin"), help="dhg-serve --wait (default sleep)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="dhg-serve --device (default auto)")
+    p.add_argument(
+        "--lowlatency",
+        action="store_true",
+        help="Zenoh's low-latency transport (no QoS) on both sides: a put is written by the calling thread",
+    )
     args = p.parse_args()
     for n in (int(c) for c in args.clients.split(",")):
         endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -33,11 +43,16 @@ def main() -> None:
                       "--wait", args.wait]  # fmt: skip
         if args.device:
             serve_args += ["--device", args.device]
+        load_args = ["--lowlatency"] if args.lowlatency else []
+        if args.lowlatency:
+            conf = Path(tempfile.mkdtemp()) / "lowlatency.json5"
+            conf.write_text(json.dumps({"scouting": {"multicast": {"enabled": False}}, "transport": LOWLATENCY}))
+            serve_args += ["--zenoh-config", str(conf)]
         server = ServerProcess(serve_args, echo=False)
         try:
             r = subprocess.run(
                 [args.load, "--connect", endpoint, "--clients", str(n), "--seconds", str(args.seconds),
-                 "--server-pid", str(server.proc.pid)],
+                 "--server-pid", str(server.proc.pid), *load_args],
                 capture_output=True, text=True, timeout=args.seconds + 120,
             )  # fmt: skip
         finally:
@@ -45,7 +60,13 @@ def main() -> None:
         if r.returncode != 0:
             raise SystemExit(f"load tool failed ({r.returncode}): {r.stderr}")
         line = json.dumps(
-            {"cpus": os.cpu_count(), "wait": args.wait, "device": args.device or "auto", **json.loads(r.stdout)}
+            {
+                "cpus": os.cpu_count(),
+                "wait": args.wait,
+                "device": args.device or "auto",
+                "lowlatency": args.lowlatency,
+                **json.loads(r.stdout),
+            }
         )
         print(line, flush=True)
         if args.out:

@@ -21,12 +21,17 @@ use serde_json::{json, Value};
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::Wait;
 
+/// The `transport` section that turns on Zenoh's low-latency transport (it excludes QoS).
+const LOWLATENCY: &str = "{ unicast: { lowlatency: true, qos: { enabled: false } } }";
+
 struct Args {
     connect: String,
     clients: usize,
     seconds: f64,
     prefix: String,
     server_pid: Option<u32>,
+    /// Zenoh's low-latency transport (no QoS): each put is written by the calling thread.
+    lowlatency: bool,
 }
 
 fn parse_args() -> Result<Args, String> {
@@ -36,6 +41,7 @@ fn parse_args() -> Result<Args, String> {
         seconds: 10.0,
         prefix: "dhg".into(),
         server_pid: None,
+        lowlatency: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -46,9 +52,10 @@ fn parse_args() -> Result<Args, String> {
             "--seconds" => a.seconds = value()?.parse().map_err(|e| format!("--seconds: {e}"))?,
             "--prefix" => a.prefix = value()?,
             "--server-pid" => a.server_pid = Some(value()?.parse().map_err(|e| format!("--server-pid: {e}"))?),
+            "--lowlatency" => a.lowlatency = true,
             "--help" | "-h" => {
                 return Err(
-                    "usage: load [--connect ENDPOINT] [--clients N] [--seconds S] [--prefix P] [--server-pid PID]"
+                    "usage: load [--connect ENDPOINT] [--clients N] [--seconds S] [--prefix P] [--server-pid PID] [--lowlatency]"
                         .into(),
                 )
             }
@@ -131,8 +138,9 @@ fn main() {
 fn run(args: &Args) -> Result<(), String> {
     let base = Instant::now();
     let now_ns = move || base.elapsed().as_nanos() as u64;
+    let transport = if args.lowlatency { LOWLATENCY } else { "{}" };
     let conf = format!(
-        r#"{{ mode: "client", connect: {{ endpoints: ["{}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#,
+        r#"{{ mode: "client", connect: {{ endpoints: ["{}"] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {transport} }}"#,
         args.connect
     );
     let measuring = Arc::new(AtomicU64::new(0)); // 1 while the measured window runs
