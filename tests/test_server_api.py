@@ -41,6 +41,11 @@ def test_a_spinning_engine_ticks_its_sessions_says_so_and_stops(coarse_phantom):
     conf = serve.zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
     srv = serve.start_engine(coarse_phantom.volume, coarse_phantom.path, conf, serve.ServerSettings(wait="spin"))
     try:
+        # Without a session it sleeps: two spinning threads would use about 1 s of CPU in 0.5 s.
+        cpu0, wall0 = time.process_time(), time.monotonic()
+        time.sleep(0.5)
+        idle_cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
+        assert idle_cpu < 0.3, f"an idle spinning engine used {idle_cpu:.2f} cores"
         srv.control("a", {"op": "create"})
         t0 = time.monotonic()
         while srv.health(window_s=1.0)["ticks"] < 50:
@@ -128,3 +133,13 @@ def test_stop_is_idempotent_and_later_calls_fail_clearly(engine):
     assert not engine.running
     with pytest.raises(EngineError, match="stopped"):
         engine.health()
+
+
+def test_the_scheduling_hint_suggests_spinning_only_where_it_helps():
+    sleeping = {"tick_realtime": False, "tick_wait": "sleep"}
+    assert serve.scheduling_hint({**sleeping, "tick_realtime": True}, 16) is None
+    assert serve.scheduling_hint({**sleeping, "tick_wait": "spin"}, 16) is None
+    many = serve.scheduling_hint(sleeping, 16)
+    assert many is not None and "--wait spin" in many and "16-core" in many
+    few = serve.scheduling_hint(sleeping, 2)
+    assert few is not None and "spin" not in few and "CAP_SYS_NICE" in few

@@ -135,8 +135,8 @@ def serve_parser() -> argparse.ArgumentParser:
         help="how the 1 kHz tick thread and the force publisher wait between events. 'sleep' (default) "
         "leaves idle cores idle; each force then pays the host's wake-up latency (tens of µs on bare "
         "metal with real-time scheduling, up to milliseconds on a virtual machine). 'spin' busy-waits "
-        "instead, keeping two cores at 100 %%: use it on a machine with cores to spare that cannot "
-        "give the tick thread SCHED_FIFO, never on a 2-core machine",
+        "instead while a session is open, keeping two cores at 100 %%: use it on a machine with cores to "
+        "spare that cannot give the tick thread SCHED_FIFO, never on a 2-core machine",
     )
     p.add_argument("--status-every", type=float, default=5.0, metavar="S", help="status line period (default 5 s)")
     return p
@@ -214,6 +214,11 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 f"{'; '.join(described)} (started in {time.perf_counter() - t0:.1f} s)",
                 flush=True,
             )
+            if running.engine is not None:
+                time.sleep(0.01)  # the tick thread reports its scheduling as it starts
+                hint = serve.scheduling_hint(running.engine.health(), os.cpu_count() or 1)
+                if hint:
+                    print(f"note: {hint}", flush=True)
             while not stop.wait(args.status_every):
                 print(time.strftime("%H:%M:%S ") + running.status_line(), flush=True)
             sessions = running.engine.sessions() if running.engine is not None else []

@@ -39,6 +39,7 @@ __all__ = [
     "ServerSettings",
     "XRayService",
     "open_zenoh",
+    "scheduling_hint",
     "start",
     "start_engine",
     "zenoh_config_json5",
@@ -70,8 +71,8 @@ class ServerSettings:
     """A model answer older than this is dropped and guidance fades out (s)."""
     wait: str = "sleep"
     """How the 1 kHz tick thread and the force publisher wait: ``"sleep"`` (idle cores stay idle),
-    or ``"spin"`` (each keeps a core at 100 %, so no wake-up latency is added to a force; for hosts
-    with cores to spare and no real-time scheduling)."""
+    or ``"spin"`` (while a session is open each keeps a core at 100 %, so no wake-up latency is added
+    to a force; for hosts with cores to spare and no real-time scheduling)."""
 
     def native(self) -> dict[str, float]:
         """The flat dict ``dhg._bone_sim.Server`` takes."""
@@ -312,6 +313,28 @@ def start_engine(
 
 # -- dhg-serve: one process running the roles ---------------------------------------------------
 ROLES = ("all", "sim", "model")
+
+
+SPIN_MIN_CORES = 8
+"""Fewest cores on which ``scheduling_hint`` suggests ``--wait spin`` (it keeps two busy)."""
+
+
+def scheduling_hint(health: dict[str, Any], cores: int) -> str | None:
+    """What to tell the operator about the tick thread's scheduling, from an engine ``health()``
+    report and the machine's core count; ``None`` when nothing needs saying (real-time priority
+    granted, or already spinning)."""
+    if health.get("tick_realtime") or health.get("tick_wait") == "spin":
+        return None
+    if cores >= SPIN_MIN_CORES:
+        return (
+            f"the tick thread has no real-time priority (SCHED_FIFO refused). On this {cores}-core machine, "
+            "'--wait spin' keeps the host's wake-up latency out of every force (two cores busy while a session "
+            "is open); or grant CAP_SYS_NICE"
+        )
+    return (
+        "the tick thread has no real-time priority (SCHED_FIFO refused): forces pay the host's wake-up "
+        "latency. Grant CAP_SYS_NICE (e.g. 'setcap cap_sys_nice+ep' on the Python binary) or an rtprio limit"
+    )
 
 
 def _loopback(endpoint: str) -> str:

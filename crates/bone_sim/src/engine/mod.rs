@@ -101,9 +101,10 @@ pub enum WaitMode {
     /// Sleep until the next deadline or wake-up: idle cores stay idle (the default).
     #[default]
     Sleep,
-    /// Busy-wait: the tick and comm threads each keep a core at 100 %, so that no wake-up
-    /// latency (0.05 to several ms on a virtual machine without real-time scheduling) is added to
-    /// a force. For hosts with cores to spare; on a 2-core machine it starves everything else.
+    /// Busy-wait while a session is open: the tick and comm threads each keep a core at 100 %, so
+    /// that no wake-up latency (0.05 to several ms on a virtual machine without real-time
+    /// scheduling) is added to a force. With no session they sleep. For hosts with cores to
+    /// spare; on a 2-core machine it starves everything else.
     /// The tick thread then keeps normal scheduling (see [`TickThread::spawn`]).
     Spin,
 }
@@ -481,12 +482,15 @@ impl TickThread {
                 while !flag.load(Ordering::Relaxed) {
                     let now = Instant::now();
                     if now < wake {
-                        match wait {
-                            // Woken early by the pose subscriber (or spuriously: the loop checks).
-                            WaitMode::Sleep => thread::park_timeout(wake - now),
+                        // With no session there is nothing to be fast for: sleep, even when
+                        // spinning (a first pose or command unparks the thread).
+                        if wait == WaitMode::Spin && core.stats.sessions.load(Ordering::Relaxed) > 0 {
                             // `tick_due` is cheap when nothing is due (a few ns per slot) and
                             // sees a fresh pose or command the moment it lands.
-                            WaitMode::Spin => std::hint::spin_loop(),
+                            std::hint::spin_loop();
+                        } else {
+                            // Woken early by the pose subscriber (or spuriously: the loop checks).
+                            thread::park_timeout(wake - now);
                         }
                     }
                     let woke = Instant::now();

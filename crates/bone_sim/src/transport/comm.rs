@@ -224,10 +224,11 @@ impl Comm {
     fn run(&mut self, mut outputs: rtrb::Consumer<Output>, wait: WaitMode) {
         let mut next_housekeeping = Instant::now();
         while !self.shared.stopping.load(Ordering::Acquire) {
-            match wait {
+            if wait == WaitMode::Spin && self.shared.stats.sessions.load(Ordering::Relaxed) > 0 {
+                std::hint::spin_loop();
+            } else {
                 // The tick thread unparks this thread after each wake-up that produced output.
-                WaitMode::Sleep => thread::park_timeout(Duration::from_millis(5)),
-                WaitMode::Spin => std::hint::spin_loop(),
+                thread::park_timeout(Duration::from_millis(5));
             }
             while let Ok(out) = outputs.pop() {
                 self.handle(out);
