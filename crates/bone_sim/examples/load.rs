@@ -21,7 +21,7 @@ use serde_json::{json, Value};
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::Wait;
 
-/// The `transport` section that turns on Zenoh's low-latency transport (it excludes QoS).
+/// The `transport` section that turns on Zenoh's low-latency transport (priorities off).
 const LOWLATENCY: &str = "{ unicast: { lowlatency: true, qos: { enabled: false } } }";
 
 struct Args {
@@ -30,7 +30,7 @@ struct Args {
     seconds: f64,
     prefix: String,
     server_pid: Option<u32>,
-    /// Zenoh's low-latency transport (no QoS): each put is written by the calling thread.
+    /// Zenoh's low-latency transport (priorities off): each put is written by the calling thread.
     lowlatency: bool,
 }
 
