@@ -10,7 +10,8 @@
 //! tick budget that fills by one period per 1 ms and is spent by one per tick. A fresh pose
 //! starts the slot's tick as soon as it arrives, once the budget holds a period (less the
 //! [`EARLY_PERIODS`] it may borrow). So a steady 1 kHz client gets each force computed from the
-//! pose that just arrived, whatever its phase, while a client sending faster still gets 1 kHz.
+//! pose that just arrived, whatever its phase, while a client sending faster gets at most
+//! [`LOCK_RATE`] kHz.
 //! Without a fresh pose the slot ticks when a period is due; a streaming client's slot first
 //! waits [`GRACE_PERIODS`] past one period since its last tick for the late pose. A silent client
 //! still gets 1 kHz. After a stall, a client's delayed poses arrive in a burst, out of phase: a
@@ -463,8 +464,8 @@ impl TickThread {
     /// every wake-up that ticked a slot or applied a command (the comm thread, so outputs leave
     /// without polling delay). Unpark [`thread`](Self::thread) after handing over a pose or a
     /// command whose effect should not wait for the slot's next tick (a model prediction). With
-    /// [`WaitMode::Spin`] the thread never sleeps: it checks for due slots, fresh poses and
-    /// commands continuously.
+    /// [`WaitMode::Spin`] the thread does not sleep while a session is open: it checks for due
+    /// slots, fresh poses and commands continuously.
     ///
     /// # Errors
     /// The thread could not be spawned.
