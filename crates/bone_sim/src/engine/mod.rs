@@ -10,8 +10,8 @@
 //! tick budget that fills by one period per 1 ms and is spent by one per tick. A fresh pose
 //! starts the slot's tick as soon as it arrives, once the budget holds a period (less the
 //! [`EARLY_PERIODS`] it may borrow). So a steady 1 kHz client gets each force computed from the
-//! pose that just arrived, whatever its phase, while a client sending faster gets at most
-//! [`LOCK_RATE`] kHz.
+//! pose that just arrived, whatever its phase, while a client sending faster still gets 1 kHz (its
+//! slot sees more than [`FAST_CLIENT_POSES_PER_TICK`] poses per tick and drops the catch-up).
 //! Without a fresh pose the slot ticks when a period is due; a streaming client's slot first
 //! waits [`GRACE_PERIODS`] past one period since its last tick for the late pose. A silent client
 //! still gets 1 kHz. After a stall, a client's delayed poses arrive in a burst, out of phase: a
@@ -60,8 +60,13 @@ pub const EARLY_PERIODS: f64 = 0.3;
 pub const GRACE_PERIODS: f64 = 0.3;
 /// How fast a slot's budget fills while fresh poses wait (periods per period): the 2 % that lets
 /// its phase drift onto its client's within tens of periods. A client sending faster than 1 kHz
-/// gets at most 1.02 kHz; without poses a slot ticks at exactly 1 kHz.
+/// does not get it (see [`FAST_CLIENT_POSES_PER_TICK`]); without poses a slot ticks at exactly 1 kHz.
 pub const LOCK_RATE: f64 = 1.02;
+/// Poses per tick (averaged) above which a client counts as sending faster than 1 kHz: its slot
+/// then ticks on the plain 1 kHz budget, since the 2 % catch-up would only make it run fast.
+pub const FAST_CLIENT_POSES_PER_TICK: f64 = 1.2;
+/// Weight of the newest tick in a slot's average of poses per tick (about the last 50 ticks).
+const POSE_RATE_WEIGHT: f64 = 0.02;
 /// Longest (in periods) a fresh pose waits for its slot's budget. Past it the slot is out of
 /// phase with its client, and it re-locks by waiting for the client's next pose (see
 /// [`TickCore::tick_due`]) instead of ticking every pose late while the 2 % catch up.
@@ -207,6 +212,8 @@ pub struct TickCore {
     streaming: Vec<bool>,
     /// Per slot: when the waiting pose was first seen (its arrival, as near as the thread knows).
     seen: Vec<Instant>,
+    /// Per slot: poses seen since its last tick, and their running average per tick.
+    arrivals: Vec<(u32, f64)>,
     commands: rtrb::Consumer<Command>,
     outputs: rtrb::Producer<Output>,
     snapshot: triple_buffer::Input<Snapshot>,
@@ -257,6 +264,7 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
         clock: vec![None; slots.len()],
         streaming: vec![false; slots.len()],
         seen: vec![Instant::now(); slots.len()],
+        arrivals: vec![(0, 1.0); slots.len()],
         slots,
         commands: commands_rx,
         outputs: outputs_tx,
@@ -298,6 +306,7 @@ impl TickCore {
                     s.activate(generation, path.unwrap_or_else(|| default.clone()), gain);
                     self.clock[slot_of(slot)] = None;
                     self.streaming[slot_of(slot)] = false;
+                    self.arrivals[slot_of(slot)] = (0, 1.0);
                 }
             }
             Command::Release { slot } => {
@@ -387,13 +396,16 @@ impl TickCore {
             let owed = clock.tokens + elapsed;
             if s.poll_pose() {
                 self.seen[i] = now;
+                self.arrivals[i].0 += 1;
             }
             let fresh = s.pose_pending();
             let timer = timer_until(self.streaming[i], clock.tokens, elapsed);
-            // A fresh pose counts time slightly fast, so the slot's phase drifts onto the pose's.
-            let have = if fresh { clock.tokens + elapsed * LOCK_RATE } else { owed };
+            // A fresh pose counts time slightly fast, so the slot's phase drifts onto the pose's;
+            // not for a client sending faster than 1 kHz, which would take all of the 2 %.
+            let lock = if self.arrivals[i].1 > FAST_CLIENT_POSES_PER_TICK { 1.0 } else { LOCK_RATE };
+            let have = if fresh { clock.tokens + elapsed * lock } else { owed };
             let until = if fresh {
-                let short = (1.0 - EARLY_PERIODS - have) / LOCK_RATE;
+                let short = (1.0 - EARLY_PERIODS - have) / lock;
                 // Waiting longer means the slot is out of phase with its client (its poses came in a
                 // burst after a stall): this pose waits for the schedule, and the client's next pose,
                 // in phase, ticks the moment it arrives. Judged as of the pose's arrival (`short`
@@ -423,6 +435,9 @@ impl TickCore {
             }
             s.tick(i as u16, |out| Self::emit(outputs, stats, out));
             ticked += 1;
+            let (count, rate) = &mut self.arrivals[i];
+            *rate += POSE_RATE_WEIGHT * (f64::from(*count) - *rate);
+            *count = 0;
             *clock = SlotClock { last: now, tokens: have.min(MAX_TOKENS) - 1.0 };
             self.streaming[i] = fresh;
             next = next.min(now + ceil_us(timer_until(fresh, clock.tokens, 0.0) * period_s));
