@@ -4,7 +4,7 @@
 //! 1 kHz haptic sessions, and the real-time server: the tick [`engine`] and its Zenoh
 //! [`transport`] speaking the [`protocol`].
 //! Pure Rust: nothing here knows about Python; the optional `python` feature adds the thin pyo3
-//! binding layer in [`python`] (built by maturin as `dhg._bone_sim`).
+//! binding layer in `python` (built by maturin as `dhg._bone_sim`).
 //!
 //! Units are SI throughout (m, kg, s, N, Pa; temperature in °C); names carry the unit
 //! (`radius_m`, `dt_s`). Frames and array layouts are documented once in `docs/frames.md`.

@@ -1,5 +1,5 @@
 //! The engine on Zenoh: its own Zenoh session, subscribers and queryables whose callbacks hand
-//! data to the tick thread through the lock-free [`engine::handoff`](crate::engine::handoff)
+//! data to the tick thread through the lock-free [`crate::engine::handoff`]
 //! structures, and a comm thread that owns the publishers and the model querier.
 //!
 //! Key expressions (under a configurable prefix, `dhg` by default; payloads in
