@@ -403,8 +403,9 @@ class RunningServer:
                 f"sessions {h['sessions']}/{h['max_sessions']} | tick{' (rt)' if h['tick_realtime'] else ''}"
                 f"{' (spin)' if h['tick_wait'] == 'spin' else ''} "
                 f"p99 {h['tick_lateness_p99_s'] * 1e6:.0f} µs "
-                f"late, busy p99 {h['tick_busy_p99_s'] * 1e6:.0f} µs | missed {h['missed_ticks']} "
-                f"(total {h['missed_ticks_total']}) | {model} | poses {h['poses']}"
+                f"late, busy p99 {h['tick_busy_p99_s'] * 1e6:.0f} µs | pose→put p50/p99 "
+                f"{h['pose_to_put_p50_s'] * 1e6:.0f}/{h['pose_to_put_p99_s'] * 1e6:.0f} µs "
+                f"| missed {h['missed_ticks']} (total {h['missed_ticks_total']}) | {model} | poses {h['poses']}"
             )
         if "model_service" in s:
             ms = s["model_service"]

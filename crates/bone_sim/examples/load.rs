@@ -272,6 +272,12 @@ fn run(args: &Args) -> Result<(), String> {
         "pose_to_force_ms": { "p50": quantile_ms(&mut l.force_ns, 0.5), "p99": quantile_ms(&mut l.force_ns, 0.99), "p999": quantile_ms(&mut l.force_ns, 0.999) },
         "pose_to_guidance_ms": { "p50": quantile_ms(&mut l.guidance_ns, 0.5), "p99": quantile_ms(&mut l.guidance_ns, 0.99) },
         "tick_lateness_ms": { "p99": health["tick_lateness_p99_s"].as_f64().unwrap_or(f64::NAN) * 1e3, "p999": health["tick_lateness_p999_s"].as_f64().unwrap_or(f64::NAN) * 1e3 },
+        // The server's part of pose → force (arrival in its subscriber to the force's put).
+        "server_pose_to_put_ms": {
+            "p50": health["pose_to_put_p50_s"].as_f64().unwrap_or(f64::NAN) * 1e3,
+            "p99": health["pose_to_put_p99_s"].as_f64().unwrap_or(f64::NAN) * 1e3,
+            "p999": health["pose_to_put_p999_s"].as_f64().unwrap_or(f64::NAN) * 1e3,
+        },
         "tick_busy_p99_us": health["tick_busy_p99_s"].as_f64().unwrap_or(f64::NAN) * 1e6,
         "missed_ticks": health["missed_ticks"],
         // Ticks per session per second of the server's window: above 1000 means sessions ran

@@ -43,7 +43,9 @@ fn activate(link: &mut EngineLink, slot: u16, generation: u32, gain: f64) {
 }
 
 fn send(link: &mut EngineLink, slot: usize, generation: u32, seq: u32, z: f64) {
-    link.poses[slot].write(PoseSample { pose: Some(pose_at(z)), seq, client_time_ns: u64::from(seq) * 10, generation });
+    let sample =
+        PoseSample { pose: Some(pose_at(z)), seq, client_time_ns: u64::from(seq) * 10, generation, received: None };
+    link.poses[slot].write(sample);
 }
 
 /// A model reply for slot 0, generation 1, that took 4 ms.
@@ -218,6 +220,28 @@ fn poses_and_predictions_of_an_earlier_owner_of_the_slot_are_ignored() {
     assert!(out.iter().all(|o| matches!(o, Output::Force { generation: 2, .. })));
     // The new session starts from untouched bone.
     assert_eq!(core.session(0).unwrap().bone().removed_voxels(), 0);
+}
+
+#[test]
+fn a_force_carries_the_arrival_of_the_pose_it_used_and_none_without_a_fresh_pose() {
+    let (mut core, mut link, surface) = engine(1);
+    activate(&mut link, 0, 1, 1.0);
+    let arrived = std::time::Instant::now();
+    let sample = PoseSample {
+        pose: Some(pose_at(surface - 1e-3)),
+        seq: 1,
+        client_time_ns: 10,
+        generation: 1,
+        received: Some(arrived),
+    };
+    link.poses[0].write(sample);
+    let received = |out: Vec<Output>| {
+        out.iter().find_map(|o| if let Output::Force { received, .. } = o { Some(*received) } else { None })
+    };
+    core.tick();
+    assert_eq!(received(drain(&mut link)), Some(Some(arrived)));
+    core.tick(); // the same pose again: no fresh arrival to time
+    assert_eq!(received(drain(&mut link)), Some(None));
 }
 
 #[test]

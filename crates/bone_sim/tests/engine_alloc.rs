@@ -73,6 +73,7 @@ fn ticks_do_not_allocate() {
                     seq: k,
                     client_time_ns: u64::from(k),
                     generation: 1,
+                    received: Some(std::time::Instant::now()),
                 };
                 input.write(sample);
             }

@@ -2,6 +2,8 @@
 //! data moved through lock-free structures: an SPSC ring of [`Command`]s into the tick thread, an
 //! SPSC ring of [`Output`]s out of it, and one triple buffer per session slot for the newest pose.
 
+use std::time::Instant;
+
 use crate::path::PlannedPath;
 use crate::protocol::{ForceMsg, GuidanceMsg, StateMsg};
 use crate::record::Record;
@@ -18,6 +20,8 @@ pub struct PoseSample {
     pub client_time_ns: u64,
     /// The slot generation it was written for (poses of an earlier owner are ignored).
     pub generation: u32,
+    /// When the server received it (for the server's own pose → force latency).
+    pub received: Option<Instant>,
 }
 
 /// A request to the tick thread.
@@ -98,6 +102,9 @@ pub enum Output {
         generation: u32,
         /// The message.
         msg: ForceMsg,
+        /// When the server received the pose this force was computed from; `None` when the
+        /// tick had no fresh pose.
+        received: Option<Instant>,
     },
     /// The 10 Hz record and state.
     State {

@@ -146,6 +146,7 @@ impl Slot {
     /// One 1 ms tick: newest pose in, force (and every 100th tick the state) out.
     pub(crate) fn tick(&mut self, idx: u16, mut emit: impl FnMut(Output)) {
         let mut fresh = None;
+        let mut received = None;
         self.poll_pose();
         if std::mem::take(&mut self.fresh) {
             let s = *self.poses.peek_output_buffer();
@@ -153,6 +154,7 @@ impl Slot {
                 if let Some(p) = s.pose {
                     fresh = Some(p);
                     (self.pose_seq, self.pose_time_ns) = (s.seq, s.client_time_ns);
+                    received = s.received;
                 }
             }
         }
@@ -174,6 +176,7 @@ impl Slot {
         emit(Output::Force {
             slot: idx,
             generation: self.generation,
+            received,
             msg: ForceMsg {
                 flags: fl,
                 pose_seq: self.pose_seq,

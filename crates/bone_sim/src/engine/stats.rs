@@ -94,6 +94,9 @@ pub struct TickStats {
     pub dropped_outputs: AtomicU64,
     /// Whether the tick thread got real-time scheduling (`SCHED_FIFO`); 0 = no, 1 = yes.
     pub realtime: AtomicU64,
+    /// The server's part of pose → force: from a pose's arrival in the subscriber to the put of
+    /// the force computed from it (10 µs buckets; recorded by the comm thread).
+    pub pose_to_put: Histogram,
 }
 
 impl Default for TickStats {
@@ -107,6 +110,7 @@ impl Default for TickStats {
             sessions: AtomicU64::new(0),
             dropped_outputs: AtomicU64::new(0),
             realtime: AtomicU64::new(0),
+            pose_to_put: Histogram::new(10_000),
         }
     }
 }

@@ -34,6 +34,7 @@ pub(crate) struct StatsSample {
     pub(crate) missed: u64,
     pub(crate) lateness: HistogramSnapshot,
     pub(crate) busy: HistogramSnapshot,
+    pub(crate) pose_to_put: HistogramSnapshot,
 }
 
 /// Per-second samples, oldest first.
@@ -50,6 +51,7 @@ fn sample(shared: &Shared) -> StatsSample {
         missed: s.missed.load(Ordering::Relaxed),
         lateness: s.lateness.snapshot(),
         busy: s.busy.snapshot(),
+        pose_to_put: s.pose_to_put.snapshot(),
     }
 }
 
@@ -118,10 +120,13 @@ impl Comm {
     #[allow(clippy::large_types_passed_by_value)] // moved into the ring / consumed: by value is the point
     fn handle(&mut self, out: Output) {
         match out {
-            Output::Force { slot, generation, msg } => {
+            Output::Force { slot, generation, msg, received } => {
                 if let Some(o) = self.outlet(slot, generation) {
                     o.pose_time_ns = msg.pose_client_time_ns;
                     let _ = o.force.put(protocol::encode_force(&msg).to_vec()).wait();
+                    if let Some(t) = received {
+                        self.shared.stats.pose_to_put.record(t.elapsed().as_nanos() as u64);
+                    }
                 }
             }
             Output::State { slot, generation, record, msg } => {

@@ -42,6 +42,7 @@ fn count_refusal(shared: &Shared, r: Refusal) {
 }
 
 fn on_pose(shared: &Shared, sample: &Sample) {
+    let received = std::time::Instant::now();
     let Some((id, _)) = session_key(&shared.prefix, sample.key_expr().as_str()) else { return };
     if sample.payload().len() > protocol::MAX_PAYLOAD_BYTES {
         count_refusal(shared, Refusal::Oversized);
@@ -54,7 +55,7 @@ fn on_pose(shared: &Shared, sample: &Sample) {
     let mut reg = lock(&shared.registry);
     match reg.open(id, None) {
         Ok((slot, _)) => {
-            reg.pose(slot, &msg);
+            reg.pose(slot, &msg, received);
             drop(reg);
             shared.counters.poses.fetch_add(1, Ordering::Relaxed);
             if let Some(t) = shared.tick_thread.get() {
@@ -257,6 +258,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
         missed: shared.stats.missed.load(Ordering::Relaxed),
         lateness: shared.stats.lateness.snapshot(),
         busy: shared.stats.busy.snapshot(),
+        pose_to_put: shared.stats.pose_to_put.snapshot(),
     };
     let (window, base) = {
         let h = lock(&shared.history);
@@ -266,11 +268,15 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
             _ => (shared.started.elapsed().as_secs_f64(), None),
         }
     };
-    let (late, busy, ticks, missed) = match &base {
-        Some(b) => {
-            (now.lateness.since(&b.lateness), now.busy.since(&b.busy), now.ticks - b.ticks, now.missed - b.missed)
-        }
-        None => (now.lateness.clone(), now.busy.clone(), now.ticks, now.missed),
+    let (late, busy, put, ticks, missed) = match &base {
+        Some(b) => (
+            now.lateness.since(&b.lateness),
+            now.busy.since(&b.busy),
+            now.pose_to_put.since(&b.pose_to_put),
+            now.ticks - b.ticks,
+            now.missed - b.missed,
+        ),
+        None => (now.lateness.clone(), now.busy.clone(), now.pose_to_put.clone(), now.ticks, now.missed),
     };
     let model = lock(&shared.model);
     let mut lat: Vec<f64> = model.latencies_s.iter().copied().collect();
@@ -292,6 +298,9 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
         "tick_lateness_p99_s": late.quantile_s(0.99),
         "tick_lateness_p999_s": late.quantile_s(0.999),
         "tick_busy_p99_s": busy.quantile_s(0.99),
+        "pose_to_put_p50_s": put.quantile_s(0.5),
+        "pose_to_put_p99_s": put.quantile_s(0.99),
+        "pose_to_put_p999_s": put.quantile_s(0.999),
         "tick_lateness_max_s": n(&shared.stats.max_lateness_ns) as f64 * 1e-9,
         "dropped_outputs": n(&shared.stats.dropped_outputs),
         "tick_realtime": n(&shared.stats.realtime) == 1,

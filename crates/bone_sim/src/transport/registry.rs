@@ -145,14 +145,15 @@ impl Registry {
         Ok((slot as u16, true))
     }
 
-    /// Hands a decoded pose to the tick thread.
-    pub fn pose(&mut self, slot: u16, msg: &PoseMsg) {
+    /// Hands a decoded pose, `received` when its sample arrived, to the tick thread.
+    pub fn pose(&mut self, slot: u16, msg: &PoseMsg, received: Instant) {
         let info = &mut self.slots[slot as usize];
         info.poses.write(PoseSample {
             pose: Some(msg.pose),
             seq: msg.seq,
             client_time_ns: msg.client_time_ns,
             generation: info.generation,
+            received: Some(received),
         });
         info.last_seen = Instant::now();
         info.poses_received += 1;
