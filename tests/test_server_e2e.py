@@ -100,6 +100,7 @@ def test_a_1khz_client_gets_its_forces_and_10hz_guidance(server):
     server_p50 = health["pose_to_put_p50_s"]
     print(f"pose->put p50 {server_p50 * 1e6:.0f} us of a {summary['pose_to_force_p50_s'] * 1e6:.0f} us round trip")
     assert 0 < server_p50 <= summary["pose_to_force_p50_s"] + 10e-6  # 10 µs buckets
+    assert 0 < health["pose_to_tick_p50_s"] <= server_p50, "arrival → tick is the first part of arrival → put"
     # Guidance is what the paper defines: predicted expert force minus the trainee's feedback.
     g = guidance[-1]
     assert np.linalg.norm(g["predicted_force_n"]) > 0.0

@@ -278,6 +278,12 @@ fn run(args: &Args) -> Result<(), String> {
             "p99": health["pose_to_put_p99_s"].as_f64().unwrap_or(f64::NAN) * 1e3,
             "p999": health["pose_to_put_p999_s"].as_f64().unwrap_or(f64::NAN) * 1e3,
         },
+        // Its first part: arrival to the tick that used the pose (the rest is the comm thread's put).
+        "server_pose_to_tick_ms": {
+            "p50": health["pose_to_tick_p50_s"].as_f64().unwrap_or(f64::NAN) * 1e3,
+            "p99": health["pose_to_tick_p99_s"].as_f64().unwrap_or(f64::NAN) * 1e3,
+            "p999": health["pose_to_tick_p999_s"].as_f64().unwrap_or(f64::NAN) * 1e3,
+        },
         "tick_busy_p99_us": health["tick_busy_p99_s"].as_f64().unwrap_or(f64::NAN) * 1e6,
         "missed_ticks": health["missed_ticks"],
         // Ticks per session per second of the server's window: above 1000 means sessions ran

@@ -375,6 +375,25 @@ mod schedule {
     }
 
     #[test]
+    fn the_time_from_a_poses_arrival_to_its_tick_is_recorded() {
+        let (mut core, mut link, surface, t0) = started();
+        let pose = Some(pose_at(surface - 1e-3));
+        link.poses[0].write(PoseSample {
+            pose,
+            seq: 1,
+            client_time_ns: 10,
+            generation: 1,
+            received: Some(t0 + us(900)),
+        });
+        assert_eq!(core.tick_due(t0 + us(1000)).0, 1);
+        let h = link.stats.pose_to_tick.snapshot();
+        assert_eq!(h.total(), 1);
+        assert!((h.quantile_s(0.5) - 110e-6).abs() < 1e-12, "100 µs lands in the 100-110 µs bucket");
+        assert_eq!(core.tick_due(t0 + us(2300)).0, 1); // no fresh pose (after the grace): nothing to time
+        assert_eq!(link.stats.pose_to_tick.snapshot().total(), 1);
+    }
+
+    #[test]
     fn poses_faster_than_1_khz_do_not_speed_up_the_session() {
         // 4, 2 and 1.5 kHz clients for 1 s each, the thread looking at every pose's arrival.
         for period_us in [250u64, 500, 667] {

@@ -433,7 +433,9 @@ impl TickCore {
             if behind >= 1.0 {
                 stats.missed.fetch_add(behind as u64, Ordering::Relaxed);
             }
-            s.tick(i as u16, |out| Self::emit(outputs, stats, out));
+            if let Some(t) = s.tick(i as u16, |out| Self::emit(outputs, stats, out)) {
+                stats.pose_to_tick.record(now.saturating_duration_since(t).as_nanos() as u64);
+            }
             ticked += 1;
             let (count, rate) = &mut self.arrivals[i];
             *rate += POSE_RATE_WEIGHT * (f64::from(*count) - *rate);

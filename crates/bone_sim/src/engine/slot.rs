@@ -143,8 +143,9 @@ impl Slot {
         }
     }
 
-    /// One 1 ms tick: newest pose in, force (and every 100th tick the state) out.
-    pub(crate) fn tick(&mut self, idx: u16, mut emit: impl FnMut(Output)) {
+    /// One 1 ms tick: newest pose in, force (and every 100th tick the state) out. Returns when
+    /// the server received the fresh pose it used, if it had one.
+    pub(crate) fn tick(&mut self, idx: u16, mut emit: impl FnMut(Output)) -> Option<std::time::Instant> {
         let mut fresh = None;
         let mut received = None;
         self.poll_pose();
@@ -218,5 +219,6 @@ impl Slot {
                 },
             });
         }
+        received
     }
 }

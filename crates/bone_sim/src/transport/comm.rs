@@ -34,6 +34,7 @@ pub(crate) struct StatsSample {
     pub(crate) missed: u64,
     pub(crate) lateness: HistogramSnapshot,
     pub(crate) busy: HistogramSnapshot,
+    pub(crate) pose_to_tick: HistogramSnapshot,
     pub(crate) pose_to_put: HistogramSnapshot,
 }
 
@@ -51,6 +52,7 @@ fn sample(shared: &Shared) -> StatsSample {
         missed: s.missed.load(Ordering::Relaxed),
         lateness: s.lateness.snapshot(),
         busy: s.busy.snapshot(),
+        pose_to_tick: s.pose_to_tick.snapshot(),
         pose_to_put: s.pose_to_put.snapshot(),
     }
 }

@@ -258,6 +258,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
         missed: shared.stats.missed.load(Ordering::Relaxed),
         lateness: shared.stats.lateness.snapshot(),
         busy: shared.stats.busy.snapshot(),
+        pose_to_tick: shared.stats.pose_to_tick.snapshot(),
         pose_to_put: shared.stats.pose_to_put.snapshot(),
     };
     let (window, base) = {
@@ -268,15 +269,23 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
             _ => (shared.started.elapsed().as_secs_f64(), None),
         }
     };
-    let (late, busy, put, ticks, missed) = match &base {
+    let (late, busy, to_tick, put, ticks, missed) = match &base {
         Some(b) => (
             now.lateness.since(&b.lateness),
             now.busy.since(&b.busy),
+            now.pose_to_tick.since(&b.pose_to_tick),
             now.pose_to_put.since(&b.pose_to_put),
             now.ticks - b.ticks,
             now.missed - b.missed,
         ),
-        None => (now.lateness.clone(), now.busy.clone(), now.pose_to_put.clone(), now.ticks, now.missed),
+        None => (
+            now.lateness.clone(),
+            now.busy.clone(),
+            now.pose_to_tick.clone(),
+            now.pose_to_put.clone(),
+            now.ticks,
+            now.missed,
+        ),
     };
     let model = lock(&shared.model);
     let mut lat: Vec<f64> = model.latencies_s.iter().copied().collect();
@@ -298,6 +307,9 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
         "tick_lateness_p99_s": late.quantile_s(0.99),
         "tick_lateness_p999_s": late.quantile_s(0.999),
         "tick_busy_p99_s": busy.quantile_s(0.99),
+        "pose_to_tick_p50_s": to_tick.quantile_s(0.5),
+        "pose_to_tick_p99_s": to_tick.quantile_s(0.99),
+        "pose_to_tick_p999_s": to_tick.quantile_s(0.999),
         "pose_to_put_p50_s": put.quantile_s(0.5),
         "pose_to_put_p99_s": put.quantile_s(0.99),
         "pose_to_put_p999_s": put.quantile_s(0.999),
