@@ -101,6 +101,27 @@ struct SlotClock {
     tokens: f64,
 }
 
+/// A slot's schedule state (see the module docs), reset when a session takes the slot.
+#[derive(Debug, Clone, Copy)]
+struct Schedule {
+    /// Its tick budget (`None`: just activated, due at once).
+    clock: Option<SlotClock>,
+    /// Whether its last tick used a fresh pose (it may wait [`GRACE_PERIODS`] for the next).
+    streaming: bool,
+    /// When the waiting pose was first seen (its arrival, as near as the thread knows).
+    seen: Instant,
+    /// Poses seen since the last tick.
+    arrivals: u32,
+    /// Running average of poses seen per tick (see [`FAST_CLIENT_POSES_PER_TICK`]).
+    poses_per_tick: f64,
+}
+
+impl Schedule {
+    fn new(now: Instant) -> Self {
+        Self { clock: None, streaming: false, seen: now, arrivals: 0, poses_per_tick: 1.0 }
+    }
+}
+
 /// How the tick and comm threads wait for their next event.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum WaitMode {
@@ -110,8 +131,8 @@ pub enum WaitMode {
     /// Busy-wait while a session is open: the tick and comm threads each keep a core at 100 %, so
     /// that no wake-up latency (0.05 to several ms on a virtual machine without real-time
     /// scheduling) is added to a force. With no session they sleep. For hosts with cores to
-    /// spare; on a 2-core machine it starves everything else.
-    /// The tick thread then keeps normal scheduling (see [`TickThread::spawn`]).
+    /// spare; on a 2-core machine it starves everything else. The tick thread then keeps normal
+    /// scheduling (see [`TickThread::spawn`]).
     Spin,
 }
 
@@ -206,14 +227,8 @@ pub struct Snapshot {
 #[derive(Debug)]
 pub struct TickCore {
     slots: Vec<Slot>,
-    /// Per slot: its tick budget (`None`: just activated, due at once).
-    clock: Vec<Option<SlotClock>>,
-    /// Per slot: whether its last tick used a fresh pose (it may wait [`GRACE`] for the next).
-    streaming: Vec<bool>,
-    /// Per slot: when the waiting pose was first seen (its arrival, as near as the thread knows).
-    seen: Vec<Instant>,
-    /// Per slot: poses seen since its last tick, and their running average per tick.
-    arrivals: Vec<(u32, f64)>,
+    /// Per slot: its schedule.
+    schedule: Vec<Schedule>,
     commands: rtrb::Consumer<Command>,
     outputs: rtrb::Producer<Output>,
     snapshot: triple_buffer::Input<Snapshot>,
@@ -261,10 +276,7 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
     let (snap_tx, snap_rx) = triple_buffer::triple_buffer(&blank);
     let stats = Arc::new(TickStats::default());
     let core = TickCore {
-        clock: vec![None; slots.len()],
-        streaming: vec![false; slots.len()],
-        seen: vec![Instant::now(); slots.len()],
-        arrivals: vec![(0, 1.0); slots.len()],
+        schedule: vec![Schedule::new(Instant::now()); slots.len()],
         slots,
         commands: commands_rx,
         outputs: outputs_tx,
@@ -304,9 +316,7 @@ impl TickCore {
                 let default = &self.default_path;
                 if let Some(s) = self.slots.get_mut(slot_of(slot)) {
                     s.activate(generation, path.unwrap_or_else(|| default.clone()), gain);
-                    self.clock[slot_of(slot)] = None;
-                    self.streaming[slot_of(slot)] = false;
-                    self.arrivals[slot_of(slot)] = (0, 1.0);
+                    self.schedule[slot_of(slot)] = Schedule::new(Instant::now());
                 }
             }
             Command::Release { slot } => {
@@ -390,19 +400,20 @@ impl TickCore {
                 continue;
             }
             active += 1;
-            let clock = self.clock[i].get_or_insert(SlotClock { last: now, tokens: 1.0 });
+            let sched = &mut self.schedule[i];
+            let clock = sched.clock.get_or_insert(SlotClock { last: now, tokens: 1.0 });
             let elapsed = now.saturating_duration_since(clock.last).as_secs_f64() / period_s;
             // Periods owed since the last tick (uncapped: 2 or more means whole periods missed).
             let owed = clock.tokens + elapsed;
             if s.poll_pose() {
-                self.seen[i] = now;
-                self.arrivals[i].0 += 1;
+                sched.seen = now;
+                sched.arrivals += 1;
             }
             let fresh = s.pose_pending();
-            let timer = timer_until(self.streaming[i], clock.tokens, elapsed);
+            let timer = timer_until(sched.streaming, clock.tokens, elapsed);
             // A fresh pose counts time slightly fast, so the slot's phase drifts onto the pose's;
             // not for a client sending faster than 1 kHz, which would take all of the 2 %.
-            let lock = if self.arrivals[i].1 > FAST_CLIENT_POSES_PER_TICK { 1.0 } else { LOCK_RATE };
+            let lock = if sched.poses_per_tick > FAST_CLIENT_POSES_PER_TICK { 1.0 } else { LOCK_RATE };
             let have = if fresh { clock.tokens + elapsed * lock } else { owed };
             let until = if fresh {
                 let short = (1.0 - EARLY_PERIODS - have) / lock;
@@ -411,7 +422,7 @@ impl TickCore {
                 // in phase, ticks the moment it arrives. Judged as of the pose's arrival (`short`
                 // then was `short + waited`), so how often the thread looks changes nothing: a
                 // spinning thread would otherwise tick every deferred pose once `short` shrank.
-                let waited = now.saturating_duration_since(self.seen[i]).as_secs_f64() / period_s;
+                let waited = now.saturating_duration_since(sched.seen).as_secs_f64() / period_s;
                 if short + waited <= MAX_POSE_WAIT_PERIODS {
                     short
                 } else {
@@ -437,11 +448,10 @@ impl TickCore {
                 stats.pose_to_tick.record(now.saturating_duration_since(t).as_nanos() as u64);
             }
             ticked += 1;
-            let (count, rate) = &mut self.arrivals[i];
-            *rate += POSE_RATE_WEIGHT * (f64::from(*count) - *rate);
-            *count = 0;
             *clock = SlotClock { last: now, tokens: have.min(MAX_TOKENS) - 1.0 };
-            self.streaming[i] = fresh;
+            sched.poses_per_tick += POSE_RATE_WEIGHT * (f64::from(sched.arrivals) - sched.poses_per_tick);
+            sched.arrivals = 0;
+            sched.streaming = fresh;
             next = next.min(now + ceil_us(timer_until(fresh, clock.tokens, 0.0) * period_s));
         }
         self.stats.sessions.store(active, Ordering::Relaxed);
