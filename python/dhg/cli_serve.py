@@ -215,7 +215,6 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 flush=True,
             )
             if running.engine is not None:
-                time.sleep(0.01)  # the tick thread reports its scheduling as it starts
                 hint = serve.scheduling_hint(running.engine.health(), os.cpu_count() or 1)
                 if hint:
                     print(f"note: {hint}", flush=True)

@@ -499,6 +499,8 @@ impl TickThread {
     pub fn spawn(mut core: TickCore, notify: Option<Thread>, wait: WaitMode) -> SimResult<Self> {
         let stop = Arc::new(AtomicBool::new(false));
         let flag = stop.clone();
+        // Returns once the thread knows its scheduling, so the health report is right at once.
+        let (ready_tx, ready_rx) = std::sync::mpsc::sync_channel::<()>(1);
         let handle = thread::Builder::new()
             .name("dhg-tick".into())
             .spawn(move || {
@@ -506,6 +508,7 @@ impl TickThread {
                 // default) would stop a spinning SCHED_FIFO thread for 50 ms every second.
                 let rt = wait == WaitMode::Sleep && realtime::promote();
                 core.stats.realtime.store(u64::from(rt), Ordering::Relaxed);
+                let _ = ready_tx.send(());
                 let mut wake = Instant::now();
                 while !flag.load(Ordering::Relaxed) {
                     let now = Instant::now();
@@ -535,6 +538,7 @@ impl TickThread {
                 }
             })
             .map_err(|e| SimError::Engine(format!("cannot start the tick thread: {e}")))?;
+        let _ = ready_rx.recv(); // an error means the thread ended first: nothing to wait for
         Ok(Self { stop, handle: Some(handle) })
     }
 

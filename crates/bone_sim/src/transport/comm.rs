@@ -38,13 +38,30 @@ pub(crate) struct StatsSample {
     pub(crate) pose_to_put: HistogramSnapshot,
 }
 
+impl StatsSample {
+    /// The counts since `base` (everything since start without one).
+    pub(crate) fn since(&self, base: Option<&Self>) -> Self {
+        let Some(b) = base else { return self.clone() };
+        Self {
+            at: self.at,
+            ticks: self.ticks - b.ticks,
+            missed: self.missed - b.missed,
+            lateness: self.lateness.since(&b.lateness),
+            busy: self.busy.since(&b.busy),
+            pose_to_tick: self.pose_to_tick.since(&b.pose_to_tick),
+            pose_to_put: self.pose_to_put.since(&b.pose_to_put),
+        }
+    }
+}
+
 /// Per-second samples, oldest first.
 #[derive(Debug, Default)]
 pub(crate) struct History {
     pub(crate) samples: VecDeque<StatsSample>,
 }
 
-fn sample(shared: &Shared) -> StatsSample {
+/// The tick statistics now.
+pub(crate) fn sample(shared: &Shared) -> StatsSample {
     let s = &shared.stats;
     StatsSample {
         at: Instant::now(),

@@ -252,15 +252,7 @@ fn sorted_ids(by_id: &std::collections::HashMap<String, u16>) -> Vec<&String> {
 
 /// The health report; tick quantiles cover the last `window_s` seconds (whole seconds).
 pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
-    let now = super::comm::StatsSample {
-        at: std::time::Instant::now(),
-        ticks: shared.stats.ticks.load(Ordering::Relaxed),
-        missed: shared.stats.missed.load(Ordering::Relaxed),
-        lateness: shared.stats.lateness.snapshot(),
-        busy: shared.stats.busy.snapshot(),
-        pose_to_tick: shared.stats.pose_to_tick.snapshot(),
-        pose_to_put: shared.stats.pose_to_put.snapshot(),
-    };
+    let now = super::comm::sample(shared);
     let (window, base) = {
         let h = lock(&shared.history);
         let back = (window_s.max(1.0).round() as usize).min(h.samples.len());
@@ -269,24 +261,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
             _ => (shared.started.elapsed().as_secs_f64(), None),
         }
     };
-    let (late, busy, to_tick, put, ticks, missed) = match &base {
-        Some(b) => (
-            now.lateness.since(&b.lateness),
-            now.busy.since(&b.busy),
-            now.pose_to_tick.since(&b.pose_to_tick),
-            now.pose_to_put.since(&b.pose_to_put),
-            now.ticks - b.ticks,
-            now.missed - b.missed,
-        ),
-        None => (
-            now.lateness.clone(),
-            now.busy.clone(),
-            now.pose_to_tick.clone(),
-            now.pose_to_put.clone(),
-            now.ticks,
-            now.missed,
-        ),
-    };
+    let d = now.since(base.as_ref());
     let model = lock(&shared.model);
     let mut lat: Vec<f64> = model.latencies_s.iter().copied().collect();
     lat.sort_by(f64::total_cmp);
@@ -300,19 +275,19 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
         "session_ids": sorted_ids(&reg.by_id),
         "max_sessions": reg.slots.len(),
         "window_s": window,
-        "ticks": ticks,
-        "missed_ticks": missed,
+        "ticks": d.ticks,
+        "missed_ticks": d.missed,
         "missed_ticks_total": now.missed,
-        "tick_lateness_p50_s": late.quantile_s(0.5),
-        "tick_lateness_p99_s": late.quantile_s(0.99),
-        "tick_lateness_p999_s": late.quantile_s(0.999),
-        "tick_busy_p99_s": busy.quantile_s(0.99),
-        "pose_to_tick_p50_s": to_tick.quantile_s(0.5),
-        "pose_to_tick_p99_s": to_tick.quantile_s(0.99),
-        "pose_to_tick_p999_s": to_tick.quantile_s(0.999),
-        "pose_to_put_p50_s": put.quantile_s(0.5),
-        "pose_to_put_p99_s": put.quantile_s(0.99),
-        "pose_to_put_p999_s": put.quantile_s(0.999),
+        "tick_lateness_p50_s": d.lateness.quantile_s(0.5),
+        "tick_lateness_p99_s": d.lateness.quantile_s(0.99),
+        "tick_lateness_p999_s": d.lateness.quantile_s(0.999),
+        "tick_busy_p99_s": d.busy.quantile_s(0.99),
+        "pose_to_tick_p50_s": d.pose_to_tick.quantile_s(0.5),
+        "pose_to_tick_p99_s": d.pose_to_tick.quantile_s(0.99),
+        "pose_to_tick_p999_s": d.pose_to_tick.quantile_s(0.999),
+        "pose_to_put_p50_s": d.pose_to_put.quantile_s(0.5),
+        "pose_to_put_p99_s": d.pose_to_put.quantile_s(0.99),
+        "pose_to_put_p999_s": d.pose_to_put.quantile_s(0.999),
         "tick_lateness_max_s": n(&shared.stats.max_lateness_ns) as f64 * 1e-9,
         "dropped_outputs": n(&shared.stats.dropped_outputs),
         "tick_realtime": n(&shared.stats.realtime) == 1,
