@@ -37,6 +37,9 @@ def main() -> None:
         help="Zenoh's low-latency transport (no QoS) on both sides: a put is written by the calling thread",
     )
     args = p.parse_args()
+    conf_dir = tempfile.TemporaryDirectory()
+    conf = Path(conf_dir.name) / "lowlatency.json5"
+    conf.write_text(json.dumps({"scouting": {"multicast": {"enabled": False}}, "transport": LOWLATENCY}))
     for n in (int(c) for c in args.clients.split(",")):
         endpoint = f"tcp/127.0.0.1:{free_port()}"
         serve_args = ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30",
@@ -45,8 +48,6 @@ def main() -> None:
             serve_args += ["--device", args.device]
         load_args = ["--lowlatency"] if args.lowlatency else []
         if args.lowlatency:
-            conf = Path(tempfile.mkdtemp()) / "lowlatency.json5"
-            conf.write_text(json.dumps({"scouting": {"multicast": {"enabled": False}}, "transport": LOWLATENCY}))
             serve_args += ["--zenoh-config", str(conf)]
         server = ServerProcess(serve_args, echo=False)
         try:
@@ -72,6 +73,7 @@ def main() -> None:
         if args.out:
             with open(args.out, "a") as fh:
                 fh.write(line + "\n")
+    conf_dir.cleanup()
 
 
 if __name__ == "__main__":
