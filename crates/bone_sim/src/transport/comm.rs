@@ -94,6 +94,8 @@ struct Comm {
     shared: Arc<Shared>,
     outlets: Vec<Option<Outlet>>,
     querier: zenoh::query::Querier<'static>,
+    /// Outputs other than forces, handled once every waiting force is out.
+    later: VecDeque<Output>,
 }
 
 impl Comm {
@@ -254,15 +256,37 @@ impl Comm {
                 // The tick thread unparks this thread after each wake-up that produced output.
                 thread::park_timeout(Duration::from_millis(5));
             }
-            while let Ok(out) = outputs.pop() {
-                self.handle(out);
-            }
+            let mut later = std::mem::take(&mut self.later);
+            drain_forces_first(&mut outputs, &mut later, |out| self.handle(out));
+            self.later = later;
             if Instant::now() >= next_housekeeping {
                 self.housekeeping();
                 next_housekeeping += Duration::from_secs(1);
             }
         }
         self.outlets.clear();
+    }
+}
+
+/// Handles every output in `outputs`, forces first: a state's model query or a guidance message
+/// takes tens of µs (up to ms), and a force queued behind it would wait for it. So every waiting
+/// force, including those that arrive meanwhile, goes out before each of the other outputs, which
+/// wait in `later` (kept across calls, so its capacity is reused).
+fn drain_forces_first(
+    outputs: &mut rtrb::Consumer<Output>,
+    later: &mut VecDeque<Output>,
+    mut handle: impl FnMut(Output),
+) {
+    loop {
+        while let Ok(out) = outputs.pop() {
+            if matches!(out, Output::Force { .. }) {
+                handle(out);
+            } else {
+                later.push_back(out);
+            }
+        }
+        let Some(out) = later.pop_front() else { return };
+        handle(out);
     }
 }
 
@@ -281,9 +305,51 @@ pub(crate) fn spawn(
         .wait()
         .map_err(|e| SimError::Transport(format!("cannot declare the model querier: {e}")))?;
     let slots = lock(&shared.registry).slots.len();
-    let mut comm = Comm { session, shared, outlets: (0..slots).map(|_| None).collect(), querier };
+    let later = VecDeque::with_capacity(4 * slots);
+    let mut comm = Comm { session, shared, outlets: (0..slots).map(|_| None).collect(), querier, later };
     thread::Builder::new()
         .name("dhg-comm".into())
         .spawn(move || comm.run(outputs, wait))
         .map_err(|e| SimError::Engine(format!("cannot start the comm thread: {e}")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::ForceMsg;
+
+    fn force(slot: u16) -> Output {
+        Output::Force { slot, generation: 1, msg: ForceMsg::default(), received: None }
+    }
+
+    fn other(slot: u16) -> Output {
+        Output::Snapshot { slot, generation: 1 }
+    }
+
+    fn name(out: &Output) -> String {
+        match out {
+            Output::Force { slot, .. } => format!("F{slot}"),
+            Output::Snapshot { slot, .. } => format!("S{slot}"),
+            _ => "?".into(),
+        }
+    }
+
+    #[test]
+    fn forces_go_out_before_other_outputs_even_those_that_arrive_meanwhile() {
+        let (mut tx, mut rx) = rtrb::RingBuffer::new(16);
+        for out in [other(0), force(1), other(2), force(3)] {
+            tx.push(out).unwrap();
+        }
+        let mut later = VecDeque::new();
+        let mut order = Vec::new();
+        drain_forces_first(&mut rx, &mut later, |out| {
+            // While the first slow output is handled, the tick thread emits another force.
+            if matches!(out, Output::Snapshot { slot: 0, .. }) {
+                tx.push(force(4)).unwrap();
+            }
+            order.push(name(&out));
+        });
+        assert_eq!(order, ["F1", "F3", "S0", "F4", "S2"]);
+        assert!(later.is_empty() && rx.is_empty());
+    }
 }
