@@ -94,8 +94,6 @@ struct Comm {
     shared: Arc<Shared>,
     outlets: Vec<Option<Outlet>>,
     querier: zenoh::query::Querier<'static>,
-    /// Outputs other than forces, handled once every waiting force is out.
-    later: VecDeque<Output>,
 }
 
 impl Comm {
@@ -249,6 +247,8 @@ impl Comm {
 
     fn run(&mut self, mut outputs: rtrb::Consumer<Output>, wait: WaitMode) {
         let mut next_housekeeping = Instant::now();
+        // Outputs other than forces, handled once every waiting force is out.
+        let mut later = VecDeque::with_capacity(4 * self.outlets.len());
         while !self.shared.stopping.load(Ordering::Acquire) {
             if wait == WaitMode::Spin && self.shared.stats.sessions.load(Ordering::Relaxed) > 0 {
                 std::hint::spin_loop();
@@ -256,9 +256,7 @@ impl Comm {
                 // The tick thread unparks this thread after each wake-up that produced output.
                 thread::park_timeout(Duration::from_millis(5));
             }
-            let mut later = std::mem::take(&mut self.later);
             drain_forces_first(&mut outputs, &mut later, |out| self.handle(out));
-            self.later = later;
             if Instant::now() >= next_housekeeping {
                 self.housekeeping();
                 next_housekeeping += Duration::from_secs(1);
@@ -305,8 +303,7 @@ pub(crate) fn spawn(
         .wait()
         .map_err(|e| SimError::Transport(format!("cannot declare the model querier: {e}")))?;
     let slots = lock(&shared.registry).slots.len();
-    let later = VecDeque::with_capacity(4 * slots);
-    let mut comm = Comm { session, shared, outlets: (0..slots).map(|_| None).collect(), querier, later };
+    let mut comm = Comm { session, shared, outlets: (0..slots).map(|_| None).collect(), querier };
     thread::Builder::new()
         .name("dhg-comm".into())
         .spawn(move || comm.run(outputs, wait))
