@@ -8,7 +8,7 @@ mod common;
 use std::sync::atomic::Ordering;
 
 use bone_sim::engine::handoff::{Command, Output, PoseSample};
-use bone_sim::engine::{build, EngineConfig, EngineLink, TickCore, TickThread, WaitMode};
+use bone_sim::engine::{build, EngineConfig, EngineLink, TickCore, TickThread, WaitMode, GRACE_PERIODS};
 use bone_sim::protocol::flags;
 use bone_sim::{Layer, PlannedPath, Pose};
 use common::{slab, H};
@@ -358,20 +358,29 @@ mod schedule {
     }
 
     #[test]
-    fn a_late_pose_is_waited_for_briefly() {
+    fn a_late_pose_is_waited_for_and_ticks_as_it_arrives() {
         let (mut core, mut link, surface, t0) = started();
+        let grace = MS.mul_f64(GRACE_PERIODS);
+        let almost = grace.saturating_sub(us(50));
         send(&mut link, 0, 1, 1, surface - 1e-3);
-        assert_eq!(core.tick_due(t0 + MS).0, 1); // fresh: the client is streaming now
-                                                 // A period later no new pose yet: wait up to the grace (0.3 ms) for it.
+        // A fresh pose: the client is streaming now.
+        assert_eq!(core.tick_due(t0 + MS).0, 1);
+        // A period later no new pose yet: wait up to the grace for it.
         let (n, next) = core.tick_due(t0 + 2 * MS);
         assert_eq!(n, 0);
-        assert!(next > t0 + 2 * MS + us(250) && next <= t0 + 2 * MS + us(300), "{:?}", next - t0);
+        assert!(next > t0 + 2 * MS + almost && next <= t0 + 2 * MS + grace, "{:?}", next - t0);
+        // It comes 0.9 ms late: it ticks as it arrives.
         send(&mut link, 0, 1, 2, surface - 1e-3);
-        assert_eq!(core.tick_due(t0 + 2 * MS + us(200)).0, 1);
+        assert_eq!(core.tick_due(t0 + 2 * MS + us(900)).0, 1);
         assert_eq!(forces(&drain(&mut link)).last().unwrap().pose_seq, 2);
         // Without a pose it ticks anyway, once a period plus the grace is due.
-        assert_eq!(core.tick_due(t0 + 3 * MS + us(100)).0, 0);
-        assert_eq!(core.tick_due(t0 + 3 * MS + us(500)).0, 1);
+        let last = t0 + 2 * MS + us(900);
+        assert_eq!(core.tick_due(last + MS + almost).0, 0);
+        assert_eq!(core.tick_due(last + MS + grace).0, 1);
+        // The grace was banked: a pose that is late past it still ticks the moment it arrives.
+        send(&mut link, 0, 1, 3, surface - 1e-3);
+        assert_eq!(core.tick_due(last + MS + grace + us(100)).0, 1);
+        assert_eq!(forces(&drain(&mut link)).last().unwrap().pose_seq, 3);
     }
 
     #[test]
@@ -389,7 +398,7 @@ mod schedule {
         let h = link.stats.pose_to_tick.snapshot();
         assert_eq!(h.total(), 1);
         assert!((h.quantile_s(0.5) - 110e-6).abs() < 1e-12, "100 µs lands in the 100-110 µs bucket");
-        assert_eq!(core.tick_due(t0 + us(2300)).0, 1); // no fresh pose (after the grace): nothing to time
+        assert_eq!(core.tick_due(t0 + us(3100)).0, 1); // no fresh pose (after the grace): nothing to time
         assert_eq!(link.stats.pose_to_tick.snapshot().total(), 1);
     }
 
@@ -489,6 +498,80 @@ mod schedule {
         eprintln!("{ticks} ticks in 10 000 periods; {at_once} of 10 000 poses ticked within 5 µs");
         assert!((9_990..=10_002).contains(&ticks), "{ticks} ticks in 10 000 periods: the session's clock drifted");
         assert!(at_once >= 9_000, "only {at_once} of 10 000 poses ticked on arrival");
+    }
+
+    /// Replays arrivals (µs after the start) through the tick thread's loop: the thread wakes
+    /// when the engine asks or when a pose arrives. Returns (ticks, periods, waits): `waits` holds,
+    /// for each pose that got a tick of its own, the time from its arrival to that tick (s).
+    fn replay(arrivals_us: &[u64]) -> (u64, f64, Vec<f64>) {
+        let (mut core, mut link, surface, t0) = started();
+        let end = t0 + us(*arrivals_us.last().unwrap());
+        let (mut ticks, mut k, mut wake, mut waiting) = (1u64, 0usize, t0 + MS, None);
+        let mut waits = Vec::with_capacity(arrivals_us.len());
+        loop {
+            let arrival = arrivals_us.get(k).map(|&a| t0 + us(a));
+            let now = arrival.filter(|&a| a <= wake).unwrap_or(wake);
+            if now > end {
+                break;
+            }
+            while k < arrivals_us.len() && t0 + us(arrivals_us[k]) <= now {
+                send(&mut link, 0, 1, k as u32 + 1, surface - 1e-3);
+                waiting = Some(t0 + us(arrivals_us[k])); // a newer pose supersedes a waiting one
+                k += 1;
+            }
+            let (n, next) = core.tick_due(now);
+            ticks += u64::from(n);
+            if n > 0 {
+                if let Some(a) = waiting.take() {
+                    waits.push(now.duration_since(a).as_secs_f64());
+                }
+            }
+            wake = next;
+            drain(&mut link);
+        }
+        (ticks, end.duration_since(t0).as_secs_f64() / 1e-3, waits)
+    }
+
+    #[test]
+    fn poses_of_a_recorded_busy_host_tick_at_1_khz_and_wait_little() {
+        // Arrival gaps of two of 16 load-tool clients at `dhg-serve` on a 2-core VM: 5 % of gaps
+        // are over 1.37 ms and 5 % under 0.46 ms. With a 0.3-period grace and 0.3 periods of
+        // waiting for the budget, 6 % of these poses got no tick of their own and the 99th
+        // percentile waited 1.03 ms for its tick (the live server reported 1.1 ms); now 4 % and
+        // 0.43 ms. The 99.9th percentile grew from 1.28 to 1.9 ms: an out-of-phase pose may now
+        // wait for the longer grace.
+        let text = include_str!("data/pose_arrivals_16_clients_2_cores.txt");
+        let mut all = Vec::new();
+        for line in text.lines().filter(|l| !l.starts_with('#')) {
+            let mut t = 1_000;
+            let arrivals: Vec<u64> = line
+                .split_whitespace()
+                .map(|g| {
+                    t += g.parse::<u64>().unwrap();
+                    t
+                })
+                .collect();
+            let (ticks, periods, waits) = replay(&arrivals);
+            let rate = ticks as f64 / periods;
+            let own = waits.len() as f64 / arrivals.len() as f64;
+            eprintln!(
+                "{} poses: {ticks} ticks in {periods:.0} periods, {:.1} % ticked on their own",
+                arrivals.len(),
+                own * 100.0
+            );
+            assert!(
+                (0.999..=1.001).contains(&rate),
+                "{ticks} ticks in {periods:.0} periods: the session's clock drifted"
+            );
+            assert!(own >= 0.94, "only {:.1} % of the poses got a tick of their own", own * 100.0);
+            all.extend(waits);
+        }
+        all.sort_by(f64::total_cmp);
+        let q = |p: f64| all[((all.len() - 1) as f64 * p) as usize] * 1e3;
+        eprintln!("wait for the tick: p50 {:.3} ms, p99 {:.3} ms, p99.9 {:.3} ms", q(0.5), q(0.99), q(0.999));
+        assert!(q(0.5) < 0.01, "median wait {:.3} ms", q(0.5));
+        assert!(q(0.99) < 0.6, "99th percentile wait {:.3} ms", q(0.99));
+        assert!(q(0.999) <= 2.0 + 1e-3, "99.9th percentile wait {:.3} ms: longer than the grace", q(0.999));
     }
 
     #[test]
