@@ -4,7 +4,9 @@ with a clear error, and it stops cleanly (no Zenoh peers involved beyond loopbac
 from __future__ import annotations
 
 import itertools
+import platform
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -65,6 +67,61 @@ def test_a_spinning_engine_serves_a_zenoh_client_says_so_sleeps_when_idle_and_st
     finally:
         srv.stop()
     assert not srv.running
+
+
+def _slices_ns(prefixes: tuple[str, ...]) -> dict[str, int | None]:
+    """Threads of this process named with one of ``prefixes`` → the EEVDF slice (ns) the kernel
+    reports for each (``None`` where it reports none: kernels before 6.6)."""
+    out: dict[str, int | None] = {}
+    for task in Path("/proc/self/task").iterdir():
+        name = (task / "comm").read_text().strip()
+        if name.startswith(prefixes):
+            line = next((ln for ln in (task / "sched").read_text().splitlines() if ln.startswith("se.slice")), None)
+            out[f"{name}/{task.name}"] = int(line.split(":")[1]) if line else None
+    return out
+
+
+def _kernel_at_least(major: int, minor: int) -> bool:
+    """Whether this Linux kernel is ``major.minor`` or later."""
+    release = platform.release().split("-")[0].split(".")
+    try:
+        return (int(release[0]), int(release[1])) >= (major, minor)
+    except (IndexError, ValueError):
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads /proc (Linux)")
+def test_the_short_slices_reported_are_the_ones_the_kernel_gave(coarse_phantom):
+    # The comm thread and Zenoh's I/O threads ask for a 0.1 ms slice (no privilege needed on
+    # Linux 6.12+); the tick thread too when it has no SCHED_FIFO. Health must say what happened.
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    conf = serve.zenoh_config_json5([endpoint], mode="router")
+    srv = serve.start_engine(coarse_phantom.volume, coarse_phantom.path, conf, serve.ServerSettings())
+    try:
+        assert set(srv.health()["short_slices"]) == {"tick", "comm", "zenoh_io"}
+        with TraineeClient(endpoint, "slices-1") as c:
+            a = np.array(c.create()["entry_m"])
+            for _ in range(50):
+                c.send_pose(a - [0.0, 0.0, 5e-3], (1.0, 0.0, 0.0, 0.0), False, 0.0)
+                time.sleep(1e-3)
+            time.sleep(1.2)  # the comm thread looks for new I/O threads once a second
+            health = srv.health()
+            threads = _slices_ns(("dhg-comm", "dhg-tick", "rx-", "tx-"))
+    finally:
+        srv.stop()
+    h = health["short_slices"]
+    print(h, threads)
+    comm = [v for k, v in threads.items() if k.startswith("dhg-comm/")]
+    assert len(comm) == 1
+    if _kernel_at_least(6, 12):  # custom slices exist: they must have been asked for
+        assert h["comm"] and comm[0] == 100_000
+    if comm[0] is not None:  # the kernel shows slices: the report must match them
+        assert h["comm"] == (comm[0] == 100_000)
+        io = [v for k, v in threads.items() if k.startswith(("rx-", "tx-"))]
+        assert h["zenoh_io"] == sum(v == 100_000 for v in io)
+        if h["comm"]:
+            assert h["zenoh_io"] >= 2, "Zenoh's receive and transmit threads were not found"
+    assert not (health["tick_realtime"] and h["tick"]), "a SCHED_FIFO tick thread must not be moved to the fair class"
 
 
 def test_sessions_are_limited_and_controlled(engine):

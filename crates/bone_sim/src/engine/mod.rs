@@ -26,7 +26,7 @@
 
 pub mod guidance;
 pub mod handoff;
-mod realtime;
+pub(crate) mod realtime;
 mod slot;
 pub mod stats;
 
@@ -514,6 +514,9 @@ impl TickThread {
                 // default) would stop a spinning SCHED_FIFO thread for 50 ms every second.
                 let rt = wait == WaitMode::Sleep && realtime::promote();
                 core.stats.realtime.store(u64::from(rt), Ordering::Relaxed);
+                // Without it, at least preempt a longer-sliced thread on waking (no privilege).
+                let slice = !rt && realtime::short_slice(0);
+                core.stats.short_slice.store(u64::from(slice), Ordering::Relaxed);
                 let _ = ready_tx.send(());
                 let mut wake = Instant::now();
                 while !flag.load(Ordering::Relaxed) {

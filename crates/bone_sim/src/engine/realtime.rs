@@ -1,25 +1,134 @@
-//! Best-effort real-time scheduling of the tick thread.
+//! Best-effort scheduling of the server's latency-critical threads.
 //!
 //! With `SCHED_FIFO` the tick thread preempts the Zenoh, Python and model threads when its
 //! deadline comes, which is what keeps missed ticks at zero on a loaded machine. It needs
 //! `CAP_SYS_NICE` (or an `rtprio` limit); without it the thread keeps normal scheduling and the
 //! health report says so.
+//!
+//! Without privilege, a thread can still ask Linux's EEVDF scheduler (6.12 and later) for a
+//! short time slice: it keeps its normal policy and fair share, but when it wakes it preempts a
+//! running thread with a longer slice instead of waiting out that thread's slice (up to a few
+//! ms on a busy machine). The server asks for it for the tick thread (when it has no
+//! `SCHED_FIFO`), the thread that publishes the forces, and Zenoh's I/O threads.
 
 /// `SCHED_FIFO` priority: above ordinary real-time helpers, below the kernel's own (99).
 #[cfg(target_os = "linux")]
 const FIFO_PRIORITY: i32 = 80;
 
+/// The slice asked for (ns): 0.1 ms, the shortest the kernel grants (the default is 0.7 ms
+/// times 1 + log2 of the core count, up to 2.8 ms).
+pub const LATENCY_SLICE_NS: u64 = 100_000;
+
 /// Asks for `SCHED_FIFO` for the calling thread; returns whether it was granted.
 #[cfg(target_os = "linux")]
-#[allow(unsafe_code)] // the one FFI call of the core: libc has no safe wrapper for it
+#[allow(unsafe_code)] // libc has no safe wrapper for these calls
 pub(crate) fn promote() -> bool {
     let param = libc::sched_param { sched_priority: FIFO_PRIORITY };
     // SAFETY: `param` is a valid sched_param; pid 0 names the calling thread.
     unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &raw const param) == 0 }
 }
 
+/// Asks for a [`LATENCY_SLICE_NS`] slice for thread `tid` of this process (0: the calling
+/// thread), keeping normal scheduling. Returns whether the kernel now reports that slice: older
+/// kernels accept the request and ignore it, so it is read back.
+#[cfg(target_os = "linux")]
+#[allow(unsafe_code)]
+pub(crate) fn short_slice(tid: i32) -> bool {
+    let size = std::mem::size_of::<libc::sched_attr>() as u32;
+    // SAFETY: sched_attr is plain data, and all zeros is a valid value (SCHED_OTHER, nice 0).
+    let mut attr: libc::sched_attr = unsafe { std::mem::zeroed() };
+    attr.size = size;
+    attr.sched_policy = libc::SCHED_OTHER as u32;
+    attr.sched_runtime = LATENCY_SLICE_NS;
+    // SAFETY: `attr` is a fully initialised sched_attr of `size` bytes that outlives the call.
+    if unsafe { libc::syscall(libc::SYS_sched_setattr, tid, &raw const attr, 0) } != 0 {
+        return false;
+    }
+    // SAFETY: as above; the kernel writes at most `size` bytes into `back`.
+    let mut back: libc::sched_attr = unsafe { std::mem::zeroed() };
+    let read = unsafe { libc::syscall(libc::SYS_sched_getattr, tid, &raw mut back, size, 0) };
+    read == 0 && back.sched_runtime == LATENCY_SLICE_NS
+}
+
+/// Asks for the short slice for every thread of this process whose name starts with one of
+/// `prefixes`; returns how many have it. Reads `/proc/self/task`: not for a real-time path.
+#[cfg(target_os = "linux")]
+pub(crate) fn short_slice_named(prefixes: &[&str]) -> usize {
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else { return 0 };
+    tasks
+        .flatten()
+        .filter(|task| {
+            let name = std::fs::read_to_string(task.path().join("comm")).unwrap_or_default();
+            prefixes.iter().any(|p| name.starts_with(p))
+        })
+        .filter_map(|task| task.file_name().to_str()?.parse::<i32>().ok())
+        .filter(|&tid| short_slice(tid))
+        .count()
+}
+
 /// Other systems: normal scheduling.
 #[cfg(not(target_os = "linux"))]
 pub(crate) fn promote() -> bool {
     false
+}
+
+/// Other systems: nothing to ask for.
+#[cfg(not(target_os = "linux"))]
+pub(crate) fn short_slice(_tid: i32) -> bool {
+    false
+}
+
+/// Other systems: nothing to ask for.
+#[cfg(not(target_os = "linux"))]
+pub(crate) fn short_slice_named(_prefixes: &[&str]) -> usize {
+    0
+}
+
+#[cfg(all(test, target_os = "linux"))]
+mod tests {
+    use super::*;
+
+    /// The slice the kernel reports for the calling thread, where it reports one (6.6 and later).
+    fn reported_slice_ns() -> Option<u64> {
+        let sched = std::fs::read_to_string("/proc/thread-self/sched").ok()?;
+        let line = sched.lines().find(|l| l.starts_with("se.slice"))?;
+        line.split(':').nth(1)?.trim().parse().ok()
+    }
+
+    #[test]
+    fn a_granted_short_slice_is_the_one_the_kernel_reports() {
+        std::thread::spawn(|| {
+            let before = reported_slice_ns();
+            let granted = short_slice(0);
+            eprintln!("slice before {before:?} ns, granted: {granted}, now {:?} ns", reported_slice_ns());
+            if granted {
+                if let Some(now) = reported_slice_ns() {
+                    assert_eq!(now, LATENCY_SLICE_NS);
+                }
+            }
+        })
+        .join()
+        .unwrap();
+    }
+
+    #[test]
+    fn threads_are_found_by_name() {
+        let (tx, rx) = std::sync::mpsc::channel::<()>();
+        let (started_tx, started) = std::sync::mpsc::channel::<()>();
+        // The thread names itself as it starts: scan once it has.
+        let t = std::thread::Builder::new()
+            .name("dhg-slice-test".into())
+            .spawn(move || {
+                started_tx.send(()).unwrap();
+                rx.recv()
+            })
+            .unwrap();
+        started.recv().unwrap();
+        let here = short_slice(0);
+        let n = short_slice_named(&["dhg-slice-te"]);
+        assert_eq!(n, usize::from(here), "the kernel grants it to one thread iff to all");
+        assert_eq!(short_slice_named(&["no-such-thread-"]), 0);
+        tx.send(()).unwrap();
+        t.join().unwrap().unwrap();
+    }
 }

@@ -94,6 +94,9 @@ pub struct TickStats {
     pub dropped_outputs: AtomicU64,
     /// Whether the tick thread got real-time scheduling (`SCHED_FIFO`); 0 = no, 1 = yes.
     pub realtime: AtomicU64,
+    /// Whether the tick thread, without `SCHED_FIFO`, got the short EEVDF slice
+    /// (`realtime::LATENCY_SLICE_NS`); 0 = no, 1 = yes.
+    pub short_slice: AtomicU64,
     /// From a pose's arrival in the subscriber to the tick that used it (10 µs buckets): the
     /// handoff, the tick thread's wake-up, and any wait for the slot's budget.
     pub pose_to_tick: Histogram,
@@ -113,6 +116,7 @@ impl Default for TickStats {
             sessions: AtomicU64::new(0),
             dropped_outputs: AtomicU64::new(0),
             realtime: AtomicU64::new(0),
+            short_slice: AtomicU64::new(0),
             pose_to_tick: Histogram::new(10_000),
             pose_to_put: Histogram::new(10_000),
         }

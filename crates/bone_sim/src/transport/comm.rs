@@ -15,6 +15,7 @@ use zenoh::Wait;
 
 use super::{lock, Shared};
 use crate::engine::handoff::{Command, Output};
+use crate::engine::realtime;
 use crate::engine::stats::HistogramSnapshot;
 use crate::engine::WaitMode;
 use crate::error::{SimError, SimResult};
@@ -25,6 +26,9 @@ use crate::record::FEATURE_COUNT;
 const HISTORY_S: usize = 600;
 /// Model round trips kept for the latency quantiles.
 const LATENCIES_KEPT: usize = 2000;
+/// Zenoh's I/O threads (zenoh-runtime names its workers `<runtime>-<n>`): receive (the pose
+/// subscriber runs on them) and transmit (they write the forces to the sockets).
+const ZENOH_IO_THREADS: [&str; 2] = ["rx-", "tx-"];
 
 /// One second's cumulative tick statistics.
 #[derive(Debug, Clone)]
@@ -233,7 +237,15 @@ impl Comm {
         }
     }
 
-    fn housekeeping(&mut self) {
+    /// Once a second: the health history, idle sessions, and (when the number of sessions has
+    /// changed) the short slice for Zenoh's I/O threads, which it starts as links come up.
+    fn housekeeping(&mut self, io_sessions: &mut Option<u64>) {
+        let sessions = self.shared.stats.sessions.load(Ordering::Relaxed);
+        if *io_sessions != Some(sessions) {
+            *io_sessions = Some(sessions);
+            let n = realtime::short_slice_named(&ZENOH_IO_THREADS);
+            self.shared.counters.io_short_slices.store(n as u64, Ordering::Relaxed);
+        }
         let s = sample(&self.shared);
         let mut h = lock(&self.shared.history);
         if h.samples.len() == HISTORY_S {
@@ -246,6 +258,10 @@ impl Comm {
     }
 
     fn run(&mut self, mut outputs: rtrb::Consumer<Output>, wait: WaitMode) {
+        // A force waits for this thread's wake-up: preempt longer-sliced threads (no privilege).
+        let slice = realtime::short_slice(0);
+        self.shared.counters.comm_short_slice.store(u64::from(slice), Ordering::Relaxed);
+        let mut io_sessions = None;
         let mut next_housekeeping = Instant::now();
         // Outputs other than forces, handled once every waiting force is out.
         let mut later = VecDeque::with_capacity(4 * self.outlets.len());
@@ -258,7 +274,7 @@ impl Comm {
             }
             drain_forces_first(&mut outputs, &mut later, |out| self.handle(out));
             if Instant::now() >= next_housekeeping {
-                self.housekeeping();
+                self.housekeeping(&mut io_sessions);
                 next_housekeeping += Duration::from_secs(1);
             }
         }

@@ -291,6 +291,11 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
         "tick_lateness_max_s": n(&shared.stats.max_lateness_ns) as f64 * 1e-9,
         "dropped_outputs": n(&shared.stats.dropped_outputs),
         "tick_realtime": n(&shared.stats.realtime) == 1,
+        "short_slices": {
+            "tick": n(&shared.stats.short_slice) == 1,
+            "comm": n(&c.comm_short_slice) == 1,
+            "zenoh_io": n(&c.io_short_slices),
+        },
         "tick_wait": shared.wait.name(),
         "poses": n(&c.poses),
         "refused": {

@@ -88,6 +88,10 @@ pub struct Counters {
     pub model_replies: AtomicU64,
     /// Model queries that failed (error reply or bad payload).
     pub model_errors: AtomicU64,
+    /// Whether the comm thread got the short EEVDF slice (`engine::realtime`); 0 = no, 1 = yes.
+    pub comm_short_slice: AtomicU64,
+    /// Zenoh I/O threads on the short slice.
+    pub io_short_slices: AtomicU64,
 }
 
 /// Model-service statistics (comm side).
