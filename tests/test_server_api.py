@@ -207,4 +207,6 @@ def test_the_scheduling_hint_suggests_spinning_only_where_it_helps():
     many = serve.scheduling_hint(sleeping, 16)
     assert many is not None and "--wait spin" in many and "16-core" in many
     few = serve.scheduling_hint(sleeping, 2)
-    assert few is not None and "spin" not in few and "CAP_SYS_NICE" in few
+    assert few is not None and "spin" not in few and "CAP_SYS_NICE" in few and "slice" not in few
+    sliced = serve.scheduling_hint({**sleeping, "short_slices": {"tick": True, "comm": True, "zenoh_io": 4}}, 2)
+    assert sliced is not None and sliced.startswith(few) and "0.1 ms slice" in sliced
