@@ -293,6 +293,7 @@ fn run(args: &Args) -> Result<(), String> {
             / clients.len() as f64,
         "tick_realtime": health["tick_realtime"],
         "tick_wait": health["tick_wait"],
+        "short_slices": health["short_slices"],
         "server_cpu_cores": cpu,
         "client_late_sends": late_sends,
     });
