@@ -4,7 +4,7 @@ many trainees. Prints one JSON line per run (latencies in ms, server CPU in core
 
     cargo build --release -p bone_sim --example load
     python tests/benchmarks/bench_server.py --seconds 60 --clients 1,16,64 [--load PATH] [--wait spin]
-        [--device cpu] [--lowlatency]
+        [--device cpu] [--lowlatency] [--client-slices]
 """
 
 from __future__ import annotations
@@ -32,6 +32,11 @@ def main() -> None:
     p.add_argument("--wait", default="sleep", choices=("sleep", "spin"), help="dhg-serve --wait (default sleep)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="dhg-serve --device (default auto)")
     p.add_argument(
+        "--client-slices",
+        action="store_true",
+        help="the load tool's sending thread and Zenoh threads also ask for the 0.1 ms slice, as the server's do",
+    )
+    p.add_argument(
         "--lowlatency",
         action="store_true",
         help="Zenoh's low-latency transport (no QoS) on both sides: a put is written by the calling thread",
@@ -47,6 +52,8 @@ def main() -> None:
         if args.device:
             serve_args += ["--device", args.device]
         load_args = ["--lowlatency"] if args.lowlatency else []
+        if args.client_slices:
+            load_args.append("--short-slices")
         if args.lowlatency:
             serve_args += ["--zenoh-config", str(conf)]
         server = ServerProcess(serve_args, echo=False)

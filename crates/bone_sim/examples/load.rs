@@ -14,6 +14,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use bone_sim::engine::realtime;
 use bone_sim::protocol::{encode_pose, PoseMsg, FORCE, GUIDANCE};
 use bone_sim::Pose;
 use nalgebra::{Point3, UnitQuaternion, Vector3};
@@ -32,6 +33,8 @@ struct Args {
     server_pid: Option<u32>,
     /// Zenoh's low-latency transport (priorities off): each put is written by the calling thread.
     lowlatency: bool,
+    /// Give this tool's sending thread and Zenoh's I/O threads the 0.1 ms slice, as the server does.
+    short_slices: bool,
 }
 
 fn parse_args() -> Result<Args, String> {
@@ -42,6 +45,7 @@ fn parse_args() -> Result<Args, String> {
         prefix: "dhg".into(),
         server_pid: None,
         lowlatency: false,
+        short_slices: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -53,9 +57,10 @@ fn parse_args() -> Result<Args, String> {
             "--prefix" => a.prefix = value()?,
             "--server-pid" => a.server_pid = Some(value()?.parse().map_err(|e| format!("--server-pid: {e}"))?),
             "--lowlatency" => a.lowlatency = true,
+            "--short-slices" => a.short_slices = true,
             "--help" | "-h" => {
                 return Err(
-                    "usage: load [--connect ENDPOINT] [--clients N] [--seconds S] [--prefix P] [--server-pid PID] [--lowlatency]"
+                    "usage: load [--connect ENDPOINT] [--clients N] [--seconds S] [--prefix P] [--server-pid PID] [--lowlatency] [--short-slices]"
                         .into(),
                 )
             }
@@ -220,6 +225,11 @@ fn run(args: &Args) -> Result<(), String> {
         clients.push(Client { session, key: base_key, publisher, entry, dir, orientation, _subs: vec![fsub, gsub] });
     }
     eprintln!("{} clients connected; streaming for 2 s of warm-up plus {} s", clients.len(), args.seconds);
+    let client_slices = if args.short_slices {
+        usize::from(realtime::short_slice(0)) + realtime::short_slice_named(&["rx-", "tx-"])
+    } else {
+        0
+    };
     let cpu0 = args.server_pid.and_then(cpu_ticks);
     let mut measured_from = Instant::now();
     let start = Instant::now();
@@ -294,6 +304,7 @@ fn run(args: &Args) -> Result<(), String> {
         "tick_realtime": health["tick_realtime"],
         "tick_wait": health["tick_wait"],
         "short_slices": health["short_slices"],
+        "client_short_slices": client_slices,
         "server_cpu_cores": cpu,
         "client_late_sends": late_sends,
     });

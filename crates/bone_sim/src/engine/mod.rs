@@ -26,7 +26,7 @@
 
 pub mod guidance;
 pub mod handoff;
-pub(crate) mod realtime;
+pub mod realtime;
 mod slot;
 pub mod stats;
 

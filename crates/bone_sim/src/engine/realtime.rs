@@ -33,7 +33,8 @@ pub(crate) fn promote() -> bool {
 /// kernels accept the request and ignore it, so it is read back.
 #[cfg(target_os = "linux")]
 #[allow(unsafe_code)]
-pub(crate) fn short_slice(tid: i32) -> bool {
+#[must_use]
+pub fn short_slice(tid: i32) -> bool {
     let size = std::mem::size_of::<libc::sched_attr>() as u32;
     // SAFETY: sched_attr is plain data, and all zeros is a valid value (SCHED_OTHER, nice 0).
     let mut attr: libc::sched_attr = unsafe { std::mem::zeroed() };
@@ -53,7 +54,8 @@ pub(crate) fn short_slice(tid: i32) -> bool {
 /// Asks for the short slice for every thread of this process whose name starts with one of
 /// `prefixes`; returns how many have it. Reads `/proc/self/task`: not for a real-time path.
 #[cfg(target_os = "linux")]
-pub(crate) fn short_slice_named(prefixes: &[&str]) -> usize {
+#[must_use]
+pub fn short_slice_named(prefixes: &[&str]) -> usize {
     let Ok(tasks) = std::fs::read_dir("/proc/self/task") else { return 0 };
     tasks
         .flatten()
@@ -74,13 +76,15 @@ pub(crate) fn promote() -> bool {
 
 /// Other systems: nothing to ask for.
 #[cfg(not(target_os = "linux"))]
-pub(crate) fn short_slice(_tid: i32) -> bool {
+#[must_use]
+pub fn short_slice(_tid: i32) -> bool {
     false
 }
 
 /// Other systems: nothing to ask for.
 #[cfg(not(target_os = "linux"))]
-pub(crate) fn short_slice_named(_prefixes: &[&str]) -> usize {
+#[must_use]
+pub fn short_slice_named(_prefixes: &[&str]) -> usize {
     0
 }
 
