@@ -29,26 +29,33 @@ pub(crate) fn promote() -> bool {
 }
 
 /// Asks for a [`LATENCY_SLICE_NS`] slice for thread `tid` of this process (0: the calling
-/// thread), keeping normal scheduling. Returns whether the kernel now reports that slice: older
-/// kernels accept the request and ignore it, so it is read back.
+/// thread), keeping its policy and nice value. A thread under a real-time policy (the whole
+/// process started with `chrt`, say) is left alone: the request would move it to the fair
+/// class. Returns whether the kernel now reports that slice: older kernels accept the request
+/// and ignore it, so it is read back.
 #[cfg(target_os = "linux")]
 #[allow(unsafe_code)]
 #[must_use]
 pub fn short_slice(tid: i32) -> bool {
     let size = std::mem::size_of::<libc::sched_attr>() as u32;
-    // SAFETY: sched_attr is plain data, and all zeros is a valid value (SCHED_OTHER, nice 0).
+    let get = |attr: &mut libc::sched_attr| {
+        // SAFETY: `attr` is a sched_attr of `size` bytes; the kernel writes at most that many.
+        unsafe { libc::syscall(libc::SYS_sched_getattr, tid, &raw mut *attr, size, 0) == 0 }
+    };
+    // SAFETY: sched_attr is plain data, and all zeros is a valid value.
     let mut attr: libc::sched_attr = unsafe { std::mem::zeroed() };
+    let fair = [libc::SCHED_OTHER, libc::SCHED_BATCH].map(|p| p as u32);
+    if !get(&mut attr) || !fair.contains(&attr.sched_policy) {
+        return false;
+    }
     attr.size = size;
-    attr.sched_policy = libc::SCHED_OTHER as u32;
+    attr.sched_flags = 0;
     attr.sched_runtime = LATENCY_SLICE_NS;
     // SAFETY: `attr` is a fully initialised sched_attr of `size` bytes that outlives the call.
     if unsafe { libc::syscall(libc::SYS_sched_setattr, tid, &raw const attr, 0) } != 0 {
         return false;
     }
-    // SAFETY: as above; the kernel writes at most `size` bytes into `back`.
-    let mut back: libc::sched_attr = unsafe { std::mem::zeroed() };
-    let read = unsafe { libc::syscall(libc::SYS_sched_getattr, tid, &raw mut back, size, 0) };
-    read == 0 && back.sched_runtime == LATENCY_SLICE_NS
+    get(&mut attr) && attr.sched_runtime == LATENCY_SLICE_NS
 }
 
 /// Asks for the short slice for every thread of this process whose name starts with one of
@@ -109,6 +116,36 @@ mod tests {
                 if let Some(now) = reported_slice_ns() {
                     assert_eq!(now, LATENCY_SLICE_NS);
                 }
+            }
+        })
+        .join()
+        .unwrap();
+    }
+
+    #[test]
+    fn a_real_time_thread_keeps_its_policy_and_a_fair_one_its_nice_value() {
+        std::thread::spawn(|| {
+            // SAFETY: plain libc calls on the calling thread.
+            #[allow(unsafe_code)]
+            let (nice_set, policy) = unsafe {
+                let tid = libc::gettid();
+                let ok = libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, 3) == 0;
+                (ok, libc::sched_getscheduler(0))
+            };
+            assert_eq!(policy, libc::SCHED_OTHER);
+            let granted = short_slice(0);
+            // SAFETY: as above.
+            #[allow(unsafe_code)]
+            let nice = unsafe { libc::getpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t) };
+            if nice_set {
+                assert_eq!(nice, 3, "the slice request reset the thread's nice value (granted: {granted})");
+            }
+            if promote() {
+                assert!(!short_slice(0), "a SCHED_FIFO thread was offered a fair-class slice");
+                // SAFETY: as above.
+                #[allow(unsafe_code)]
+                let policy = unsafe { libc::sched_getscheduler(0) };
+                assert_eq!(policy, libc::SCHED_FIFO, "the slice request moved a SCHED_FIFO thread");
             }
         })
         .join()
