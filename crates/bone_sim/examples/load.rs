@@ -16,6 +16,7 @@ use std::time::{Duration, Instant};
 
 use bone_sim::engine::realtime;
 use bone_sim::protocol::{encode_pose, PoseMsg, FORCE, GUIDANCE};
+use bone_sim::transport::ZENOH_IO_THREADS;
 use bone_sim::Pose;
 use nalgebra::{Point3, UnitQuaternion, Vector3};
 use serde_json::{json, Value};
@@ -226,7 +227,7 @@ fn run(args: &Args) -> Result<(), String> {
     }
     eprintln!("{} clients connected; streaming for 2 s of warm-up plus {} s", clients.len(), args.seconds);
     let client_slices = if args.short_slices {
-        usize::from(realtime::short_slice(0)) + realtime::short_slice_named(&["rx-", "tx-"])
+        usize::from(realtime::short_slice(0)) + realtime::short_slice_named(&ZENOH_IO_THREADS)
     } else {
         0
     };

@@ -13,7 +13,7 @@ use zenoh::qos::{CongestionControl, Priority};
 use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::Wait;
 
-use super::{lock, Shared};
+use super::{lock, Shared, ZENOH_IO_THREADS};
 use crate::engine::handoff::{Command, Output};
 use crate::engine::realtime;
 use crate::engine::stats::HistogramSnapshot;
@@ -26,9 +26,6 @@ use crate::record::FEATURE_COUNT;
 const HISTORY_S: usize = 600;
 /// Model round trips kept for the latency quantiles.
 const LATENCIES_KEPT: usize = 2000;
-/// Zenoh's I/O threads (zenoh-runtime names its workers `<runtime>-<n>`): receive (the pose
-/// subscriber runs on them) and transmit (they write the forces to the sockets).
-const ZENOH_IO_THREADS: [&str; 2] = ["rx-", "tx-"];
 
 /// One second's cumulative tick statistics.
 #[derive(Debug, Clone)]

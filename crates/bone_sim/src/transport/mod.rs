@@ -65,6 +65,10 @@ impl ServerConfig {
     }
 }
 
+/// Name prefixes of Zenoh's I/O threads (zenoh-runtime names its workers `<runtime>-<n>`):
+/// receive (the pose subscriber runs on them) and transmit (they write the forces to the sockets).
+pub const ZENOH_IO_THREADS: [&str; 2] = ["rx-", "tx-"];
+
 /// Counts of refused input, by reason.
 #[derive(Debug, Default)]
 pub struct Counters {
