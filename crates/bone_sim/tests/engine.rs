@@ -362,10 +362,11 @@ mod schedule {
         let (mut core, mut link, surface, t0) = started();
         let grace = MS.mul_f64(GRACE_PERIODS);
         let almost = grace.saturating_sub(us(50));
+        // The slot's deadlines are t0 + k ms, where the client's pose k is due.
         send(&mut link, 0, 1, 1, surface - 1e-3);
         // A fresh pose: the client is streaming now.
         assert_eq!(core.tick_due(t0 + MS).0, 1);
-        // A period later no new pose yet: wait up to the grace for it.
+        // At the next deadline no new pose yet: wait up to the grace for it.
         let (n, next) = core.tick_due(t0 + 2 * MS);
         assert_eq!(n, 0);
         assert!(next > t0 + 2 * MS + almost && next <= t0 + 2 * MS + grace, "{:?}", next - t0);
@@ -373,14 +374,25 @@ mod schedule {
         send(&mut link, 0, 1, 2, surface - 1e-3);
         assert_eq!(core.tick_due(t0 + 2 * MS + us(900)).0, 1);
         assert_eq!(forces(&drain(&mut link)).last().unwrap().pose_seq, 2);
-        // Without a pose it ticks anyway, once a period plus the grace is due.
-        let last = t0 + 2 * MS + us(900);
-        assert_eq!(core.tick_due(last + MS + almost).0, 0);
-        assert_eq!(core.tick_due(last + MS + grace).0, 1);
-        // The grace was banked: a pose that is late past it still ticks the moment it arrives.
+        // Pose 3 is late too. The grace counts from its deadline (3 ms), not from the late tick:
+        // without a pose the slot ticks once the deadline plus the grace is due.
+        assert_eq!(core.tick_due(t0 + 3 * MS + almost).0, 0);
+        assert_eq!(core.tick_due(t0 + 3 * MS + grace).0, 1);
+        // The grace stays banked: a pose later still ticks the moment it arrives, and again
+        // after a second without one.
         send(&mut link, 0, 1, 3, surface - 1e-3);
-        assert_eq!(core.tick_due(last + MS + grace + us(100)).0, 1);
+        assert_eq!(core.tick_due(t0 + 3 * MS + grace + us(100)).0, 1);
         assert_eq!(forces(&drain(&mut link)).last().unwrap().pose_seq, 3);
+        let mut t = t0 + 3 * MS + grace + us(100);
+        for _ in 0..1000 {
+            let (_, next) = core.tick_due(t);
+            t = next;
+        }
+        send(&mut link, 0, 1, 4, surface - 1e-3);
+        let (n, _) = core.tick_due(t + us(10));
+        assert_eq!(n, 1, "after a silence, the first pose waited");
+        assert_eq!(forces(&drain(&mut link)).last().unwrap().pose_seq, 4);
+        assert_eq!(link.stats.missed.load(Ordering::Relaxed), 0);
     }
 
     #[test]
@@ -472,7 +484,9 @@ mod schedule {
         assert!(link.stats.max_lateness_ns.load(Ordering::Relaxed) <= 1_000, "later than the 1 µs wake-up rounding");
         assert!(ticks <= 10_002, "{ticks} ticks in 10 000 periods: the session ran fast");
         assert!(ticks >= 9_990, "{ticks} ticks in 10 000 periods: the session ran slow");
-        assert!(at_once >= 9_000, "only {at_once} of 10 000 poses ticked on arrival");
+        // 9,562 on `7d6bdcc`, while a slot's grace counted from its last tick and ended with its
+        // first tick without a pose.
+        assert!(at_once >= 9_700, "only {at_once} of 10 000 poses ticked on arrival");
     }
 
     #[test]
@@ -497,20 +511,25 @@ mod schedule {
         }
         eprintln!("{ticks} ticks in 10 000 periods; {at_once} of 10 000 poses ticked within 5 µs");
         assert!((9_990..=10_002).contains(&ticks), "{ticks} ticks in 10 000 periods: the session's clock drifted");
-        assert!(at_once >= 9_000, "only {at_once} of 10 000 poses ticked on arrival");
+        // 9,562 on `7d6bdcc`, while a slot's grace counted from its last tick and ended with its
+        // first tick without a pose.
+        assert!(at_once >= 9_700, "only {at_once} of 10 000 poses ticked on arrival");
     }
 
     /// Replays arrivals (µs after the start) through the tick thread's loop: the thread wakes
-    /// when the engine asks or when a pose arrives. Returns (ticks, periods, waits): `waits` holds,
-    /// for each pose that got a tick of its own, the time from its arrival to that tick (s).
-    fn replay(arrivals_us: &[u64]) -> (u64, f64, Vec<f64>) {
+    /// `lag_us` after the engine asks or a pose arrives (and then sees every pose in by then; a
+    /// slot already due is ticked in the same pass). Returns (ticks, periods, waits): `waits`
+    /// holds, for each pose that got a tick of its own, the time from its arrival to that tick (s).
+    fn replay(arrivals_us: &[u64], lag_us: u64) -> (u64, f64, Vec<f64>) {
         let (mut core, mut link, surface, t0) = started();
         let end = t0 + us(*arrivals_us.last().unwrap());
-        let (mut ticks, mut k, mut wake, mut waiting) = (1u64, 0usize, t0 + MS, None);
+        let (mut ticks, mut k, mut wake, mut waiting, mut last) = (1u64, 0usize, t0 + MS, None, t0);
         let mut waits = Vec::with_capacity(arrivals_us.len());
         loop {
             let arrival = arrivals_us.get(k).map(|&a| t0 + us(a));
-            let now = arrival.filter(|&a| a <= wake).unwrap_or(wake);
+            let event = arrival.filter(|&a| a <= wake).unwrap_or(wake);
+            let now = if event <= last { last } else { event + us(lag_us) };
+            last = now;
             if now > end {
                 break;
             }
@@ -532,26 +551,36 @@ mod schedule {
         (ticks, end.duration_since(t0).as_secs_f64() / 1e-3, waits)
     }
 
+    /// The two recorded clients' arrivals (µs after the start).
+    fn recorded_clients() -> Vec<Vec<u64>> {
+        let text = include_str!("data/pose_arrivals_16_clients_2_cores.txt");
+        let mut clients = Vec::new();
+        for line in text.lines().filter(|l| !l.starts_with('#')) {
+            let mut t = 1_000;
+            clients.push(
+                line.split_whitespace()
+                    .map(|g| {
+                        t += g.parse::<u64>().unwrap();
+                        t
+                    })
+                    .collect(),
+            );
+        }
+        clients
+    }
+
     #[test]
     fn poses_of_a_recorded_busy_host_tick_at_1_khz_and_wait_little() {
         // Arrival gaps of two of 16 load-tool clients at `dhg-serve` on a 2-core VM: 5 % of gaps
         // are over 1.37 ms and 5 % under 0.46 ms. With a 0.3-period grace and 0.3 periods of
         // waiting for the budget, 6 % of these poses got no tick of their own and the 99th
-        // percentile waited 1.03 ms for its tick (the live server reported 1.1 ms); now 4 % and
-        // 0.43 ms. The 99.9th percentile grew from 1.28 to 1.9 ms: an out-of-phase pose may now
-        // wait for the longer grace.
-        let text = include_str!("data/pose_arrivals_16_clients_2_cores.txt");
+        // percentile waited 1.03 ms for its tick (the live server reported 1.1 ms). A grace of a
+        // period from the last tick: 4 % and 0.43 ms. The grace from the deadline, kept banked
+        // while the client is silent: 2.0-2.4 % and 0.34 ms. The 99.9th percentile grew from
+        // 1.28 to 1.95 ms: an out-of-phase pose may wait for the longer grace.
         let mut all = Vec::new();
-        for line in text.lines().filter(|l| !l.starts_with('#')) {
-            let mut t = 1_000;
-            let arrivals: Vec<u64> = line
-                .split_whitespace()
-                .map(|g| {
-                    t += g.parse::<u64>().unwrap();
-                    t
-                })
-                .collect();
-            let (ticks, periods, waits) = replay(&arrivals);
+        for arrivals in recorded_clients() {
+            let (ticks, periods, waits) = replay(&arrivals, 0);
             let rate = ticks as f64 / periods;
             let own = waits.len() as f64 / arrivals.len() as f64;
             eprintln!(
@@ -563,15 +592,61 @@ mod schedule {
                 (0.999..=1.001).contains(&rate),
                 "{ticks} ticks in {periods:.0} periods: the session's clock drifted"
             );
-            assert!(own >= 0.94, "only {:.1} % of the poses got a tick of their own", own * 100.0);
+            assert!(own >= 0.97, "only {:.1} % of the poses got a tick of their own", own * 100.0);
             all.extend(waits);
         }
         all.sort_by(f64::total_cmp);
         let q = |p: f64| all[((all.len() - 1) as f64 * p) as usize] * 1e3;
         eprintln!("wait for the tick: p50 {:.3} ms, p99 {:.3} ms, p99.9 {:.3} ms", q(0.5), q(0.99), q(0.999));
         assert!(q(0.5) < 0.01, "median wait {:.3} ms", q(0.5));
-        assert!(q(0.99) < 0.6, "99th percentile wait {:.3} ms", q(0.99));
+        assert!(q(0.99) < 0.4, "99th percentile wait {:.3} ms", q(0.99));
         assert!(q(0.999) <= 2.0 + 1e-3, "99.9th percentile wait {:.3} ms: longer than the grace", q(0.999));
+    }
+
+    #[test]
+    fn wake_up_latency_costs_no_ticks() {
+        // The live tick thread wakes some tens of µs after it asks (more on a busy host) and then
+        // sees every pose that came meanwhile, a burst's as one. When the budget banked no more
+        // than the point where a slot ticks without a pose, and the 2 % lock rate filled the
+        // bank, each late wake-up dropped budget: this replay ran at 0.9983 ticks per period with
+        // 30 µs of latency and 0.9953 with 100 µs (live, 16 clients: 997–999 Hz).
+        for lag_us in [10, 30, 100] {
+            for arrivals in recorded_clients() {
+                let (ticks, periods, waits) = replay(&arrivals, lag_us);
+                let rate = ticks as f64 / periods;
+                let own = waits.len() as f64 / arrivals.len() as f64;
+                eprintln!(
+                    "{lag_us} µs late: {ticks} ticks in {periods:.0} periods, {:.1} % ticked on their own",
+                    own * 100.0
+                );
+                assert!(
+                    (0.999..=1.001).contains(&rate),
+                    "waking {lag_us} µs late: {ticks} ticks in {periods:.0} periods, the session's clock drifted"
+                );
+                assert!(
+                    own >= 0.96,
+                    "waking {lag_us} µs late: only {:.1} % of the poses got a tick of their own",
+                    own * 100.0
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_thread_that_wakes_late_still_locks_onto_its_client() {
+        // A steady client whose poses arrive 0.3 ms after the slot's deadlines, each to wait for
+        // the budget, and a thread that wakes 30 µs after it asks (a busy host). The 2 % lock rate
+        // must move the slot's phase onto the poses all the same: counted only up to the point
+        // where the pose could tick, it was lost in the thread's lateness, and every pose went on
+        // waiting 0.4 ms (seen live at 4 clients on 2 cores, in a third of the runs).
+        let arrivals: Vec<u64> = (0..3_000).map(|k| 1_300 + 1_000 * k).collect();
+        let (ticks, periods, waits) = replay(&arrivals, 30);
+        let late = waits[200..].iter().filter(|&&w| w > 60e-6).count();
+        eprintln!("{ticks} ticks in {periods:.0} periods; after the first 200 poses, {late} waited over 60 µs");
+        // (The last pose arrives as the replay ends.)
+        assert_eq!(waits.len(), arrivals.len() - 1, "every pose gets a tick of its own");
+        assert_eq!(late, 0, "{late} poses after the first 200 waited over 60 µs (30 of them the thread's lateness)");
+        assert!((periods - 1.0..=periods + 2.0).contains(&(ticks as f64)), "{ticks} ticks in {periods:.0} periods");
     }
 
     #[test]

@@ -7,22 +7,24 @@
 //! tick, so a tick never allocates, locks or does I/O.
 //!
 //! Each slot ticks once per 1 ms on average, **locked to its client's poses**. Every slot has a
-//! tick budget that fills by one period per 1 ms and is spent by one per tick. A fresh pose
-//! starts the slot's tick as soon as it arrives, once the budget holds a period (less the
-//! [`EARLY_PERIODS`] it may borrow). So a steady 1 kHz client gets each force computed from the
-//! pose that just arrived, whatever its phase, while a client sending faster still gets 1 kHz (its
-//! slot sees more than [`FAST_CLIENT_POSES_PER_TICK`] poses per tick and drops the catch-up).
-//! Without a fresh pose the slot ticks when a period is due; a streaming client's slot first
-//! waits [`GRACE_PERIODS`] past one period since its last tick for the late pose, and banks
-//! what it waited, so the late pose, once in, ticks at once. A silent client still gets 1 kHz.
-//! After a stall, a client's delayed poses arrive in a burst, out of phase: a pose that would
-//! wait more than [`MAX_POSE_WAIT_PERIODS`] for the budget (judged when the thread first sees
-//! it) waits for the schedule instead, and the client's next pose, back in phase, ticks at once.
-//! So a jittery client gets 1 kHz on average, not up to [`LOCK_RATE`]. A tick a whole period or
-//! more past its deadline skips the missed periods and counts them. The budget banks at most
-//! [`SILENT_BANK_PERIODS`] (a streaming slot `1 + GRACE_PERIODS`, what it may wait for its
-//! client), so a stall never buys a burst. The pose subscriber unparks the tick thread when it
-//! hands over a pose.
+//! tick budget that fills by one period per 1 ms and is spent by one per tick; its deadline is
+//! when the budget holds a period. A fresh pose starts the slot's tick as soon as it arrives,
+//! once the budget holds a period less the [`EARLY_PERIODS`] it may borrow; a pose that comes
+//! earlier waits, and while it waits the budget fills at [`LOCK_RATE`], so the slot's phase
+//! drifts onto its client's. Only a pose that had to wait gets that speed-up; other ticks count
+//! plain time, so the budget does not fill up with it. A steady 1 kHz client thus gets each force computed from the pose that just arrived,
+//! whatever its phase, while a client sending faster still gets 1 kHz (its slot sees more than
+//! [`FAST_CLIENT_POSES_PER_TICK`] poses per tick and does not speed up). Without a fresh pose the
+//! slot ticks at its deadline, or once its client has sent a pose, [`GRACE_PERIODS`] past it: it
+//! banks what it waited, so the late pose, once in, ticks at once, however long the client was
+//! silent. A silent client still gets 1 kHz. After a stall, a client's delayed poses arrive in a
+//! burst, out of phase: a pose that would wait more than [`MAX_POSE_WAIT_PERIODS`] for the budget
+//! (judged when the thread first sees it) waits for the schedule instead, and the client's next
+//! pose, back in phase, ticks at once. So a jittery client gets 1 kHz on average. A tick a whole
+//! period or more past its deadline (and grace) skips the missed periods and counts them: the
+//! budget banks at most [`WAKE_SLACK_PERIODS`] past the point where the slot ticks without a pose,
+//! so a stall never buys a burst, while a thread that wakes a little late loses no time. The pose
+//! subscriber unparks the tick thread when it hands over a pose.
 
 pub mod guidance;
 pub mod handoff;
@@ -56,16 +58,24 @@ pub const TICK_PERIOD: Duration = Duration::from_millis(1);
 /// How early (in periods) a fresh pose may start a slot's tick: the slot borrows it from its
 /// next period, so the rate still averages at most 1 kHz.
 pub const EARLY_PERIODS: f64 = 0.3;
-/// How long (in periods) a slot whose last tick had a fresh pose waits past its deadline for
-/// the next pose before ticking without one. A whole period: with 16 clients on 2 cores, 3–5 %
-/// of poses came more than 0.55 ms after their predecessor's period (recorded traces; one is
-/// replayed in `tests/engine.rs`). With 0.3 periods the slot ticked without them, and the pose
-/// that followed found no budget and waited for a later deadline, up to 1.3 ms.
+/// How long (in periods) a slot whose client has sent a pose waits past its deadline (its budget
+/// holding a period) for the next pose before ticking without one. A whole period: with 16
+/// clients on 2 cores, 3–5 % of poses came more than 0.55 ms after their predecessor's period
+/// (recorded traces; one is replayed in `tests/engine.rs`). With 0.3 periods the slot ticked
+/// without them, and the pose that followed found no budget and waited for a later deadline.
 pub const GRACE_PERIODS: f64 = 1.0;
-/// How fast a slot's budget fills while fresh poses wait (periods per period): the 2 % that lets
-/// its phase drift onto its client's within tens of periods. A client sending faster than 1 kHz
-/// does not get it (see [`FAST_CLIENT_POSES_PER_TICK`]); without poses a slot ticks at exactly 1 kHz.
+/// How fast a slot's budget fills for a fresh pose that came before the budget could tick it
+/// (periods per period, over the whole time since the last tick): the 2 % that lets the slot's
+/// phase drift onto its client's within tens of periods. Other ticks count plain time: when
+/// every tick banked the 2 %, the bank stayed full, each late wake-up of the thread dropped some
+/// of it, and the sessions ran slow. A client sending faster than 1 kHz does not get it (see
+/// [`FAST_CLIENT_POSES_PER_TICK`]).
 pub const LOCK_RATE: f64 = 1.02;
+/// Least time (in periods) between a slot's last tick and a waiting pose's arrival for that pose
+/// to get [`LOCK_RATE`]. A pose that comes sooner is most likely in a burst after a stall, not
+/// evidence of a phase ahead of the slot's: at 16 clients on 2 cores, counting such poses too
+/// made the sessions run 0.10–0.13 % fast, and without them 0.03–0.07 %.
+pub const LOCK_MIN_GAP_PERIODS: f64 = 0.5;
 /// Poses per tick (averaged) above which a client counts as sending faster than 1 kHz: its slot
 /// then ticks on the plain 1 kHz budget, since the 2 % catch-up would only make it run fast.
 pub const FAST_CLIENT_POSES_PER_TICK: f64 = 1.2;
@@ -77,19 +87,25 @@ const POSE_RATE_WEIGHT: f64 = 0.02;
 pub const MAX_POSE_WAIT_PERIODS: f64 = 0.5;
 /// A slot due within this many periods (1 ns) is due now: float rounding must not cost a wake-up.
 const DUE_SLACK_PERIODS: f64 = 1e-6;
-/// Most periods a slot without a streaming client may bank (so a pause never buys a burst of
-/// ticks). A streaming slot banks up to `1 + GRACE_PERIODS`, the most it may wait for a pose.
-pub const SILENT_BANK_PERIODS: f64 = 1.3;
+/// How late (in periods) the tick thread may wake past a slot's tick without a pose and still
+/// lose no time: the budget banks this much past that point, and drops the rest (a stall buys
+/// no burst of ticks). Without it each late wake-up cost its lateness: a replay of two recorded
+/// clients waking 100 µs late ran 0.2 % slow (`tests/engine.rs`, `wake_up_latency_costs_no_ticks`).
+pub const WAKE_SLACK_PERIODS: f64 = 0.3;
 
-/// Periods from now until a slot ticks without a fresh pose: once a period is owed; a streaming
-/// slot (its last tick had a fresh pose) first waits [`GRACE_PERIODS`] past one period since that
-/// tick for the client's late pose, with at least as much budget as a fresh pose needs.
-fn timer_until(streaming: bool, tokens: f64, elapsed: f64) -> f64 {
+/// Periods of budget at which a slot ticks without a fresh pose: its deadline, or once its
+/// client has sent a pose, [`GRACE_PERIODS`] past it, waiting for the client's late pose.
+fn due_periods(streaming: bool) -> f64 {
     if streaming {
-        (1.0 + GRACE_PERIODS - elapsed).max(1.0 - EARLY_PERIODS - (tokens + elapsed))
+        1.0 + GRACE_PERIODS
     } else {
-        1.0 - (tokens + elapsed)
+        1.0
     }
+}
+
+/// Periods from now until a slot ticks without a fresh pose (see [`due_periods`]).
+fn timer_until(streaming: bool, tokens: f64, elapsed: f64) -> f64 {
+    due_periods(streaming) - (tokens + elapsed)
 }
 
 /// `seconds` rounded up to whole microseconds (waking a hair early would find nothing due).
@@ -111,7 +127,9 @@ struct SlotClock {
 struct Schedule {
     /// Its tick budget (`None`: just activated, due at once).
     clock: Option<SlotClock>,
-    /// Whether its last tick used a fresh pose (it may wait [`GRACE_PERIODS`] for the next).
+    /// Whether its client has sent a pose: from then on, the slot waits [`GRACE_PERIODS`] past
+    /// each deadline for the late pose before ticking without it, so that a pose late by up to
+    /// the grace ticks as it arrives, however long the client was silent.
     streaming: bool,
     /// When the waiting pose was first seen (its arrival, as near as the thread knows).
     seen: Instant,
@@ -408,18 +426,24 @@ impl TickCore {
             let sched = &mut self.schedule[i];
             let clock = sched.clock.get_or_insert(SlotClock { last: now, tokens: 1.0 });
             let elapsed = now.saturating_duration_since(clock.last).as_secs_f64() / period_s;
-            // Periods owed since the last tick (uncapped: 2 or more means whole periods missed).
-            let owed = clock.tokens + elapsed;
             if s.poll_pose() {
                 sched.seen = now;
                 sched.arrivals += 1;
             }
             let fresh = s.pose_pending();
             let timer = timer_until(sched.streaming, clock.tokens, elapsed);
-            // A fresh pose counts time slightly fast, so the slot's phase drifts onto the pose's;
-            // not for a client sending faster than 1 kHz, which would take all of the 2 %.
-            let lock = if sched.poses_per_tick > FAST_CLIENT_POSES_PER_TICK { 1.0 } else { LOCK_RATE };
-            let have = if fresh { clock.tokens + elapsed * lock } else { owed };
+            // A fresh pose that came before the budget could tick it, and not right behind the
+            // last tick (its phase is ahead of the slot's; it is not a burst), counts its whole
+            // wait 2 % fast, so the slot's phase drifts onto its client's. Cut where the pose
+            // could tick, the 2 % was lost whenever the thread woke late, and the slot never
+            // locked. Other ticks count plain time: a surplus banked on every tick filled the
+            // bank, and each late wake-up then dropped some (the slot ran slow). Not for a client
+            // sending faster than 1 kHz, which would take all of the 2 %.
+            let fast_client = sched.poses_per_tick > FAST_CLIENT_POSES_PER_TICK;
+            let seen_after = sched.seen.saturating_duration_since(clock.last).as_secs_f64() / period_s;
+            let ahead = clock.tokens + seen_after < 1.0 - EARLY_PERIODS && seen_after >= LOCK_MIN_GAP_PERIODS;
+            let lock = if fresh && ahead && !fast_client { LOCK_RATE } else { 1.0 };
+            let have = clock.tokens + elapsed * lock;
             let until = if fresh {
                 let short = (1.0 - EARLY_PERIODS - have) / lock;
                 // Waiting longer means the slot is out of phase with its client (its poses came in a
@@ -453,12 +477,12 @@ impl TickCore {
                 stats.pose_to_tick.record(now.saturating_duration_since(t).as_nanos() as u64);
             }
             ticked += 1;
-            let bank = if sched.streaming { 1.0 + GRACE_PERIODS } else { SILENT_BANK_PERIODS };
+            let bank = due_periods(sched.streaming) + WAKE_SLACK_PERIODS;
             *clock = SlotClock { last: now, tokens: have.min(bank) - 1.0 };
             sched.poses_per_tick += POSE_RATE_WEIGHT * (f64::from(sched.arrivals) - sched.poses_per_tick);
             sched.arrivals = 0;
-            sched.streaming = fresh;
-            next = next.min(now + ceil_us(timer_until(fresh, clock.tokens, 0.0) * period_s));
+            sched.streaming |= fresh;
+            next = next.min(now + ceil_us(timer_until(sched.streaming, clock.tokens, 0.0) * period_s));
         }
         self.stats.sessions.store(active, Ordering::Relaxed);
         if ticked > 0 {
