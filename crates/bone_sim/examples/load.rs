@@ -79,16 +79,24 @@ fn echo_offset(layout: &bone_sim::protocol::Layout) -> usize {
     layout.fields.iter().find(|f| f.name == "pose_client_time_ns").map(|f| f.offset).expect("layout has an echo")
 }
 
+/// Latencies (ns) gathered while measuring.
 #[derive(Default)]
 struct Latencies {
-    force_ns: Vec<u64>,
-    guidance_ns: Vec<u64>,
+    /// From each pose's send to the first force computed from it.
+    force: Vec<u64>,
+    /// From each measured pose's send to the first force computed from it or a newer pose (a
+    /// superseded pose counts too, with the wait its client saw).
+    fresh_force: Vec<u64>,
+    /// From the pose a guidance message echoes to that message.
+    guidance: Vec<u64>,
 }
 
 struct Client {
     session: zenoh::Session,
     key: String,
     publisher: zenoh::pubsub::Publisher<'static>,
+    /// Send time (ns, `now_ns`) of each pose, by sequence number.
+    sent_ns: Arc<Vec<AtomicU64>>,
     entry: Point3<f64>,
     dir: Vector3<f64>,
     orientation: UnitQuaternion<f64>,
@@ -188,6 +196,8 @@ fn run(args: &Args) -> Result<(), String> {
         let last_echo = AtomicU64::new(u64::MAX);
         let (l1, m1, n1) = (lat.clone(), measuring.clone(), forces.clone());
         let counted = counted_seqs.clone();
+        let sent_ns: Arc<Vec<AtomicU64>> = Arc::new((0..=total).map(|_| AtomicU64::new(0)).collect());
+        let (sent, newest) = (sent_ns.clone(), AtomicU64::new(0));
         let fsub = session
             .declare_subscriber(format!("{base_key}/force"))
             .callback(move |s| {
@@ -201,8 +211,20 @@ fn run(args: &Args) -> Result<(), String> {
                 }
                 if m1.load(Ordering::Relaxed) == 1 {
                     let echoed = u64::from_le_bytes(b[f_off..f_off + 8].try_into().unwrap());
+                    let now = now_ns();
                     if echoed > 0 && last_seq.swap(seq, Ordering::Relaxed) != seq {
-                        l1.lock().unwrap().force_ns.push(now_ns().saturating_sub(echoed));
+                        l1.lock().unwrap().force.push(now.saturating_sub(echoed));
+                    }
+                    // This force answers every pose up to `seq` not yet answered.
+                    let before = newest.fetch_max(seq, Ordering::Relaxed);
+                    if seq > before && before > 0 {
+                        let mut l = l1.lock().unwrap();
+                        for q in (before + 1)..=seq.min(sent.len() as u64 - 1) {
+                            let t = sent[q as usize].load(Ordering::Relaxed);
+                            if t > 0 && counted.contains(&q) {
+                                l.fresh_force.push(now.saturating_sub(t));
+                            }
+                        }
                     }
                 }
             })
@@ -217,13 +239,22 @@ fn run(args: &Args) -> Result<(), String> {
                     let echoed = u64::from_le_bytes(b[g_off..g_off + 8].try_into().unwrap());
                     n2.fetch_add(1, Ordering::Relaxed);
                     if echoed > 0 && last_echo.swap(echoed, Ordering::Relaxed) != echoed {
-                        l2.lock().unwrap().guidance_ns.push(now_ns().saturating_sub(echoed));
+                        l2.lock().unwrap().guidance.push(now_ns().saturating_sub(echoed));
                     }
                 }
             })
             .wait()
             .map_err(|e| e.to_string())?;
-        clients.push(Client { session, key: base_key, publisher, entry, dir, orientation, _subs: vec![fsub, gsub] });
+        clients.push(Client {
+            session,
+            key: base_key,
+            publisher,
+            sent_ns,
+            entry,
+            dir,
+            orientation,
+            _subs: vec![fsub, gsub],
+        });
     }
     eprintln!("{} clients connected; streaming for 2 s of warm-up plus {} s", clients.len(), args.seconds);
     let client_slices = if args.short_slices {
@@ -253,6 +284,7 @@ fn run(args: &Args) -> Result<(), String> {
             let position = c.entry + c.dir * (s - i as f64 * 1e-5);
             let pose = Pose { position_m: position, orientation: c.orientation, drill_on: true, spindle_rpm: 60_000.0 };
             let msg = PoseMsg { seq: (k + 1) as u32, client_time_ns: now_ns(), pose };
+            c.sent_ns[(k + 1) as usize].store(msg.client_time_ns, Ordering::Relaxed);
             let _ = c.publisher.put(encode_pose(&msg).to_vec()).wait();
         }
     }
@@ -279,9 +311,14 @@ fn run(args: &Args) -> Result<(), String> {
         "forces_received": received,
         "forces_expected": expected,
         "forces_per_pose": received as f64 / expected as f64,
+        // Measured poses that got a force of their own (the latencies are theirs): a pose
+        // superseded before its tick has none, so more own ticks can raise the quantiles.
+        "poses_with_own_force": l.force.len(),
         "guidance_received": guidance.load(Ordering::Relaxed),
-        "pose_to_force_ms": { "p50": quantile_ms(&mut l.force_ns, 0.5), "p99": quantile_ms(&mut l.force_ns, 0.99), "p999": quantile_ms(&mut l.force_ns, 0.999) },
-        "pose_to_guidance_ms": { "p50": quantile_ms(&mut l.guidance_ns, 0.5), "p99": quantile_ms(&mut l.guidance_ns, 0.99) },
+        "pose_to_force_ms": { "p50": quantile_ms(&mut l.force, 0.5), "p99": quantile_ms(&mut l.force, 0.99), "p999": quantile_ms(&mut l.force, 0.999) },
+        // Every measured pose, superseded ones included: to the first force from it or a newer pose.
+        "pose_to_fresh_force_ms": { "p50": quantile_ms(&mut l.fresh_force, 0.5), "p99": quantile_ms(&mut l.fresh_force, 0.99), "p999": quantile_ms(&mut l.fresh_force, 0.999) },
+        "pose_to_guidance_ms": { "p50": quantile_ms(&mut l.guidance, 0.5), "p99": quantile_ms(&mut l.guidance, 0.99) },
         "tick_lateness_ms": { "p99": health["tick_lateness_p99_s"].as_f64().unwrap_or(f64::NAN) * 1e3, "p999": health["tick_lateness_p999_s"].as_f64().unwrap_or(f64::NAN) * 1e3 },
         // The server's part of pose → force (arrival in its subscriber to the force's put).
         "server_pose_to_put_ms": {
