@@ -12,9 +12,10 @@
 //! once the budget holds a period less the [`EARLY_PERIODS`] it may borrow; a pose that comes
 //! earlier waits, and while it waits the budget fills at [`LOCK_RATE`], so the slot's phase
 //! drifts onto its client's. Only a pose that had to wait gets that speed-up; other ticks count
-//! plain time, so the budget does not fill up with it. A steady 1 kHz client thus gets each force computed from the pose that just arrived,
-//! whatever its phase, while a client sending faster still gets 1 kHz (its slot sees more than
-//! [`FAST_CLIENT_POSES_PER_TICK`] poses per tick and does not speed up). Without a fresh pose the
+//! plain time, so the budget does not fill up with it. A steady 1 kHz client thus gets each force
+//! computed from the pose that just arrived, whatever its phase, while a client sending faster
+//! still gets 1 kHz (its slot sees more than [`FAST_CLIENT_POSES_PER_TICK`] poses per tick and
+//! does not speed up). Without a fresh pose the
 //! slot ticks at its deadline, or once its client has sent a pose, [`GRACE_PERIODS`] past it: it
 //! banks what it waited, so the late pose, once in, ticks at once, however long the client was
 //! silent. A silent client still gets 1 kHz. After a stall, a client's delayed poses arrive in a

@@ -2,10 +2,38 @@
 
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 
-/// Buckets of a [`Histogram`]; the last one collects everything above the range.
+/// Buckets of a [`Histogram`]: [`LINEAR_BUCKETS`] of its width, then [`SUB_BUCKETS`] per
+/// doubling for 8 doublings (to 32,768 widths: 0.33 s at 10 µs). The last one also collects
+/// everything above the range.
 pub const BUCKETS: usize = 256;
+/// Buckets of one width each at the start of a [`Histogram`] (exact to a width: 1.28 ms at 10 µs).
+pub const LINEAR_BUCKETS: u64 = 128;
+/// Buckets per doubling past the linear ones: within 1/16 (6.25 %) of the value, so that a tail of
+/// several ms is still resolved (fixed 10 µs buckets stopped at 2.56 ms, where tails often lie).
+pub const SUB_BUCKETS: u64 = 16;
 
-/// A fixed-width histogram of durations (lock-free, allocation-free to record).
+/// The bucket of a duration of `units` bucket widths.
+fn bucket_of(units: u64) -> usize {
+    if units < LINEAR_BUCKETS {
+        return units as usize;
+    }
+    let k = u64::from((units / LINEAR_BUCKETS).ilog2()); // units in [128·2^k, 128·2^(k+1))
+    let b = LINEAR_BUCKETS + SUB_BUCKETS * k + (units - (LINEAR_BUCKETS << k)) / ((LINEAR_BUCKETS / SUB_BUCKETS) << k);
+    (b as usize).min(BUCKETS - 1)
+}
+
+/// The upper edge of bucket `b`, in bucket widths.
+fn upper_edge_units(b: usize) -> u64 {
+    let b = b as u64;
+    if b < LINEAR_BUCKETS {
+        return b + 1;
+    }
+    let (k, j) = ((b - LINEAR_BUCKETS) / SUB_BUCKETS, (b - LINEAR_BUCKETS) % SUB_BUCKETS);
+    (LINEAR_BUCKETS << k) + (j + 1) * ((LINEAR_BUCKETS / SUB_BUCKETS) << k)
+}
+
+/// A histogram of durations, linear then log-linear (see [`BUCKETS`]; lock-free, allocation-free
+/// to record).
 #[derive(Debug)]
 pub struct Histogram {
     width_ns: u64,
@@ -13,7 +41,7 @@ pub struct Histogram {
 }
 
 impl Histogram {
-    /// A histogram with buckets `width_ns` wide.
+    /// A histogram whose first buckets are `width_ns` wide (see [`BUCKETS`]).
     #[must_use]
     pub fn new(width_ns: u64) -> Self {
         Self { width_ns: width_ns.max(1), counts: std::array::from_fn(|_| AtomicU64::new(0)) }
@@ -21,8 +49,7 @@ impl Histogram {
 
     /// Counts one duration (ns).
     pub fn record(&self, ns: u64) {
-        let b = ((ns / self.width_ns) as usize).min(BUCKETS - 1);
-        self.counts[b].fetch_add(1, Relaxed);
+        self.counts[bucket_of(ns / self.width_ns)].fetch_add(1, Relaxed);
     }
 
     /// The counts now.
@@ -68,10 +95,10 @@ impl HistogramSnapshot {
         for (i, c) in self.counts.iter().enumerate() {
             seen += c;
             if seen >= rank {
-                return ((i as u64 + 1) * self.width_ns) as f64 * 1e-9;
+                return (upper_edge_units(i) * self.width_ns) as f64 * 1e-9;
             }
         }
-        (BUCKETS as u64 * self.width_ns) as f64 * 1e-9
+        (upper_edge_units(BUCKETS - 1) * self.width_ns) as f64 * 1e-9
     }
 }
 
@@ -82,9 +109,9 @@ pub struct TickStats {
     pub ticks: AtomicU64,
     /// Ticks skipped because the thread woke a whole period or more late.
     pub missed: AtomicU64,
-    /// Wake-up lateness after each deadline (10 µs buckets).
+    /// Wake-up lateness after each deadline (10 µs buckets, see [`BUCKETS`]).
     pub lateness: Histogram,
-    /// Work time of each tick (2 µs buckets).
+    /// Work time of each tick (2 µs buckets, see [`BUCKETS`]).
     pub busy: Histogram,
     /// Largest lateness seen (ns).
     pub max_lateness_ns: AtomicU64,
@@ -97,11 +124,11 @@ pub struct TickStats {
     /// Whether the tick thread, without `SCHED_FIFO`, got the short EEVDF slice
     /// (`realtime::LATENCY_SLICE_NS`); 0 = no, 1 = yes.
     pub short_slice: AtomicU64,
-    /// From a pose's arrival in the subscriber to the tick that used it (10 µs buckets): the
-    /// handoff, the tick thread's wake-up, and any wait for the slot's budget.
+    /// From a pose's arrival in the subscriber to the tick that used it (10 µs buckets, see
+    /// [`BUCKETS`]): the handoff, the tick thread's wake-up, and any wait for the slot's budget.
     pub pose_to_tick: Histogram,
     /// The server's part of pose → force: from a pose's arrival in the subscriber to the put of
-    /// the force computed from it (10 µs buckets; recorded by the comm thread).
+    /// the force computed from it (10 µs buckets, see [`BUCKETS`]; recorded by the comm thread).
     pub pose_to_put: Histogram,
 }
 
@@ -139,8 +166,27 @@ mod tests {
         assert_eq!(s.total(), 100);
         assert_eq!(s.quantile_s(0.5), 10e-6);
         assert_eq!(s.quantile_s(0.99), 10e-6);
-        assert_eq!(s.quantile_s(1.0), 2.56e-3, "overflow reports the range end");
+        assert_eq!(s.quantile_s(1.0), 0.327_68, "overflow reports the range end");
         let later = h.snapshot();
         assert_eq!(later.since(&s).total(), 0);
+    }
+
+    #[test]
+    fn buckets_are_exact_to_a_width_then_within_a_sixteenth_up_to_the_end() {
+        let mut last = 0;
+        for units in 0..(LINEAR_BUCKETS << 8) {
+            let b = bucket_of(units);
+            assert!(b >= last && b < BUCKETS, "{units} widths: bucket {b} after {last}");
+            last = b;
+            let edge = upper_edge_units(b);
+            assert!(edge > units, "{units} widths: edge {edge}");
+            assert!(edge - units <= (units / SUB_BUCKETS).max(1), "{units} widths: edge {edge} too far");
+        }
+        assert_eq!(last, BUCKETS - 1, "the range uses every bucket");
+        assert_eq!(bucket_of(u64::MAX), BUCKETS - 1);
+        // A 5 ms tail at 10 µs buckets reads 5.12 ms (it read 2.56 ms, the old range end).
+        let h = Histogram::new(10_000);
+        h.record(5_000_000);
+        assert!((h.snapshot().quantile_s(0.5) - 5.12e-3).abs() < 1e-12);
     }
 }
