@@ -650,6 +650,23 @@ mod schedule {
     }
 
     #[test]
+    fn a_stalled_thread_counts_a_streaming_slots_missed_ticks_past_the_grace() {
+        let (mut core, mut link, surface, t0) = started();
+        send(&mut link, 0, 1, 1, surface - 1e-3);
+        // A fresh pose: the slot is streaming from here.
+        assert_eq!(core.tick_due(t0 + MS).0, 1);
+        // Due without a pose at 3 ms (the deadline at 2 ms plus the grace); the thread wakes
+        // at 6.5 ms: 3.5 periods late, 3 whole periods missed.
+        assert_eq!(core.tick_due(t0 + us(6500)).0, 1);
+        assert_eq!(link.stats.missed.load(Ordering::Relaxed), 3);
+        // The bank kept 0.3 periods past the grace, no more: the next tick without a pose is
+        // 0.7 ms away, not a burst.
+        assert_eq!(core.tick_due(t0 + us(7150)).0, 0);
+        assert_eq!(core.tick_due(t0 + us(7200)).0, 1);
+        assert_eq!(link.stats.missed.load(Ordering::Relaxed), 3);
+    }
+
+    #[test]
     fn a_whole_period_late_counts_missed_ticks_and_buys_no_burst() {
         let (mut core, link, _, t0) = started();
         assert_eq!(core.tick_due(t0 + us(3500)).0, 1); // due at 1 ms: 2.5 periods late
