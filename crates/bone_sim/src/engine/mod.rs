@@ -15,17 +15,17 @@
 //! plain time, so the budget does not fill up with it. A steady 1 kHz client thus gets each force
 //! computed from the pose that just arrived, whatever its phase, while a client sending faster
 //! still gets 1 kHz (its slot sees more than [`FAST_CLIENT_POSES_PER_TICK`] poses per tick and
-//! does not speed up). Without a fresh pose the
-//! slot ticks at its deadline, or once its client has sent a pose, [`GRACE_PERIODS`] past it: it
-//! banks what it waited, so the late pose, once in, ticks at once, however long the client was
-//! silent. A silent client still gets 1 kHz. After a stall, a client's delayed poses arrive in a
-//! burst, out of phase: a pose that would wait more than [`MAX_POSE_WAIT_PERIODS`] for the budget
-//! (judged when the thread first sees it) waits for the schedule instead, and the client's next
-//! pose, back in phase, ticks at once. So a jittery client gets 1 kHz on average. A tick a whole
-//! period or more past its deadline (and grace) skips the missed periods and counts them: the
-//! budget banks at most [`WAKE_SLACK_PERIODS`] past the point where the slot ticks without a pose,
-//! so a stall never buys a burst, while a thread that wakes a little late loses no time. The pose
-//! subscriber unparks the tick thread when it hands over a pose.
+//! does not speed up). Without a fresh pose the slot ticks at its deadline, or once its client has
+//! sent a pose, [`GRACE_PERIODS`] past it: it banks what it waited, so the late pose, once in,
+//! ticks at once, however long the client was silent. A silent client still gets 1 kHz. After a
+//! stall, a client's delayed poses arrive in a burst, out of phase: a pose that would wait more
+//! than [`MAX_POSE_WAIT_PERIODS`] for the budget (judged when the thread first sees it) waits for
+//! the schedule instead, and the client's next pose, back in phase, ticks at once. So a jittery
+//! client gets 1 kHz on average. A tick a whole period or more past its deadline (and grace) skips
+//! the missed periods and counts them: the budget banks at most [`WAKE_SLACK_PERIODS`] past the
+//! point where the slot ticks without a pose, so a stall never buys a burst, while a thread that
+//! wakes a little late loses no time. The pose subscriber unparks the tick thread when it hands
+//! over a pose.
 
 pub mod guidance;
 pub mod handoff;
