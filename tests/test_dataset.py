@@ -9,7 +9,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from dhg.dataset import DatasetError, load_dataset, records_schema, write_dataset
+from dhg.dataset import DatasetError, load_dataset, load_raw, records_schema, write_dataset
 from dhg.features import FEATURE_NAMES, FEATURE_UNITS
 from dhg.synth import synthesize
 
@@ -37,8 +37,12 @@ def test_schema_units_and_card(small, coarse_phantom):
     assert card["planned_path"] == coarse_phantom.path.to_dict()
     assert card["generator"]["seed"] == 3 and card["volume"]["source"] == "dhg.phantom.femur"
     assert len(card["episodes"]) == 3 and "completion_time_s" in card["episodes"][0]["metrics"]
-    raw = pq.read_table(out / "raw.parquet")
+    raw = load_raw(out)
     assert raw.num_rows == sum(len(e.raw_poses) for e in episodes)
+    assert raw.column("force_z_n").to_numpy().any() and not raw.column("guidance_x_n").to_numpy().any()
+    first = raw.filter(pa.compute.equal(raw.column("episode_id"), 0))
+    np.testing.assert_array_equal(first.column("tick").to_numpy(), np.arange(len(episodes[0].raw_poses)))
+    np.testing.assert_array_equal(first.column("x_m").to_numpy(), episodes[0].raw_poses[:, 0])
     ds = load_dataset(out)
     assert [e.skill for e in ds.episodes] == ["expert", "expert", "novice"]
     e = ds.episodes[0]
@@ -210,3 +214,19 @@ def test_experts_beat_novices_on_every_metric(phantom):
     # Plunge in distribution: experienced ≈ 1–5 mm, novices ≈ 5–12 mm.
     assert np.median([m["plunge_depth_m"] for m in experts]) < 5e-3
     assert np.median([m["plunge_depth_m"] for m in novices]) > 5e-3
+
+
+def test_a_raw_file_from_before_the_guidance_columns_reads_with_zero_guidance(small, tmp_path):
+    import hashlib
+    import shutil
+
+    out = tmp_path / "old"
+    shutil.copytree(small[0], out)
+    raw = pq.read_table(out / "raw.parquet")
+    pq.write_table(raw.drop_columns(["guidance_x_n", "guidance_y_n", "guidance_z_n"]), out / "raw.parquet")
+    card = json.loads((out / "card.json").read_text())
+    card["files"]["raw.parquet"]["sha256"] = hashlib.sha256((out / "raw.parquet").read_bytes()).hexdigest()
+    (out / "card.json").write_text(json.dumps(card))
+    old = load_raw(out)
+    assert old.schema.names == raw.schema.names and old.num_rows == raw.num_rows
+    assert not old.column("guidance_z_n").to_numpy().any()

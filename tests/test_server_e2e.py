@@ -227,23 +227,36 @@ def _sessions(c: TraineeClient) -> list[str]:
 
 
 def test_record_keeps_everything_up_to_the_last_flush_when_killed(server, tmp_path):
-    from dhg.dataset import load_dataset
+    from dhg.dataset import load_dataset, load_raw
 
     _, endpoint = server
     out = tmp_path / "rec"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     rec = subprocess.Popen(
-        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", "rec-1", "--out", str(out)],
+        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", "rec-1", "--out", str(out)]
+        + ["--raw"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
         env=env,
     )
+    forces: list[dict[int, dict]] = [{}]  # per attempt, by tick
+    last = [-1]
+
+    def on_force(m: dict) -> None:
+        if m["tick"] - 1 <= last[0]:
+            forces.append({})  # the reset: the session's clock restarted
+        last[0] = m["tick"] - 1
+        forces[-1][last[0]] = m
+
     try:
         assert rec.stdout is not None and "recording" in rec.stdout.readline()
-        with TraineeClient(endpoint, "rec-1") as c:
+        with TraineeClient(endpoint, "rec-1", on_force=on_force) as c:
             a, d, q = _entry(c)
-            _stream(c, a + d * np.linspace(-2e-3, 6e-3, 2600)[:, None], q)
+            positions = a + d * np.linspace(-2e-3, 6e-3, 2600)[:, None]
+            _stream(c, positions[:1300], q)
+            c.control("reset")  # a second attempt on fresh bone
+            _stream(c, positions[1300:], q)
         time.sleep(1.3)  # at least one flush after the last record
         rec.send_signal(signal.SIGKILL)  # a crash: no final flush
         rec.wait(timeout=10)
@@ -252,21 +265,47 @@ def test_record_keeps_everything_up_to_the_last_flush_when_killed(server, tmp_pa
             rec.kill()
             rec.wait()
         rec.stdout.close()
+    assert len(forces) == 2
     ds = load_dataset(out)
-    (ep,) = ds.episodes
-    assert 20 <= len(ep.times_s) <= 50  # 2.6 s of poses, then the idle session ticks on until the kill
-    assert np.all(np.diff(ep.times_s) > 0)
-    assert np.all(np.isfinite(ep.features))
-    assert ep.features[:, 7].max() > 0.0  # penetration depth reached into the bone
+    first, second = ds.episodes
+    assert [e.attempt for e in ds.episodes] == [0, 1]
+    assert 12 <= len(first.times_s) <= 30  # 1.3 s of poses (longer on a loaded machine), then the reset
+    assert 12 <= len(second.times_s) <= 50  # 1.3 s, then the idle session ticks on until the kill
+    for ep in ds.episodes:
+        assert np.all(np.diff(ep.times_s) > 0) and np.all(np.isfinite(ep.features))
+    assert second.features[:, 7].max() > 0.0  # penetration depth reached into the bone
+    # The 1 kHz stream survives the kill in its parts, every tick paired with the pose it used,
+    # and split at the reset like the records.
+    assert any(name.startswith("raw-") for name in ds.card["files"])
+    raw = load_raw(ds)
+    ids, ticks = raw.column("episode_id").to_numpy(), raw.column("tick").to_numpy()
+    assert raw.num_rows >= 2600
+    for eid, ep in enumerate(ds.episodes):
+        t = ticks[ids == eid]
+        assert len(t) >= 0.95 * (t[-1] - t[0] + 1), (eid, len(t), t[0], t[-1])
+        assert t[0] * 1e-3 < ep.times_s[0] and t[-1] * 1e-3 >= ep.times_s[-1] - 0.1
+        seen = [
+            (k, i) for i, k in zip(np.flatnonzero(ids == eid).tolist(), t.tolist(), strict=True) if k in forces[eid]
+        ]
+        assert len(seen) >= 0.95 * 1300  # the ticks while the client listened
+        for k, i in seen[::50]:
+            m = forces[eid][k]
+            force = [raw.column(f"force_{a}_n")[i].as_py() for a in "xyz"]
+            np.testing.assert_array_equal(force, np.float32(m["force_n"]))
+            np.testing.assert_array_equal(
+                [raw.column(f"{a}_m")[i].as_py() for a in "xyz"], positions[m["pose_seq"] - 1]
+            )
+    assert raw.column("drill_on").to_numpy().all() and second.metrics["force_jerk_n_per_s"] > 0
 
 
 def test_record_survives_a_server_crash_and_keeps_everything_on_ctrl_c(tmp_path):
-    from dhg.dataset import load_dataset
+    from dhg.dataset import load_dataset, load_raw
 
     proc, endpoint = _serve("--idle-timeout", "5.0")
     out = tmp_path / "rec"
     rec = subprocess.Popen(
-        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", "crash-1", "--out", str(out)],
+        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", "crash-1", "--out", str(out)]
+        + ["--raw", "--flush-every", "0.5"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -291,11 +330,17 @@ def test_record_survives_a_server_crash_and_keeps_everything_on_ctrl_c(tmp_path)
                 p.kill()
                 p.wait()
         proc.stop()
-    (ep,) = load_dataset(out).episodes
+    ds = load_dataset(out)
+    (ep,) = ds.episodes
     # Every 10 Hz state the trainee saw before the crash is in the dataset (the recorder is a
     # second subscriber: allow for one record in flight at the kill).
     assert len(ep.times_s) >= states - 1 >= 10, (len(ep.times_s), states)
     assert ep.features[:, 7].max() > 0.0
+    # Ctrl-C joined the 1 kHz parts into one raw.parquet.
+    assert sorted(ds.card["files"]) == ["raw.parquet", "records.parquet"]
+    assert "1 kHz stream:" in output
+    raw = load_raw(ds)
+    assert raw.num_rows >= 1400 and raw.column("tick")[raw.num_rows - 1].as_py() * 1e-3 >= ep.times_s[-1] - 0.1
 
 
 def test_cli_trainee_drills_and_reports(server, tmp_path):

@@ -278,9 +278,11 @@ def add_commands(sub: Any, epilog: str) -> None:
         description="Subscribes to one session's 10 Hz state on a running dhg-serve and writes it in the "
         "dataset format of 'dhg synth' (records.parquet + card.json), rewriting the folder atomically "
         "every second: stopping it (Ctrl-C) or the server crashing keeps everything up to the last "
-        "second. A reset of the session's bone starts a new attempt. Train on it with "
+        "second. A reset of the session's bone starts a new attempt. With --raw it also keeps the 1 kHz "
+        "stream (raw.parquet: every tick's pose, device force and guidance share), written in "
+        "one-minute parts that are joined when it stops cleanly. Train on it with "
         "'dhg train --data DIR' (label experts with --skill expert).\n\n"
-        "  dhg record --session alice-01 --skill expert --out data/alice",
+        "  dhg record --session alice-01 --skill expert --raw --out data/alice",
         epilog=EPILOG + epilog,
         formatter_class=fmt,
     )
@@ -293,6 +295,9 @@ def add_commands(sub: Any, epilog: str) -> None:
     p.add_argument("--subject", metavar="NAME", help="subject id (default: the session id)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     p.add_argument("--flush-every", type=float, default=1.0, metavar="S", help="seconds between writes (default 1)")
+    p.add_argument(
+        "--raw", action="store_true", help="also keep the 1 kHz pose/force stream (raw.parquet, about 4 MB a minute)"
+    )
     p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
     p.set_defaults(func=_cmd_record)
 
@@ -360,7 +365,11 @@ def _cmd_trainee(args: argparse.Namespace) -> int:
 def _cmd_record(args: argparse.Namespace) -> int:
     from dhg.recorder import SessionRecorder
 
-    rec = SessionRecorder(args.connect, args.session, args.out, args.prefix, args.subject, args.skill, args.flush_every)
+    if args.flush_every <= 0:
+        raise ValueError(f"--flush-every must be positive, got {args.flush_every}")
+    rec = SessionRecorder(
+        args.connect, args.session, args.out, args.prefix, args.subject, args.skill, args.flush_every, raw=args.raw
+    )
     print(f"recording session {args.session} into {args.out} (Ctrl-C to stop)", flush=True)
     try:
         with _stop_on_signals() as stop:
@@ -368,6 +377,11 @@ def _cmd_record(args: argparse.Namespace) -> int:
     finally:
         rec.close()
     print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}")
+    if args.raw:
+        print(
+            f"  1 kHz stream: {rec.raw_rows} ticks; {rec.raw_ticks_without_pose} without their pose (lost in "
+            f"transport), {rec.raw_rows_without_records} in attempts too short for a record"
+        )
     return EXIT_OK
 
 

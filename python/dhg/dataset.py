@@ -7,7 +7,9 @@ A dataset is a folder:
   ``time_s``, the nine features in :data:`dhg.features.FEATURE_NAMES` order, and ``drill_on``.
   Each column carries its unit in the Parquet field metadata.
 - ``raw.parquet`` (optional): the 1 kHz stream, one row per tick: ``episode_id``, ``tick``, the
-  pose columns (:data:`dhg.features.POSE_COLUMNS`) and the device force, for replay.
+  pose columns (:data:`dhg.features.POSE_COLUMNS`), the device force and its guidance share, for
+  replay. A recording that stopped without its final write keeps it in parts
+  (``raw-00000.parquet``, ``raw-00001.parquet``, ...), which :func:`load_raw` joins.
 - ``card.json``: format and version, units, feature order, sampling rate, frame, the volume and
   planned path used, the generator's version and seed, per-episode styles and skill metrics, and
   each file's row count and SHA-256.
@@ -44,7 +46,11 @@ __all__ = [
     "DatasetError",
     "Dataset",
     "EpisodeData",
+    "RawPart",
     "load_dataset",
+    "load_raw",
+    "parquet_bytes",
+    "raw_schema",
     "records_schema",
     "EpisodeInput",
     "write_dataset",
@@ -54,6 +60,9 @@ DATASET_FORMAT = "dhg-demonstrations"
 DATASET_VERSION = 1
 RECORDS_FILE = "records.parquet"
 RAW_FILE = "raw.parquet"
+RAW_PART_FILE = "raw-{:05d}.parquet"
+FORCE_COLUMNS = ("force_x_n", "force_y_n", "force_z_n")
+GUIDANCE_COLUMNS = ("guidance_x_n", "guidance_y_n", "guidance_z_n")
 CARD_FILE = "card.json"
 
 
@@ -85,15 +94,26 @@ def records_schema():
 
 
 def raw_schema():
-    """The exact Arrow schema of ``raw.parquet``."""
+    """The exact Arrow schema of ``raw.parquet`` (and of each of its parts)."""
     pa = _pa()
     fields = [pa.field("episode_id", pa.int32(), nullable=False), pa.field("tick", pa.int32(), nullable=False)]
     units = {"x_m": "m", "y_m": "m", "z_m": "m", "spindle_rpm": "rpm"}
     for name in POSE_COLUMNS:
         fields.append(pa.field(name, pa.float64(), nullable=False, metadata={"unit": units.get(name, "1")}))
-    for name in ("force_x_n", "force_y_n", "force_z_n"):
+    for name in FORCE_COLUMNS + GUIDANCE_COLUMNS:
         fields.append(pa.field(name, pa.float64(), nullable=False, metadata={"unit": "N"}))
     return pa.schema(fields)
+
+
+@dataclass
+class RawPart:
+    """One file of the 1 kHz stream for :func:`write_dataset`: new bytes to write, or (``data``
+    None) a part the folder being replaced already holds, which is hard-linked, not rewritten."""
+
+    name: str
+    rows: int
+    sha256: str
+    data: bytes | None = None
 
 
 @dataclass
@@ -165,11 +185,13 @@ def write_dataset(
     episodes: Sequence[EpisodeInput],
     card_extra: dict[str, Any],
     overwrite: bool = False,
+    raw_parts: Sequence[RawPart] = (),
 ) -> Path:
     """Writes a dataset folder atomically: everything goes to a temporary folder beside it, is
     flushed to disk, and only then replaces ``out_dir`` in one atomic swap, so ``out_dir`` holds
     the whole old dataset or the whole new one at every moment. ``card_extra`` adds the volume,
-    path and generator sections of the card."""
+    path and generator sections of the card. The 1 kHz stream comes from the episodes'
+    ``raw_poses`` (one ``raw.parquet``) or, for a recording, from ``raw_parts``."""
     pa = _pa()
     import pyarrow.parquet as pq
 
@@ -214,6 +236,11 @@ def write_dataset(
         table = pa.Table.from_pydict(cols, schema=records_schema())
         pq.write_table(table, tmp / RECORDS_FILE)
         files = {RECORDS_FILE: {"rows": table.num_rows, "sha256": _sha256(tmp / RECORDS_FILE)}}
+        if any(ep.raw_poses is not None for ep in episodes) and raw_parts:
+            raise DatasetError("give the 1 kHz stream as the episodes' raw_poses or as raw_parts, not both")
+        for part in raw_parts:
+            _place_part(part, out, tmp)
+            files[part.name] = {"rows": part.rows, "sha256": part.sha256}
         if any(ep.raw_poses is not None for ep in episodes):
             raw: dict[str, list[Any]] = {name: [] for name in raw_schema().names}
             for eid, ep in enumerate(episodes):
@@ -224,8 +251,10 @@ def write_dataset(
                 raw["tick"] += list(range(n))
                 for i, name in enumerate(POSE_COLUMNS):
                     raw[name] += ep.raw_poses[:, i].tolist()
-                for i, name in enumerate(("force_x_n", "force_y_n", "force_z_n")):
+                for i, name in enumerate(FORCE_COLUMNS):
                     raw[name] += ep.raw_forces_n[:, i].tolist()
+                for name in GUIDANCE_COLUMNS:  # a virtual surgeon drills without guidance
+                    raw[name] += [0.0] * n
             raw_table = pa.Table.from_pydict(raw, schema=raw_schema())
             pq.write_table(raw_table, tmp / RAW_FILE)
             files[RAW_FILE] = {"rows": raw_table.num_rows, "sha256": _sha256(tmp / RAW_FILE)}
@@ -247,6 +276,31 @@ def write_dataset(
         raise
     _install(tmp, out)
     return out
+
+
+def _place_part(part: RawPart, out: Path, tmp: Path) -> None:
+    """Puts one raw part into the folder being built: its new bytes, or a hard link to the same
+    (unchanged) part in the folder it replaces, so a long recording never rewrites old parts."""
+    dest = tmp / part.name
+    if part.data is not None:
+        dest.write_bytes(part.data)
+        return
+    src = out / part.name
+    if not src.is_file():
+        raise DatasetError(f"{src}: the raw part to keep is missing")
+    try:
+        os.link(src, dest)
+    except OSError:  # a file system without hard links: copy it
+        shutil.copyfile(src, dest)
+
+
+def parquet_bytes(table: Any) -> bytes:
+    """``table`` as the bytes of a Parquet file."""
+    import pyarrow.parquet as pq
+
+    sink = _pa().BufferOutputStream()
+    pq.write_table(table, sink)
+    return bytes(sink.getvalue().to_pybytes())
 
 
 def _fsync_tree(folder: Path) -> None:
@@ -399,3 +453,75 @@ def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Da
     if len(episodes) != len(card_eps):
         raise _fail(rec_path, f"{len(episodes)} episodes in the records, {len(card_eps)} in the card")
     return Dataset(root, card, episodes)
+
+
+def raw_files(card: dict[str, Any]) -> list[str]:
+    """The names of a dataset's raw stream files in order: ``[raw.parquet]``, the parts
+    ``raw-00000.parquet`` ... of a recording that stopped before joining them, or none."""
+    import re
+
+    names = sorted(n for n in card.get("files", {}) if n == RAW_FILE or re.fullmatch(r"raw-\d{5}\.parquet", n))
+    return names
+
+
+def load_raw(path: str | os.PathLike[str] | Dataset, verify_hashes: bool = True) -> Any:
+    """The 1 kHz stream of a dataset as one Arrow table (:func:`raw_schema`), or ``None`` when the
+    dataset has none. Parts are read in order and joined. Files written before the guidance
+    columns existed read with zero guidance.
+
+    Raises:
+        DatasetError: whatever :func:`load_dataset` refuses; a raw file that is missing, changed
+            (SHA-256), unreadable, of another schema or row count than the card says; parts that
+            are not numbered 0, 1, ... without a gap, or mixed with ``raw.parquet``; rows of an
+            episode the records do not have; an episode's rows split up or its ticks not
+            increasing; NaN or infinite values.
+    """
+    pa = _pa()
+    import pyarrow.parquet as pq
+
+    ds = path if isinstance(path, Dataset) else load_dataset(path, verify_hashes)
+    names = raw_files(ds.card)
+    if not names:
+        return None
+    if RAW_FILE in names and len(names) > 1:
+        raise _fail(ds.path, f"both {RAW_FILE} and raw parts are listed in the card")
+    if RAW_FILE not in names and names != [RAW_PART_FILE.format(i) for i in range(len(names))]:
+        raise _fail(ds.path, f"raw parts {names} are not numbered 0, 1, ... without a gap")
+    want = raw_schema()
+    tables = []
+    for name in names:
+        f = ds.path / name
+        expected = ds.card["files"][name]
+        if not f.is_file():
+            raise _fail(f, "missing (the card lists it)")
+        if verify_hashes and expected.get("sha256") != _sha256(f):
+            raise _fail(f, "SHA-256 differs from the card: the file is truncated, corrupt or was changed")
+        try:
+            t = pq.read_table(f)
+        except (OSError, pa.ArrowException) as exc:
+            raise _fail(f, f"unreadable Parquet ({exc})") from None
+        if t.schema.names == [n for n in want.names if n not in GUIDANCE_COLUMNS]:
+            for name_g in GUIDANCE_COLUMNS:  # written before guidance was recorded
+                t = t.append_column(want.field(name_g), pa.array(np.zeros(t.num_rows)))
+        if t.schema.names != want.names or any(t.schema.field(n).type != want.field(n).type for n in want.names):
+            raise _fail(f, f"schema {t.schema} differs from {want}")
+        if t.num_rows != expected.get("rows"):
+            raise _fail(f, f"{t.num_rows} rows, the card says {expected.get('rows')}")
+        tables.append(t.cast(want))
+    table = pa.concat_tables(tables)
+    ids = table.column("episode_id").to_numpy()
+    ticks = table.column("tick").to_numpy()
+    known = {e.episode_id for e in ds.episodes}
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]]) if len(ids) else np.empty(0, int)
+    if len(np.unique(ids)) != len(starts):
+        raise _fail(ds.path, "raw stream: an episode's rows are split up (they must be contiguous)")
+    unknown = set(np.unique(ids).tolist()) - known
+    if unknown:
+        raise _fail(ds.path, f"raw stream: rows of episodes {sorted(unknown)} that the records do not have")
+    same = ids[1:] == ids[:-1]
+    if np.any(np.diff(ticks)[same] <= 0):
+        raise _fail(ds.path, "raw stream: ticks do not increase within an episode")
+    values = np.column_stack([table.column(n).to_numpy() for n in want.names[2:]]) if len(ids) else np.empty((0, 1))
+    if not np.all(np.isfinite(values)):
+        raise _fail(ds.path, "raw stream: NaN or infinite values")
+    return table

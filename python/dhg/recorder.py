@@ -2,17 +2,22 @@
 
 The recorder subscribes to one session's 10 Hz state stream (the nine features, drill status,
 temperatures), so it records whoever drives the session, a person at a haptic device or a
-virtual trainee, without touching the session itself. Every ``flush_every_s`` it rewrites the
-dataset folder atomically (:func:`dhg.dataset.write_dataset`): a stop at any moment (Ctrl-C, the
-server or the recorder crashing) leaves the last complete flush on disk, at most one flush old.
+virtual trainee, without touching the session itself. With ``raw`` it also keeps the 1 kHz
+stream (``raw.parquet``): it subscribes to the client's poses and the server's forces and pairs
+each force with the pose its tick used. Every ``flush_every_s`` it rewrites the dataset folder
+atomically (:func:`dhg.dataset.write_dataset`): a stop at any moment (Ctrl-C, the server or the
+recorder crashing) leaves the last complete flush on disk, at most one flush old. The 1 kHz
+stream is written in parts of a minute that later flushes hard-link instead of rewriting, and
+joined into one ``raw.parquet`` at a clean stop.
 
 A reset of the session's bone (its clock restarts) starts a new episode (attempt) of the same
-subject.
+subject (:class:`dhg.live_streams.EpisodeSplitter`).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 from collections.abc import Sequence
@@ -23,6 +28,7 @@ import numpy as np
 
 from dhg import protocol
 from dhg.dataset import EpisodeInput, write_dataset
+from dhg.live_streams import Episode, EpisodeSplitter, PoseLog, RawParts, force_jerk
 from dhg.surgeons import skill_metrics
 from dhg.synth import attempt_score
 from dhg.task import PlannedPath, TaskRules
@@ -30,13 +36,16 @@ from dhg.trainee import state_records
 
 __all__ = ["SessionRecorder"]
 
+_DRILL_ON = protocol.FLAGS["drill_on"]
+
 
 class SessionRecorder:
     """Records ``session_id`` on the server at ``connect`` into the dataset folder ``out_dir``.
 
     ``skill`` labels the subject (``expert`` demonstrations are what training uses). Records are
-    kept in memory (about 100 bytes per 10 Hz record, so hours fit easily) and the whole dataset is
-    rewritten on each flush.
+    kept in memory (about 100 bytes per 10 Hz record, so hours fit easily) and the records are
+    rewritten on each flush. With ``raw``, the 1 kHz rows wait in memory only until their flush
+    (``raw_part_rows`` rows make a part).
     """
 
     def __init__(
@@ -49,6 +58,8 @@ class SessionRecorder:
         skill: str = "unknown",
         flush_every_s: float = 1.0,
         zenoh_config_file: str | None = None,
+        raw: bool = False,
+        raw_part_rows: int = 60_000,
     ) -> None:
         from dhg.serve import open_zenoh, zenoh_config_json5
 
@@ -62,31 +73,75 @@ class SessionRecorder:
         endpoints = [connect] if isinstance(connect, str) else list(connect)
         self._z = open_zenoh(zenoh_config_json5(connect=endpoints, config_file=zenoh_config_file, mode="client"))
         self._lock = threading.Lock()
-        self._episodes: list[list[dict[str, Any]]] = []
+        self._flush_lock = threading.Lock()
+        self._split = EpisodeSplitter()
+        self._poses = PoseLog()
+        self._parts = RawParts(raw_part_rows) if raw else None
+        self._next_id = 0
+        self._paired_seq = -1
         self._dirty = False
+        self._finished = False
         self.flushes = 0
         self.decode_errors = 0
+        self.raw_ticks_without_pose = 0
+        """Forces whose pose never reached the recorder (dropped in transport): no raw row."""
+        self.raw_rows_without_records = 0
+        """Raw rows of an attempt too short for a record (no 10 Hz state): left out."""
         self.path: PlannedPath | None = None
-        self._sub = self._z.declare_subscriber(self.keys["state"], self._on_state)
+        self._subs = [self._z.declare_subscriber(self.keys["state"], self._on_state)]
+        if raw:
+            self._subs.append(self._z.declare_subscriber(self.keys["pose"], self._on_pose))
+            self._subs.append(self._z.declare_subscriber(self.keys["force"], self._on_force))
 
-    def _on_state(self, sample: Any) -> None:
+    def _decode(self, name: str, sample: Any) -> dict[str, Any] | None:
         try:
-            m = protocol.decode("state", sample.payload.to_bytes())
+            return protocol.decode(name, sample.payload.to_bytes())
         except ValueError:
             self.decode_errors += 1
+            return None
+
+    def _on_state(self, sample: Any) -> None:
+        m = self._decode("state", sample)
+        if m is None:
             return
+        tick = round(m["time_s"] * 1e3) - 1  # the step that completed this record
         with self._lock:
-            eps = self._episodes
-            if not eps or (eps[-1] and m["time_s"] < eps[-1][-1]["time_s"] - 1e-9):
-                eps.append([])  # the first record, or the session was reset
-            eps[-1].append(m)
+            ep = self._split.place("state", tick)
+            ep.records.append(m)
+            if ep.episode_id is None:
+                ep.episode_id, self._next_id = self._next_id, self._next_id + 1
+            self._dirty = True
+
+    def _on_pose(self, sample: Any) -> None:
+        m = self._decode("pose", sample)
+        if m is None:
+            return
+        row = (*m["position_m"], *m["orientation_wxyz"], 1.0 if m["flags"] & _DRILL_ON else 0.0, m["spindle_rpm"])
+        with self._lock:
+            self._poses.add(m["seq"], row)
+
+    def _on_force(self, sample: Any) -> None:
+        m = self._decode("force", sample)
+        if m is None or m["tick"] < 1:
+            return
+        tick = m["tick"] - 1
+        with self._lock:
+            ep = self._split.place("force", tick)
+            if m["pose_seq"] == 0:
+                return  # the session has not had a pose yet: nothing was drilled
+            ep.rows.append((tick, m["pose_seq"], *m["force_n"], *m["guidance_n"]))
             self._dirty = True
 
     @property
     def records(self) -> int:
         """Records received so far."""
         with self._lock:
-            return sum(len(e) for e in self._episodes)
+            return sum(len(e.records) for e in self._split.episodes)
+
+    @property
+    def raw_rows(self) -> int:
+        """1 kHz rows written so far (0 without ``raw``)."""
+        return 0 if self._parts is None else self._parts.rows
 
     def _fetch_path(self) -> None:
         """The session's planned path (for the skill metrics), asked once it answers. Best effort:
@@ -101,18 +156,77 @@ class SessionRecorder:
         except Exception:  # zenoh errors, a closed session or a malformed reply: try again next flush
             pass
 
-    def flush(self) -> bool:
+    def _take(self, final: bool) -> tuple[list[tuple[Episode, list[dict[str, Any]]]], list[tuple[Episode, list]]]:
+        """Under the lock: the episodes with records (and a copy of them), and the raw rows now
+        ready to write. Rows of an episode the states passed by without a record are dropped;
+        an episode still waiting for its first record holds back its rows and every later one's."""
+        state_at = self._split.at("state")
+        ready: list[tuple[Episode, list]] = []
+        for i, ep in enumerate(self._split.episodes):
+            if ep.episode_id is None:
+                if i < state_at or final:
+                    self.raw_rows_without_records += len(ep.rows)
+                    ep.rows = []
+                    continue
+                break
+            if ep.rows:
+                rows, ep.rows = self._pair(ep.rows, final)
+                if rows:
+                    ready.append((ep, rows))
+                if ep.rows:
+                    break  # these wait for poses in flight, and so do later episodes' rows
+        waiting = next((ep.rows[0][1] for ep in self._split.episodes if ep.rows), None)
+        self._poses.forget_below(waiting if waiting is not None else self._paired_seq)
+        episodes = [(ep, list(ep.records)) for ep in self._split.episodes if ep.episode_id is not None]
+        return episodes, ready
+
+    def _pair(self, rows: list[tuple[Any, ...]], final: bool) -> tuple[list[tuple[float, ...]], list[tuple[Any, ...]]]:
+        """Pairs forces with their poses: (raw rows, forces still waiting for a pose in flight).
+        A force whose pose was lost (older than the newest pose received) is counted and left
+        out."""
+        out: list[tuple[float, ...]] = []
+        for k, (tick, seq, *forces) in enumerate(rows):
+            pose = self._poses.get(seq)
+            if pose is None:
+                if not final and self._poses.in_flight(seq):
+                    return out, rows[k:]
+                self.raw_ticks_without_pose += 1
+                continue
+            out.append((tick, *pose, *forces))
+            self._paired_seq = seq  # later ticks use this pose or newer ones
+        return out, []
+
+    def flush(self, final: bool = False) -> bool:
         """Writes everything received so far (atomically) if anything new arrived; returns whether
-        it wrote."""
-        with self._lock:
-            if not self._dirty:
-                return False
-            episodes = [list(e) for e in self._episodes if e]
-            self._dirty = False
+        it wrote. ``final`` also joins the 1 kHz parts into one ``raw.parquet``; the recorder
+        writes nothing after that."""
+        with self._flush_lock:
+            with self._lock:
+                joining = final and self._parts is not None and self._parts.rows > 0
+                if self._finished or not (self._dirty or joining):
+                    return False
+                self._dirty = False
+                episodes, ready = self._take(final)
+            if self._parts is not None:
+                for ep, rows in ready:
+                    arr = np.array(rows, dtype=np.float64)
+                    force_jerk(ep, arr)
+                    assert ep.episode_id is not None
+                    self._parts.add(ep.episode_id, arr)
+            try:
+                self._write(episodes, final)
+            except BaseException:
+                with self._lock:
+                    self._dirty = True  # everything is still held: the next flush retries
+                raise
+            self._finished = final
+            return True
+
+    def _write(self, episodes: list[tuple[Episode, list[dict[str, Any]]]], final: bool) -> None:
         self._fetch_path()
         rules = TaskRules()
         inputs = []
-        for attempt, states in enumerate(episodes):
+        for attempt, (ep, states) in enumerate(episodes):
             records = state_records(states)
             last = states[-1]
             metrics: dict[str, Any] = {}
@@ -127,6 +241,8 @@ class SessionRecorder:
                     peak_temperature_c=last["peak_temperature_c"],
                     time_above_47_s=last["time_above_47_s"],
                 )
+                if ep.jerk_count:  # the device force at 1 kHz, as a virtual surgeon's raw stream gives it
+                    metrics["force_jerk_n_per_s"] = math.sqrt(ep.jerk_sum / ep.jerk_count)
             inputs.append(EpisodeInput(self.subject_id, self.skill, attempt, records, metrics))
         if inputs:  # the paper trains on each subject's best attempt
             scored = [i for i, ep in enumerate(inputs) if ep.metrics]
@@ -139,21 +255,30 @@ class SessionRecorder:
                 "flushed_at_unix_s": time.time(),
             },
         }
+        parts = []
+        if self._parts is not None:
+            parts = self._parts.joined(self.out_dir) if final else self._parts.parts()
+            card["generator"]["raw"] = {
+                "rows": self._parts.rows,
+                "ticks_without_pose": self.raw_ticks_without_pose,
+                "rows_without_records": self.raw_rows_without_records,
+            }
         if self.path is not None:
             card["planned_path"] = self.path.to_dict()
-        write_dataset(self.out_dir, inputs, card, overwrite=True)
+        write_dataset(self.out_dir, inputs, card, overwrite=True, raw_parts=parts)
+        if self._parts is not None and not final:
+            self._parts.written(parts)
         self.flushes += 1
-        return True
 
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
         """Flushes every ``flush_every_s`` until ``stop`` is set (or ``duration_s`` passes), then
-        flushes once more."""
+        flushes once more, joining the 1 kHz parts."""
         t_end = None if duration_s is None else time.monotonic() + duration_s
         while not stop.wait(self.flush_every_s):
             self.flush()
             if t_end is not None and time.monotonic() >= t_end:
                 break
-        self.flush()
+        self.flush(final=True)
 
     def close(self) -> None:
         """Closes the Zenoh session (call :meth:`flush` first to keep the last records)."""

@@ -1,0 +1,175 @@
+"""The recorder's stream handling: episodes shared by the force and state streams, forces paired
+with their poses, and the 1 kHz stream's parts as the dataset loader reads them."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dhg.dataset import DatasetError, EpisodeInput, load_dataset, load_raw, write_dataset
+from dhg.live_streams import RAW_COLUMNS, Episode, EpisodeSplitter, PoseLog, RawParts, force_jerk
+
+
+def _ids(split: EpisodeSplitter, stream: str, ticks: list[int]) -> list[int]:
+    return [split.episodes.index(split.place(stream, t)) for t in ticks]  # type: ignore[arg-type]
+
+
+def test_both_streams_land_in_the_same_episodes_whichever_sees_a_reset_first():
+    s = EpisodeSplitter()
+    assert _ids(s, "force", [0, 1, 2, 99, 100, 199]) == [0] * 6
+    assert _ids(s, "state", [99, 199]) == [0, 0]
+    # The states see the reset first (forces are late): the state opens episode 1 ...
+    assert _ids(s, "state", [99]) == [1]
+    # ... and the forces join it when they reach the same reset.
+    assert _ids(s, "force", [200, 0, 1, 99]) == [0, 1, 1, 1]
+    # Now the forces see the next reset first; a state of the old episode that comes late stays there.
+    assert _ids(s, "force", [0, 5]) == [2, 2]
+    assert _ids(s, "state", [199, 99]) == [1, 2]
+    assert len(s.episodes) == 3
+
+
+def test_an_attempt_too_short_for_a_record_is_passed_over_by_the_states():
+    s = EpisodeSplitter()
+    _ids(s, "force", list(range(300)))
+    _ids(s, "state", [99, 199, 299])
+    assert _ids(s, "force", [0, 30]) == [1, 1]  # reset, then reset again after 31 ms: no state
+    assert _ids(s, "force", [0, 120]) == [2, 2]
+    assert _ids(s, "state", [99]) == [2]  # not the short episode 1
+    assert s.episodes[1].records == [] and s.at("state") == 2
+
+
+def test_a_late_state_of_an_episode_stays_with_it_even_past_a_few_dropped_forces():
+    s = EpisodeSplitter()
+    _ids(s, "force", list(range(185)))  # forces 185..199 dropped in transport
+    _ids(s, "state", [99])
+    assert _ids(s, "force", [0]) == [1]
+    assert _ids(s, "state", [199]) == [0]  # 15 ticks past the last force: still episode 0
+
+
+def test_pose_log_pairs_forces_and_tells_lost_from_in_flight():
+    log = PoseLog()
+    for seq in (1, 2, 4):
+        log.add(seq, (float(seq),))
+    assert log.get(2) == (2.0,) and log.get(3) is None
+    assert not log.in_flight(3)  # newer poses came: 3 is lost
+    assert log.in_flight(5)
+    log.forget_below(4)
+    assert log.get(2) is None and log.get(4) == (4.0,) and len(log) == 1
+    log.add(1, (9.0,))  # a restarted client numbers from 1 again
+    assert log.get(1) == (9.0,) and log.get(4) is None
+    small = PoseLog(capacity=3)
+    for seq in range(1, 6):
+        small.add(seq, (float(seq),))
+    assert len(small) == 3 and small.get(2) is None and small.get(3) == (3.0,)
+
+
+def _rows(ticks: np.ndarray, force: np.ndarray) -> np.ndarray:
+    rows = np.zeros((len(ticks), RAW_COLUMNS))
+    rows[:, 0] = ticks
+    rows[:, 1:4] = ticks[:, None] * 1e-6  # the burr moves 1 um per tick
+    rows[:, 4] = 1.0  # identity quaternion
+    rows[:, 10:13] = force
+    return rows
+
+
+def test_force_jerk_counts_only_consecutive_ticks():
+    ep = Episode()
+    ticks = np.array([0, 1, 2, 10, 11])
+    force = np.zeros((5, 3))
+    force[:, 2] = [0.0, 0.001, 0.002, 1.0, 1.001]  # 1 N/s, and a jump across the gap
+    force_jerk(ep, _rows(ticks[:3], force[:3]))
+    force_jerk(ep, _rows(ticks[3:], force[3:]))  # in two flushes: the first's last row carries over
+    assert ep.jerk_count == 3
+    assert np.sqrt(ep.jerk_sum / ep.jerk_count) == pytest.approx(1.0)
+
+
+def _records(n: int) -> np.ndarray:
+    r = np.zeros((n, 11))
+    r[:, 0] = 0.1 * np.arange(1, n + 1)
+    r[:, 8] = 20.0  # temperature (°C)
+    return r
+
+
+def _write(out, parts, episodes=2):
+    eps = [EpisodeInput("p0", "expert", a, _records(3)) for a in range(episodes)]
+    write_dataset(out, eps, {"generator": {"name": "test"}}, overwrite=True, raw_parts=parts)
+
+
+def test_raw_parts_are_linked_once_closed_and_joined_at_the_end(tmp_path):
+    out = tmp_path / "rec"
+    parts = RawParts(part_rows=5)
+    parts.add(0, _rows(np.arange(3), np.ones((3, 3))))
+    p1 = parts.parts()
+    _write(out, p1)
+    parts.written(p1)
+    assert [p.name for p in p1] == ["raw-00000.parquet"] and load_raw(out).num_rows == 3
+    parts.add(0, _rows(np.arange(3, 6), np.ones((3, 3))))
+    p2 = parts.parts()
+    _write(out, p2)
+    parts.written(p2)  # 6 rows >= 5: part 0 is closed
+    inode = (out / "raw-00000.parquet").stat().st_ino
+    parts.add(1, _rows(np.arange(4), 2 * np.ones((4, 3))))
+    p3 = parts.parts()
+    assert [p.name for p in p3] == ["raw-00000.parquet", "raw-00001.parquet"] and p3[0].data is None
+    _write(out, p3)
+    parts.written(p3)
+    assert (out / "raw-00000.parquet").stat().st_ino == inode, "a closed part is linked, not rewritten"
+    t = load_raw(out)
+    assert t.column("episode_id").to_pylist() == [0] * 6 + [1] * 4
+    assert t.column("tick").to_pylist() == [*range(6), *range(4)]
+    joined = parts.joined(out)
+    _write(out, joined)
+    card = json.loads((out / "card.json").read_text())
+    assert sorted(card["files"]) == ["raw.parquet", "records.parquet"]
+    t2 = load_raw(out)
+    assert t2.equals(t)
+    np.testing.assert_array_equal(t2.column("force_z_n").to_numpy(), [1.0] * 6 + [2.0] * 4)
+
+
+def _parts_dataset(tmp_path):
+    out = tmp_path / "rec"
+    parts = RawParts(part_rows=2)
+    for k in range(3):
+        parts.add(0, _rows(np.arange(2 * k, 2 * k + 2), np.zeros((2, 3))))
+        p = parts.parts()
+        _write(out, p, episodes=1)
+        parts.written(p)
+    return out
+
+
+def test_load_raw_refuses_a_missing_or_changed_part(tmp_path):
+    out = _parts_dataset(tmp_path)
+    assert load_raw(out).num_rows == 6
+    (out / "raw-00001.parquet").write_bytes((out / "raw-00001.parquet").read_bytes()[:-8])
+    with pytest.raises(DatasetError, match="raw-00001.parquet: SHA-256 differs"):
+        load_raw(out)
+    (out / "raw-00001.parquet").unlink()
+    with pytest.raises(DatasetError, match="raw-00001.parquet: missing"):
+        load_raw(out)
+
+
+def test_load_raw_refuses_a_gap_in_the_parts_and_rows_of_unknown_episodes(tmp_path):
+    out = _parts_dataset(tmp_path)
+    card = json.loads((out / "card.json").read_text())
+    card["files"]["raw-00004.parquet"] = card["files"].pop("raw-00002.parquet")
+    (out / "card.json").write_text(json.dumps(card))
+    with pytest.raises(DatasetError, match="not numbered 0, 1"):
+        load_raw(out)
+    other = tmp_path / "other"
+    parts = RawParts()
+    parts.add(3, _rows(np.arange(2), np.zeros((2, 3))))
+    _write(other, parts.parts(), episodes=1)
+    with pytest.raises(DatasetError, match=r"episodes \[3\] that the records do not have"):
+        load_raw(other)
+
+
+def test_load_raw_refuses_ticks_that_go_back_within_an_episode(tmp_path):
+    out = tmp_path / "rec"
+    parts = RawParts()
+    parts.add(0, _rows(np.array([0, 1, 1]), np.zeros((3, 3))))
+    _write(out, parts.parts(), episodes=1)
+    assert len(load_dataset(out).episodes) == 1
+    with pytest.raises(DatasetError, match="ticks do not increase"):
+        load_raw(out)
