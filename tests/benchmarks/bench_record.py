@@ -6,8 +6,10 @@ Prints the recorder's CPU use, its flush times, the ticks it kept against the ti
 ran, and the size of the files.
 
     python tests/benchmarks/bench_record.py --seconds 90
+    python tests/benchmarks/bench_record.py --seconds 90 --no-record   # the trainee alone, to compare
 
-Use more than 60 s to see a part closed and then linked (parts hold 60,000 ticks).
+Use more than 60 s to see a part closed and then linked (parts hold 60,000 ticks). The trainee's
+own pose → force figures are printed too: the recorder is a second subscriber to its forces.
 """
 
 from __future__ import annotations
@@ -34,14 +36,39 @@ def _cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
+def _trainee(endpoint: str, args: argparse.Namespace) -> subprocess.CompletedProcess[str]:
+    trainee = subprocess.run(
+        [sys.executable, "-m", "dhg.cli", "trainee", "--connect", endpoint, "--session", "bench-rec"]
+        + ["--skill", "novice", "--duration", str(args.seconds), "--seed", str(args.seed)],
+        capture_output=True,
+        text=True,
+    )
+    if trainee.returncode != 0:
+        sys.exit(f"dhg trainee failed:\n{trainee.stdout}{trainee.stderr}")
+    return trainee
+
+
+def _latency(stdout: str) -> list[str]:
+    """The trainee's pose → force and pose → guidance lines."""
+    return [" ".join(line.split()) for line in stdout.splitlines() if "pose→" in line]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=60.0, help="how long the novice drills (default 60)")
     ap.add_argument("--seed", type=int, default=7, help="the novice's hand (default 7)")
+    ap.add_argument("--no-record", action="store_true", help="run the trainee without a recorder")
     args = ap.parse_args()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server = ServerProcess(["--listen", endpoint, "--status-every", "1000"], echo=False)
     out = Path(tempfile.mkdtemp(prefix="dhg-bench-record-")) / "rec"
+    if args.no_record:
+        try:
+            trainee = _trainee(endpoint, args)
+        finally:
+            server.stop()
+        print(json.dumps({"seconds": args.seconds, "trainee": _latency(trainee.stdout)}, indent=1))
+        return
     try:
         rec = SessionRecorder(endpoint, "bench-rec", out, skill="novice", raw=True)
         flush_s: list[float] = []
@@ -61,12 +88,7 @@ def main() -> None:
         worker = threading.Thread(target=rec.run, args=(stop,))
         cpu0, wall0 = _cpu_s(), time.perf_counter()
         worker.start()
-        trainee = subprocess.run(
-            [sys.executable, "-m", "dhg.cli", "trainee", "--connect", endpoint, "--session", "bench-rec"]
-            + ["--skill", "novice", "--duration", str(args.seconds), "--seed", str(args.seed)],
-            capture_output=True,
-            text=True,
-        )
+        trainee = _trainee(endpoint, args)
         time.sleep(0.5)
         stop.set()
         worker.join()
@@ -74,8 +96,6 @@ def main() -> None:
         rec.close()
     finally:
         server.stop()
-    if trainee.returncode != 0:
-        sys.exit(f"dhg trainee failed:\n{trainee.stdout}{trainee.stderr}")
     ds = load_dataset(out)
     raw = load_raw(ds)
     ticks = raw.column("tick").to_numpy()
@@ -96,6 +116,7 @@ def main() -> None:
         "records": ds.n_records,
         "bytes": sizes,
         "raw_mb_per_min": round(sizes["raw.parquet"] / 1e6 / (ran / 60e3), 2),
+        "trainee": _latency(trainee.stdout),
     }
     print(json.dumps(result, indent=1))
 
