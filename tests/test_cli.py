@@ -26,6 +26,8 @@ def test_help_teaches():
         assert word in r.stdout
     r = run("xray", "--help")
     assert r.returncode == 0 and "top.png" in r.stdout and "--ct" in r.stdout
+    r = run("train", "--help")
+    assert r.returncode == 0 and "the last 13.5 % of windows" in r.stdout and "%%" not in r.stdout
 
 
 def test_xray_writes_three_pngs(tmp_path):

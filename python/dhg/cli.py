@@ -378,7 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="train the DHG model on a dataset and export model.ts",
         description="Trains an LSTM (a preset of the paper's Table 1) to predict the expert's next force from "
         "windows of 20 records (the nine features at 10 Hz), with the paper's defaults: Adam, learning rate 0.004, "
-        "batch 50, RMSE loss, min-max scaling fitted on the training data, a chronological split (the last 13.5 %% of "
+        "batch 50, RMSE loss, min-max scaling fitted on the training data, a chronological split (the last 13.5 % of "
         "windows for test). Writes RUN/model.ts (TorchScript: raw windows in, forces in N out), metrics.json, "
         "loss.png, forces.png (reference vs predicted) and checkpoint.pt (resume with --resume). Runs under torchrun "
         "for multi-GPU/multi-node (DistributedDataParallel).",
