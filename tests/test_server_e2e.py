@@ -343,6 +343,66 @@ def test_record_survives_a_server_crash_and_keeps_everything_on_ctrl_c(tmp_path)
     assert raw.num_rows >= 1400 and raw.column("tick")[raw.num_rows - 1].as_py() * 1e-3 >= ep.times_s[-1] - 0.1
 
 
+def test_a_recorded_session_trains_a_model_that_the_server_then_serves(server, tmp_path):
+    """The loop a lab runs with people: record an expert at the server, train on the recording,
+    serve the new model, and guide the next trainee with it."""
+    import json
+
+    from dhg.dataset import load_dataset, load_raw
+    from dhg.export import read_model_meta
+
+    _, endpoint = server
+    data, run = tmp_path / "alice", tmp_path / "run"
+    rec = subprocess.Popen(
+        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", "alice"]
+        + ["--skill", "expert", "--raw", "--out", str(data)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )
+    try:
+        assert rec.stdout is not None and "recording" in rec.stdout.readline()
+        drill = subprocess.run(
+            [sys.executable, "-m", "dhg.cli", "trainee", "--connect", endpoint, "--session", "alice"]
+            + ["--skill", "expert", "--duration", "7"],  # about 70 records: enough windows to split
+            capture_output=True,
+            text=True,
+        )
+        assert drill.returncode == 0, drill.stderr
+        rec.send_signal(signal.SIGINT)
+        output, _ = rec.communicate(timeout=20)
+        assert rec.returncode == 0, output
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+            rec.wait()
+    ds = load_dataset(data)
+    assert [e.skill for e in ds.episodes] == ["expert"] and ds.n_records >= 70
+    assert load_raw(ds).num_rows >= 7000
+    r = subprocess.run(
+        [sys.executable, "-m", "dhg.cli", "train", "--data", str(data), "--out", str(run)]
+        + ["--preset", "tiny", "--epochs", "1"],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 0, r.stderr
+    meta = read_model_meta(run / "model.ts")
+    assert meta["data"]["records_sha256"] == ds.card["files"]["records.parquet"]["sha256"]
+    served, endpoint2 = _serve("--model", str(run / "model.ts"))
+    try:
+        with TraineeClient(endpoint2, "bob") as c:
+            a, d, q = _entry(c)
+            _stream(c, a + d * np.linspace(-2e-3, 2e-3, 1500)[:, None], q)
+            health = c.health()
+            guidance = list(c.guidance)
+    finally:
+        assert served.stop() == 0
+    assert health["model"]["id"] == "tiny" and health["model"]["replies"] >= 10, json.dumps(health["model"])
+    assert len(guidance) >= 10
+    assert all(np.all(np.isfinite(g["predicted_force_n"])) for g in guidance)
+
+
 def test_cli_trainee_drills_and_reports(server, tmp_path):
     import json
 
