@@ -230,3 +230,32 @@ def test_a_raw_file_from_before_the_guidance_columns_reads_with_zero_guidance(sm
     old = load_raw(out)
     assert old.schema.names == raw.schema.names and old.num_rows == raw.num_rows
     assert not old.column("guidance_z_n").to_numpy().any()
+
+
+def test_cli_inspect_lists_the_episodes_and_plots_one(small, tmp_path):
+    import subprocess
+    import sys
+
+    out, episodes = small
+
+    def inspect(*args: str) -> subprocess.CompletedProcess[str]:
+        cmd = [sys.executable, "-m", "dhg.cli", "inspect", str(out), *args]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+
+    png = tmp_path / "e1.png"
+    r = inspect("--plot", str(png), "--episode", "1")
+    assert r.returncode == 0, r.stderr
+    assert "3 episodes" in r.stdout and f"{sum(len(e.raw_poses) for e in episodes)} ticks" in r.stdout
+    assert "plunge (mm)" in r.stdout and "plot of episode 1" in r.stdout
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    r = inspect("--json")
+    assert r.returncode == 0, r.stderr
+    rows = json.loads(r.stdout)["episodes"]
+    assert [row["skill"] for row in rows] == [e.skill for e in episodes]
+    assert [row["raw_ticks"] for row in rows] == [len(e.raw_poses) for e in episodes]  # kept in the raw stream
+    assert [row["records"] for row in rows] == [len(e.records) for e in episodes]
+    assert rows[0]["metrics"]["plunge_depth_m"] == episodes[0].metrics["plunge_depth_m"]
+    r = inspect("--plot", str(png), "--episode", "9")
+    assert r.returncode == 3 and "no episode 9 (it has episodes 0, 1, 2)" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "dhg.cli", "inspect", str(tmp_path)], capture_output=True, text=True)
+    assert r.returncode == 3 and "not a DHG dataset folder" in r.stderr

@@ -259,6 +259,52 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from dhg.report import METRIC_COLUMNS, episode_summaries, load_with_raw, plot_episode
+
+    ds, raw = load_with_raw(args.data)
+    gen = ds.card.get("generator", {})
+    rows = episode_summaries(ds, raw)
+    if args.plot and not rows:
+        raise ValueError("the dataset has no episodes to plot")
+    plotted = None
+    if args.plot:
+        eid = rows[-1]["episode_id"] if args.episode is None else args.episode
+        plotted = (eid, plot_episode(ds, eid, args.plot, raw))
+    if args.json:
+        import json
+
+        print(json.dumps({"path": str(ds.path), "raw_ticks": None if raw is None else raw.num_rows, "episodes": rows}))
+        return EXIT_OK
+    print(f"{ds.path}: {gen.get('name', 'unknown generator')}, {len(rows)} episodes, {ds.n_records} records at 10 Hz")
+    print(f"  1 kHz stream: {'none' if raw is None else f'{raw.num_rows} ticks'}")
+    table = Table(title=None, show_edge=False)
+    for col in ("ep", "subject", "skill", "try", "best", "records", "time (s)", "ticks"):
+        table.add_column(col, justify="right" if col not in ("subject", "skill") else "left")
+    for title, _, _ in METRIC_COLUMNS:
+        table.add_column(title, justify="right")
+    for r in rows:
+        cells = [
+            str(r["episode_id"]),
+            r["subject_id"],
+            r["skill"],
+            str(r["attempt"]),
+            "*" if r["best_of_subject"] else "",
+        ]
+        cells += [str(r["records"]), f"{r['duration_s']:.1f}", "" if r["raw_ticks"] is None else str(r["raw_ticks"])]
+        for _, key, factor in METRIC_COLUMNS:
+            v = r["metrics"].get(key)
+            cells.append("" if v is None else ("yes" if v else "no") if isinstance(v, bool) else f"{v * factor:.2f}")
+        table.add_row(*cells)
+    Console(width=200).print(table)
+    if plotted is not None:
+        print(f"plot of episode {plotted[0]}: {plotted[1]}")
+    return EXIT_OK
+
+
 def cmd_ct_import(args: argparse.Namespace) -> int:
     from dhg import ct
 
@@ -432,6 +478,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="isotropic voxel size (default 0.5)")
     p.add_argument("--crop-mm", metavar="X0,Y0,Z0,X1,Y1,Z1", help="keep only this world box (mm, LPS)")
     p.set_defaults(func=cmd_ct_import)
+
+    p = sub.add_parser(
+        "inspect",
+        help="a dataset at a glance: its episodes' skill metrics, and a plot of one",
+        description="Validates a dataset folder (from 'dhg synth' or 'dhg record') and prints one line per "
+        "episode: subject, skill, attempt, whether it is the subject's best (*), records, duration, 1 kHz "
+        "ticks kept, and the skill metrics (completed, distance to B, maximum deviation, plunge, peak "
+        "temperature, time above 47 °C, force jerk). With --plot it writes a PNG of one episode over time: "
+        "the device force (1 kHz with the guidance share when the raw stream is kept), the tip temperature "
+        "and the depth along A→B, with the layer at the tip shaded.\n\n"
+        "  dhg inspect data/alice --plot alice.png            # the last attempt\n"
+        "  dhg inspect data/demos --plot e3.png --episode 3",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("data", metavar="DIR", help="dataset folder")
+    p.add_argument("--plot", metavar="FILE.png", help="write a PNG of one episode over time")
+    p.add_argument("--episode", type=int, metavar="ID", help="the episode to plot (default: the last)")
+    p.add_argument("--json", action="store_true", help="print the episodes as JSON (SI units) instead of a table")
+    p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser(
         "phantom",
