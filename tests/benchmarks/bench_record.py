@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -68,6 +69,7 @@ def main() -> None:
         finally:
             server.stop()
         print(json.dumps({"seconds": args.seconds, "trainee": _latency(trainee.stdout)}, indent=1))
+        shutil.rmtree(out.parent, ignore_errors=True)
         return
     try:
         rec = SessionRecorder(endpoint, "bench-rec", out, skill="novice", raw=True)
@@ -119,6 +121,7 @@ def main() -> None:
         "trainee": _latency(trainee.stdout),
     }
     print(json.dumps(result, indent=1))
+    shutil.rmtree(out.parent, ignore_errors=True)
 
 
 if __name__ == "__main__":
