@@ -49,6 +49,23 @@ def test_windows_never_straddle_episodes(data):
     np.testing.assert_array_equal(x[1:][same][:, :-1], x[:-1][same][:, 1:])
 
 
+def test_a_horizon_sets_targets_further_ahead_within_the_episode(data, run, tmp_path):
+    ds = load_dataset(data)
+    x, y, ids = make_windows(ds, 20, horizon=5)
+    for ep in ds.episodes:
+        rows = np.flatnonzero(ids == ep.episode_id)
+        assert len(rows) == len(ep.times_s) - 24
+        np.testing.assert_array_equal(y[rows[0]], ep.features[24])  # 0.5 s after the window's last record
+        np.testing.assert_array_equal(x[rows[-1]], ep.features[-25:-5])  # its last record 5 before the end
+        np.testing.assert_array_equal(y[rows[-1]], ep.features[-1])
+    with pytest.raises(InvalidInputError, match="horizon must be 1 to 50"):
+        TrainConfig(horizon=0)
+    result = train(data, tmp_path / "h3", "tiny", TrainConfig(max_epochs=1, horizon=3))
+    assert result.metrics["train_config"]["horizon"] == 3
+    assert load_model(tmp_path / "h3" / "model.ts").horizon == 3
+    assert load_model(run[0] / "model.ts").horizon == 1  # the paper's next record
+
+
 def test_chronological_split_with_gaps():
     s = split_windows(1000, 20, 0.135, 0.1)
     assert s.train.start == 0 and s.train.stop + 20 == s.val.start and s.val.stop + 20 == s.test.start

@@ -27,8 +27,8 @@ def persistence_baseline(data_dir: str | os.PathLike[str], cfg: TrainConfig | No
     from dhg.train import make_windows, split_windows
 
     cfg = cfg or TrainConfig()
-    x, y, _ = make_windows(load_dataset(data_dir), window, cfg.skill, cfg.best_only)
-    split = split_windows(len(x), window, cfg.test_fraction, cfg.val_fraction)
+    x, y, _ = make_windows(load_dataset(data_dir), window, cfg.skill, cfg.best_only, cfg.horizon)
+    split = split_windows(len(x), window + cfg.horizon - 1, cfg.test_fraction, cfg.val_fraction)
     err = x[split.test][:, -1, 0:3] - y[split.test][:, 0:3]
     return {"rmse_n": float(np.sqrt(np.mean(err**2))), "test_samples": int(len(err))}
 

@@ -190,6 +190,7 @@ def _train_config(args: argparse.Namespace):
         seed=args.seed,
         device=args.device,
         best_only=args.best_only,
+        horizon=args.horizon,
     )
 
 
@@ -227,7 +228,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     model = load_model(args.model)
     ds = load_dataset(args.data)
-    x, y, _ = make_windows(ds, model.window, None if args.skill == "all" else args.skill)
+    x, y, _ = make_windows(ds, model.window, None if args.skill == "all" else args.skill, horizon=model.horizon)
     pred = np.concatenate([model.predict(x[b : b + 2048]) for b in range(0, len(x), 2048)])
     err = pred - y[:, 0:3]
     per_axis = np.sqrt(np.mean(err**2, axis=0))
@@ -418,6 +419,14 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
         p.add_argument("--device", choices=["cpu", "cuda", "auto"], default="cpu", help="where to train (default cpu)")
         p.add_argument("--best-only", action="store_true", help="only each subject's best attempt, as the paper did")
+        p.add_argument(
+            "--horizon",
+            type=int,
+            default=1,
+            metavar="K",
+            help="predict the expert's force K records (K x 0.1 s) after the window's last: 1 is the paper's "
+            "next record; a larger K gives guidance that leads the expert's force (default 1)",
+        )
 
     p = sub.add_parser(
         "train",

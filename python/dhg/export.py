@@ -67,6 +67,7 @@ def export_model(
         },
         "output": {"shape": ["batch", 3], "features": list(FEATURE_NAMES[0:3]), "units": ["N", "N", "N"]},
         "window": cfg.window,
+        "horizon_records": int(metrics.get("train_config", {}).get("horizon", 1)),
         "preset": cfg.preset,
         "model_config": cfg.to_dict(),
         "data": metrics.get("data", {}),
@@ -119,6 +120,12 @@ class GuidanceModel:
     def window(self) -> int:
         """Records per input window."""
         return int(self.meta["window"])
+
+    @property
+    def horizon(self) -> int:
+        """Records ahead of the window's last that the prediction is for (1: the next record,
+        0.1 s; models from before this setting predict the next record)."""
+        return int(self.meta.get("horizon_records", 1))
 
     def predict(self, windows: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Expert force (B, 3) in N for windows (B, window, 9) or one window (window, 9), in the

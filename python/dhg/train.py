@@ -2,11 +2,13 @@
 RMSE loss, min–max scaling, a chronological split).
 
 Data: windows of ``e`` consecutive records of one episode predict the next record (windows never
-straddle two episodes). The windows are ordered as the dataset is (episode by episode, in time)
-and split chronologically without shuffling. The last ``test_fraction`` of the windows (≈ 13.5 %,
-the paper's share) form the test set, and the last ``val_fraction`` of the rest the validation set
-for early stopping. One window's worth of windows is dropped at each boundary, so no record is in
-two sets. The scaler is fitted on the training windows only.
+straddle two episodes), or with ``horizon`` k the record k steps after the window's last (the
+expert's force k × 0.1 s ahead, a cue that leads). The windows are ordered as the dataset is
+(episode by episode, in time) and split chronologically without shuffling. The last
+``test_fraction`` of the windows (≈ 13.5 %, the paper's share) form the test set, and the last
+``val_fraction`` of the rest the validation set for early stopping. One window's worth of windows
+(plus the horizon) is dropped at each boundary, so no record is in two sets. The scaler is fitted
+on the training windows only.
 
 Runs on CPU by default and on CUDA when asked (``device="cuda"`` or ``"auto"``). Under ``torchrun``
 it trains with DistributedDataParallel; rank 0 writes everything.
@@ -53,6 +55,9 @@ class TrainConfig:
     """Which episodes to learn from (the paper learns from experts)."""
     best_only: bool = False
     """Only each subject's best attempt (the paper's selection)."""
+    horizon: int = 1
+    """Records ahead of the window's last that the target lies: 1 is the next record (the paper,
+    0.1 s ahead); k predicts the expert's force k × 0.1 s ahead."""
 
     def __post_init__(self) -> None:
         if not (self.learning_rate > 0 and self.batch_size >= 1 and self.max_epochs >= 1 and self.patience >= 1):
@@ -61,23 +66,30 @@ class TrainConfig:
             raise InvalidInputError("test_fraction and val_fraction must be in (0, 0.5)")
         if self.device not in ("cpu", "cuda", "auto"):
             raise InvalidInputError(f"device must be cpu, cuda or auto, got {self.device!r}")
+        if not 1 <= self.horizon <= 50:
+            raise InvalidInputError(f"horizon must be 1 to 50 records (0.1 to 5 s), got {self.horizon}")
 
 
-def make_windows(ds: Dataset, window: int, skill: str | None = "expert", best_only: bool = False):
-    """Windows (N, window, 9) and next-record targets (N, 9) in dataset order; none straddles two
-    episodes. Returns (windows, targets, episode_ids)."""
+def make_windows(ds: Dataset, window: int, skill: str | None = "expert", best_only: bool = False, horizon: int = 1):
+    """Windows (N, window, 9) and their targets (N, 9), the record ``horizon`` steps after each
+    window's last (1: the next record), in dataset order; none straddles two episodes. Returns
+    (windows, targets, episode_ids)."""
+    if horizon < 1:
+        raise InvalidInputError(f"horizon must be at least 1 record, got {horizon}")
     xs, ys, ids = [], [], []
     for ep in ds.select(skill, best_only):
         f = ep.features
-        n = len(f) - window
+        n = len(f) - window - horizon + 1
         if n <= 0:
             continue
         idx = np.arange(window)[None, :] + np.arange(n)[:, None]
         xs.append(f[idx])  # (n, window, 9)
-        ys.append(f[window:])  # (n, 9)
+        ys.append(f[window + horizon - 1 :])  # (n, 9)
         ids.append(np.full(n, ep.episode_id))
     if not xs:
-        raise InvalidInputError(f"no {skill or 'any'} episode is longer than the window of {window} records")
+        raise InvalidInputError(
+            f"no {skill or 'any'} episode is longer than the window of {window} records plus the horizon of {horizon}"
+        )
     return np.concatenate(xs), np.concatenate(ys), np.concatenate(ids)
 
 
@@ -96,7 +108,8 @@ class Split:
 
 def split_windows(n: int, window: int, test_fraction: float, val_fraction: float) -> Split:
     """Chronological train/val/test ranges over ``n`` ordered windows, with a gap of ``window``
-    windows before each boundary so that no record is shared between sets."""
+    windows before each boundary so that no record is shared between sets (pass the window plus
+    the horizon less one when targets lie further ahead)."""
     n_test = int(round(n * test_fraction))
     test_start = n - n_test
     train_val_end = test_start - window
@@ -162,8 +175,8 @@ def train(
     torch.manual_seed(cfg.seed)
 
     ds = load_dataset(data_dir)
-    x_all, y_all, _ = make_windows(ds, mcfg.window, cfg.skill, cfg.best_only)
-    split = split_windows(len(x_all), mcfg.window, cfg.test_fraction, cfg.val_fraction)
+    x_all, y_all, _ = make_windows(ds, mcfg.window, cfg.skill, cfg.best_only, cfg.horizon)
+    split = split_windows(len(x_all), mcfg.window + cfg.horizon - 1, cfg.test_fraction, cfg.val_fraction)
     x = torch.as_tensor(x_all, dtype=torch.float32)  # (N, T, 9)
     y = torch.as_tensor(y_all, dtype=torch.float32)  # (N, 9)
     scaler = MinMaxScaler().fit(torch.cat([x[split.train].reshape(-1, 9), y[split.train]]))
