@@ -343,6 +343,41 @@ def test_record_survives_a_server_crash_and_keeps_everything_on_ctrl_c(tmp_path)
     assert raw.num_rows >= 1400 and raw.column("tick")[raw.num_rows - 1].as_py() * 1e-3 >= ep.times_s[-1] - 0.1
 
 
+def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
+    from dhg.dataset import load_dataset, load_raw
+
+    _, endpoint = server
+    root = tmp_path / "class"
+    rec = subprocess.Popen(
+        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--all", "--raw", "--out", str(root)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )
+    try:
+        assert rec.stdout is not None and "recording every session" in rec.stdout.readline()
+        for session_id in ("class-a", "class-b"):
+            with TraineeClient(endpoint, session_id) as c:
+                a, d, q = _entry(c)
+                _stream(c, a + d * np.linspace(-2e-3, 1e-3, 1200)[:, None], q)
+        rec.send_signal(signal.SIGINT)
+        output, _ = rec.communicate(timeout=30)
+        assert rec.returncode == 0, output
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+            rec.wait()
+    assert f"recording session class-a into {root / 'class-a'}" in output
+    assert re.search(r"records of \d+ sessions", output), output  # earlier tests' idle sessions may be there too
+    for session_id in ("class-a", "class-b"):
+        ds = load_dataset(root / session_id)
+        (ep,) = ds.episodes
+        assert ep.subject_id == session_id and len(ep.times_s) >= 11
+        raw = load_raw(ds)
+        assert raw.num_rows >= 0.95 * 1200 and ds.card["generator"]["session"] == session_id
+
+
 def test_a_recorded_session_trains_a_model_that_the_server_then_serves(server, tmp_path):
     """The loop a lab runs with people: record an expert at the server, train on the recording,
     serve the new model, and guide the next trainee with it."""

@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 from dhg.cli import EXIT_INTERNAL, EXIT_OK, _run
@@ -281,15 +282,19 @@ def add_commands(sub: Any, epilog: str) -> None:
         "second. A reset of the session's bone starts a new attempt. With --raw it also keeps the 1 kHz "
         "stream (raw.parquet: every tick's pose, device force and guidance share), written in "
         "one-minute parts that are joined when it stops cleanly. Train on it with "
-        "'dhg train --data DIR' (label experts with --skill expert).\n\n"
-        "  dhg record --session alice-01 --skill expert --raw --out data/alice",
+        "'dhg train --data DIR' (label experts with --skill expert). With --all it records every "
+        "session on the server, each into DIR/<session id> as it appears: one recorder for a class.\n\n"
+        "  dhg record --session alice-01 --skill expert --raw --out data/alice\n"
+        "  dhg record --all --skill novice --out data/class-3",
         epilog=EPILOG + epilog,
         formatter_class=fmt,
     )
     p.add_argument(
         "--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help=f"server (default {DEFAULT_ENDPOINT})"
     )
-    p.add_argument("--session", required=True, metavar="ID", help="the session to record")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--session", metavar="ID", help="the session to record")
+    which.add_argument("--all", action="store_true", help="record every session, each into DIR/<session id>")
     p.add_argument("--out", required=True, metavar="DIR", help="dataset folder (replaced on every flush)")
     p.add_argument("--skill", default="unknown", help="label of the subject: expert, novice, ... (default unknown)")
     p.add_argument("--subject", metavar="NAME", help="subject id (default: the session id)")
@@ -367,6 +372,10 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
     if args.flush_every <= 0:
         raise ValueError(f"--flush-every must be positive, got {args.flush_every}")
+    if args.all:
+        if args.subject:
+            raise ValueError("--subject names one subject; with --all each session's id is its subject")
+        return _record_all(args)
     rec = SessionRecorder(
         args.connect, args.session, args.out, args.prefix, args.subject, args.skill, args.flush_every, raw=args.raw
     )
@@ -382,6 +391,25 @@ def _cmd_record(args: argparse.Namespace) -> int:
             f"  1 kHz stream: {rec.raw_rows} ticks; {rec.raw_ticks_without_pose} without their pose (lost in "
             f"transport), {rec.raw_rows_without_records} in attempts too short for a record"
         )
+    return EXIT_OK
+
+
+def _record_all(args: argparse.Namespace) -> int:
+    from dhg.recorder import AllSessionsRecorder
+
+    def found(session_id: str, folder: Path) -> None:
+        print(f"  recording session {session_id} into {folder}", flush=True)
+
+    rec = AllSessionsRecorder(
+        args.connect, args.out, args.prefix, args.skill, args.flush_every, raw=args.raw, on_new_session=found
+    )
+    print(f"recording every session into {args.out}/<session id> (Ctrl-C to stop)", flush=True)
+    try:
+        with _stop_on_signals() as stop:
+            rec.run(stop, args.duration)
+    finally:
+        rec.close()
+    print(f"recorded {rec.records} records of {len(rec.sessions)} sessions to {args.out}")
     return EXIT_OK
 
 

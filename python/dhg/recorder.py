@@ -20,7 +20,7 @@ import json
 import math
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +34,7 @@ from dhg.synth import attempt_score
 from dhg.task import PlannedPath, TaskRules
 from dhg.trainee import state_records
 
-__all__ = ["SessionRecorder"]
+__all__ = ["AllSessionsRecorder", "SessionRecorder"]
 
 _DRILL_ON = protocol.FLAGS["drill_on"]
 
@@ -60,7 +60,10 @@ class SessionRecorder:
         zenoh_config_file: str | None = None,
         raw: bool = False,
         raw_part_rows: int = 60_000,
+        zenoh_session: Any | None = None,
     ) -> None:
+        """``zenoh_session``: share an open Zenoh session instead of opening one; the recorder then
+        neither subscribes (its owner feeds :meth:`on_sample`) nor closes it."""
         from dhg.serve import open_zenoh, zenoh_config_json5
 
         protocol.check_session_id(session_id)
@@ -70,8 +73,12 @@ class SessionRecorder:
         self.skill = skill
         self.flush_every_s = flush_every_s
         self.keys = protocol.keys(prefix, session_id)
-        endpoints = [connect] if isinstance(connect, str) else list(connect)
-        self._z = open_zenoh(zenoh_config_json5(connect=endpoints, config_file=zenoh_config_file, mode="client"))
+        self._owns_zenoh = zenoh_session is None
+        if zenoh_session is None:
+            endpoints = [connect] if isinstance(connect, str) else list(connect)
+            cfg = zenoh_config_json5(connect=endpoints, config_file=zenoh_config_file, mode="client")
+            zenoh_session = open_zenoh(cfg)
+        self._z = zenoh_session
         self._lock = threading.Lock()
         self._flush_lock = threading.Lock()
         self._split = EpisodeSplitter()
@@ -88,10 +95,19 @@ class SessionRecorder:
         self.raw_rows_without_records = 0
         """Raw rows of an attempt too short for a record (no 10 Hz state): left out."""
         self.path: PlannedPath | None = None
-        self._subs = [self._z.declare_subscriber(self.keys["state"], self._on_state)]
-        if raw:
-            self._subs.append(self._z.declare_subscriber(self.keys["pose"], self._on_pose))
-            self._subs.append(self._z.declare_subscriber(self.keys["force"], self._on_force))
+        self._subs = []
+        if self._owns_zenoh:
+            self._subs.append(self._z.declare_subscriber(self.keys["state"], self._on_state))
+            if raw:
+                self._subs.append(self._z.declare_subscriber(self.keys["pose"], self._on_pose))
+                self._subs.append(self._z.declare_subscriber(self.keys["force"], self._on_force))
+
+    def on_sample(self, leaf: str, sample: Any) -> None:
+        """Feeds one sample of this session's ``state``, ``pose`` or ``force`` key (for an owner
+        that subscribes for many sessions); other leaves are ignored."""
+        handler = {"state": self._on_state, "pose": self._on_pose, "force": self._on_force}.get(leaf)
+        if handler is not None and (leaf == "state" or self._parts is not None):
+            handler(sample)
 
     def _decode(self, name: str, sample: Any) -> dict[str, Any] | None:
         try:
@@ -281,7 +297,97 @@ class SessionRecorder:
         self.flush(final=True)
 
     def close(self) -> None:
-        """Closes the Zenoh session (call :meth:`flush` first to keep the last records)."""
+        """Closes the Zenoh session if it opened it (call :meth:`flush` first to keep the last
+        records)."""
+        if not self._owns_zenoh:
+            return
+        try:
+            self._z.close()
+        except Exception:
+            pass
+
+
+class AllSessionsRecorder:
+    """Records every session on the server at ``connect``, each into ``out_root/<session id>`` as
+    its own dataset (:class:`SessionRecorder`), starting when its first message arrives: a class of
+    trainees needs one recorder, and nobody has to know the session ids beforehand.
+    ``on_new_session(session_id, folder)`` is called (from a Zenoh thread) for each new one."""
+
+    def __init__(
+        self,
+        connect: str | Sequence[str],
+        out_root: str | Path,
+        prefix: str = "dhg",
+        skill: str = "unknown",
+        flush_every_s: float = 1.0,
+        zenoh_config_file: str | None = None,
+        raw: bool = False,
+        on_new_session: Callable[[str, Path], None] | None = None,
+    ) -> None:
+        from dhg.serve import open_zenoh, zenoh_config_json5
+
+        self.out_root = Path(out_root)
+        self.prefix, self.skill, self.raw = prefix, skill, raw
+        self.flush_every_s = flush_every_s
+        self.on_new_session = on_new_session
+        self.refused_ids = 0
+        """Messages under a session key whose id is not a valid session id."""
+        endpoints = [connect] if isinstance(connect, str) else list(connect)
+        self._z = open_zenoh(zenoh_config_json5(connect=endpoints, config_file=zenoh_config_file, mode="client"))
+        self._lock = threading.Lock()
+        self.sessions: dict[str, SessionRecorder] = {}
+        leaves = ("state", "pose", "force") if raw else ("state",)
+        self._subs = [self._z.declare_subscriber(f"{prefix}/session/*/{leaf}", self._on_sample) for leaf in leaves]
+
+    def _on_sample(self, sample: Any) -> None:
+        key = str(sample.key_expr)
+        head = f"{self.prefix}/session/"
+        session_id, _, leaf = key[len(head) :].partition("/") if key.startswith(head) else ("", "", "")
+        rec = self.sessions.get(session_id)
+        if rec is None:
+            try:
+                protocol.check_session_id(session_id)
+            except ValueError:
+                self.refused_ids += 1
+                return
+            with self._lock:
+                rec = self.sessions.get(session_id)
+                if rec is None:
+                    rec = SessionRecorder(
+                        (),
+                        session_id,
+                        self.out_root / session_id,
+                        self.prefix,
+                        skill=self.skill,
+                        raw=self.raw,
+                        zenoh_session=self._z,
+                    )
+                    self.sessions[session_id] = rec
+                    if self.on_new_session is not None:
+                        self.on_new_session(session_id, rec.out_dir)
+        rec.on_sample(leaf, sample)
+
+    @property
+    def records(self) -> int:
+        """Records received so far, over all sessions."""
+        return sum(r.records for r in list(self.sessions.values()))
+
+    def flush(self, final: bool = False) -> int:
+        """Flushes every session (see :meth:`SessionRecorder.flush`); returns how many wrote."""
+        return sum(rec.flush(final) for rec in list(self.sessions.values()))
+
+    def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
+        """Flushes every ``flush_every_s`` until ``stop`` is set (or ``duration_s`` passes), then
+        flushes once more, joining each session's 1 kHz parts."""
+        t_end = None if duration_s is None else time.monotonic() + duration_s
+        while not stop.wait(self.flush_every_s):
+            self.flush()
+            if t_end is not None and time.monotonic() >= t_end:
+                break
+        self.flush(final=True)
+
+    def close(self) -> None:
+        """Closes the Zenoh session (call :meth:`flush` first)."""
         try:
             self._z.close()
         except Exception:
