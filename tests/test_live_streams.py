@@ -173,3 +173,20 @@ def test_load_raw_refuses_ticks_that_go_back_within_an_episode(tmp_path):
     assert len(load_dataset(out).episodes) == 1
     with pytest.raises(DatasetError, match="ticks do not increase"):
         load_raw(out)
+
+
+def test_load_raw_names_the_columns_that_differ(tmp_path):
+    import hashlib
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    out = _parts_dataset(tmp_path)
+    part = out / "raw-00000.parquet"
+    t = pq.read_table(part)
+    pq.write_table(t.set_column(1, "tick", pa.array(t.column("tick").to_numpy().astype("int64"))), part)
+    card = json.loads((out / "card.json").read_text())
+    card["files"][part.name]["sha256"] = hashlib.sha256(part.read_bytes()).hexdigest()
+    (out / "card.json").write_text(json.dumps(card))
+    with pytest.raises(DatasetError, match="column types differ from the format: tick is int64"):
+        load_raw(out)

@@ -460,8 +460,7 @@ def raw_files(card: dict[str, Any]) -> list[str]:
     ``raw-00000.parquet`` ... of a recording that stopped before joining them, or none."""
     import re
 
-    names = sorted(n for n in card.get("files", {}) if n == RAW_FILE or re.fullmatch(r"raw-\d{5}\.parquet", n))
-    return names
+    return sorted(n for n in card.get("files", {}) if n == RAW_FILE or re.fullmatch(r"raw-\d{5}\.parquet", n))
 
 
 def load_raw(path: str | os.PathLike[str] | Dataset, verify_hashes: bool = True) -> Any:
@@ -503,8 +502,11 @@ def load_raw(path: str | os.PathLike[str] | Dataset, verify_hashes: bool = True)
         if t.schema.names == [n for n in want.names if n not in GUIDANCE_COLUMNS]:
             for name_g in GUIDANCE_COLUMNS:  # written before guidance was recorded
                 t = t.append_column(want.field(name_g), pa.array(np.zeros(t.num_rows)))
-        if t.schema.names != want.names or any(t.schema.field(n).type != want.field(n).type for n in want.names):
-            raise _fail(f, f"schema {t.schema} differs from {want}")
+        if t.schema.names != want.names:
+            raise _fail(f, f"columns {t.schema.names} differ from {want.names}")
+        wrong = [f"{n} is {t.schema.field(n).type}" for n in want.names if t.schema.field(n).type != want.field(n).type]
+        if wrong:
+            raise _fail(f, f"column types differ from the format: {', '.join(wrong)}")
         if t.num_rows != expected.get("rows"):
             raise _fail(f, f"{t.num_rows} rows, the card says {expected.get('rows')}")
         tables.append(t.cast(want))
