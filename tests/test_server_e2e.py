@@ -343,6 +343,31 @@ def test_record_survives_a_server_crash_and_keeps_everything_on_ctrl_c(tmp_path)
     assert raw.num_rows >= 1400 and raw.column("tick")[raw.num_rows - 1].as_py() * 1e-3 >= ep.times_s[-1] - 0.1
 
 
+def test_record_says_what_it_has_and_which_sessions_exist_while_it_waits(server, tmp_path):
+    _, endpoint = server
+
+    def record(session_id: str, seconds: float) -> subprocess.Popen[str]:
+        return subprocess.Popen(
+            [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", session_id]
+            + ["--out", str(tmp_path / session_id), "--duration", str(seconds), "--status-every", "0.5"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+
+    with TraineeClient(endpoint, "somebody") as c:
+        a, d, q = _entry(c)
+        typo, right = record("sombody", 2.5), record("somebody", 2.5)
+        _stream(c, a + d * np.linspace(-2e-3, 0.0, 2000)[:, None], q)
+        typo_out, _ = typo.communicate(timeout=30)
+        right_out, _ = right.communicate(timeout=30)
+    assert typo.returncode == 0 and right.returncode == 0, typo_out + right_out
+    assert re.search(r"nothing from session sombody yet \(sessions on the server now: [^)]*somebody", typo_out), (
+        typo_out
+    )
+    assert re.search(r"s: \d+ records in 1 attempt\(s\)", right_out), right_out
+
+
 def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
     from dhg.dataset import load_dataset, load_raw
 

@@ -301,6 +301,14 @@ def add_commands(sub: Any, epilog: str) -> None:
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     p.add_argument("--flush-every", type=float, default=1.0, metavar="S", help="seconds between writes (default 1)")
     p.add_argument(
+        "--status-every",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="print what has been recorded every S seconds, or which sessions the server has while the one "
+        "asked for sends nothing (default 5; 0: quiet)",
+    )
+    p.add_argument(
         "--raw", action="store_true", help="also keep the 1 kHz pose/force stream (raw.parquet, about 4 MB a minute)"
     )
     p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
@@ -372,6 +380,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
     if args.flush_every <= 0:
         raise ValueError(f"--flush-every must be positive, got {args.flush_every}")
+    if args.status_every < 0:
+        raise ValueError(f"--status-every must be 0 (quiet) or positive, got {args.status_every}")
     if args.all:
         if args.subject:
             raise ValueError("--subject names one subject; with --all each session's id is its subject")
@@ -380,9 +390,19 @@ def _cmd_record(args: argparse.Namespace) -> int:
         args.connect, args.session, args.out, args.prefix, args.subject, args.skill, args.flush_every, raw=args.raw
     )
     print(f"recording session {args.session} into {args.out} (Ctrl-C to stop)", flush=True)
+
+    def status(t: float) -> None:
+        if rec.records == 0:
+            ids = rec.server_sessions()
+            where = "no server answers" if ids is None else f"sessions on the server now: {', '.join(ids) or 'none'}"
+            print(f"  {t:5.0f} s: nothing from session {args.session} yet ({where})", flush=True)
+        else:
+            ticks = f", {rec.raw_rows} ticks written" if args.raw else ""
+            print(f"  {t:5.0f} s: {rec.records} records in {rec.attempts} attempt(s){ticks}", flush=True)
+
     try:
         with _stop_on_signals() as stop:
-            rec.run(stop, args.duration)
+            rec.run(stop, args.duration, status, args.status_every)
     finally:
         rec.close()
     print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}")
@@ -404,9 +424,13 @@ def _record_all(args: argparse.Namespace) -> int:
         args.connect, args.out, args.prefix, args.skill, args.flush_every, raw=args.raw, on_new_session=found
     )
     print(f"recording every session into {args.out}/<session id> (Ctrl-C to stop)", flush=True)
+
+    def status(t: float) -> None:
+        print(f"  {t:5.0f} s: {len(rec.sessions)} sessions, {rec.records} records", flush=True)
+
     try:
         with _stop_on_signals() as stop:
-            rec.run(stop, args.duration)
+            rec.run(stop, args.duration, status, args.status_every)
     finally:
         rec.close()
     print(f"recorded {rec.records} records of {len(rec.sessions)} sessions to {args.out}")

@@ -286,15 +286,28 @@ class SessionRecorder:
             self._parts.written(parts)
         self.flushes += 1
 
-    def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
+    @property
+    def attempts(self) -> int:
+        """Attempts (episodes) with at least one record so far."""
+        with self._lock:
+            return self._next_id
+
+    def server_sessions(self, timeout_s: float = 1.0) -> list[str] | None:
+        """The session ids the server has now (from its health report), or None if it does not
+        answer: tells a user waiting on a mistyped id what is there."""
+        return _server_sessions(self._z, self.keys["health"], timeout_s)
+
+    def run(
+        self,
+        stop: threading.Event,
+        duration_s: float | None = None,
+        status: Callable[[float], None] | None = None,
+        status_every_s: float = 5.0,
+    ) -> None:
         """Flushes every ``flush_every_s`` until ``stop`` is set (or ``duration_s`` passes), then
-        flushes once more, joining the 1 kHz parts."""
-        t_end = None if duration_s is None else time.monotonic() + duration_s
-        while not stop.wait(self.flush_every_s):
-            self.flush()
-            if t_end is not None and time.monotonic() >= t_end:
-                break
-        self.flush(final=True)
+        flushes once more, joining the 1 kHz parts. ``status(elapsed_s)`` is called every
+        ``status_every_s``."""
+        _flush_loop(self.flush, self.flush_every_s, stop, duration_s, status, status_every_s)
 
     def close(self) -> None:
         """Closes the Zenoh session if it opened it (call :meth:`flush` first to keep the last
@@ -376,15 +389,17 @@ class AllSessionsRecorder:
         """Flushes every session (see :meth:`SessionRecorder.flush`); returns how many wrote."""
         return sum(rec.flush(final) for rec in list(self.sessions.values()))
 
-    def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
+    def run(
+        self,
+        stop: threading.Event,
+        duration_s: float | None = None,
+        status: Callable[[float], None] | None = None,
+        status_every_s: float = 5.0,
+    ) -> None:
         """Flushes every ``flush_every_s`` until ``stop`` is set (or ``duration_s`` passes), then
-        flushes once more, joining each session's 1 kHz parts."""
-        t_end = None if duration_s is None else time.monotonic() + duration_s
-        while not stop.wait(self.flush_every_s):
-            self.flush()
-            if t_end is not None and time.monotonic() >= t_end:
-                break
-        self.flush(final=True)
+        flushes once more, joining each session's 1 kHz parts. ``status(elapsed_s)`` is called
+        every ``status_every_s``."""
+        _flush_loop(self.flush, self.flush_every_s, stop, duration_s, status, status_every_s)
 
     def close(self) -> None:
         """Closes the Zenoh session (call :meth:`flush` first)."""
@@ -392,3 +407,42 @@ class AllSessionsRecorder:
             self._z.close()
         except Exception:
             pass
+
+
+def _flush_loop(
+    flush: Callable[..., Any],
+    every_s: float,
+    stop: threading.Event,
+    duration_s: float | None,
+    status: Callable[[float], None] | None,
+    status_every_s: float,
+) -> None:
+    """Calls ``flush()`` every ``every_s`` and ``status(elapsed_s)`` every ``status_every_s``
+    until ``stop`` is set or ``duration_s`` has passed, then ``flush(final=True)``."""
+    t0 = time.monotonic()
+    next_status = t0 + status_every_s
+    while True:
+        now = time.monotonic()
+        wake = now + every_s
+        if duration_s is not None:
+            wake = min(wake, t0 + duration_s)
+        if stop.wait(max(0.0, wake - now)):
+            break
+        flush()
+        now = time.monotonic()
+        if status is not None and status_every_s > 0 and now >= next_status:
+            status(now - t0)
+            next_status += status_every_s * max(1, int((now - next_status) // status_every_s) + 1)
+        if duration_s is not None and now - t0 >= duration_s:
+            break
+    flush(final=True)
+
+
+def _server_sessions(z: Any, health_key: str, timeout_s: float) -> list[str] | None:
+    try:
+        for r in z.get(f"{health_key}?window=1", timeout=timeout_s):
+            if r.ok is not None:
+                return list(json.loads(r.ok.payload.to_bytes()).get("session_ids", []))
+    except Exception:  # no server, a closed session or a malformed reply
+        pass
+    return None
