@@ -262,9 +262,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 
 def cmd_inspect(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.table import Table
 
-    from dhg.report import METRIC_COLUMNS, episode_summaries, load_with_raw, plot_episode
+    from dhg.report import episode_summaries, load_with_raw, plot_episode, summary_table
 
     ds, raw = load_with_raw(args.data)
     gen = ds.card.get("generator", {})
@@ -282,24 +281,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         return EXIT_OK
     print(f"{ds.path}: {gen.get('name', 'unknown generator')}, {len(rows)} episodes, {ds.n_records} records at 10 Hz")
     print(f"  1 kHz stream: {'none' if raw is None else f'{raw.num_rows} ticks'}")
-    table = Table(title=None, show_edge=False)
-    for col in ("ep", "subject", "skill", "try", "best", "records", "time (s)", "ticks"):
-        table.add_column(col, justify="right" if col not in ("subject", "skill") else "left")
-    for title, _, _ in METRIC_COLUMNS:
-        table.add_column(title, justify="right")
-    for r in rows:
-        cells = [
-            str(r["episode_id"]),
-            r["subject_id"],
-            r["skill"],
-            str(r["attempt"]),
-            "*" if r["best_of_subject"] else "",
-        ]
-        cells += [str(r["records"]), f"{r['duration_s']:.1f}", "" if r["raw_ticks"] is None else str(r["raw_ticks"])]
-        for _, key, factor in METRIC_COLUMNS:
-            v = r["metrics"].get(key)
-            cells.append("" if v is None else ("yes" if v else "no") if isinstance(v, bool) else f"{v * factor:.2f}")
-        table.add_row(*cells)
+    table = summary_table(rows)
     Console(width=200).print(table)
     if plotted is not None:
         print(f"plot of episode {plotted[0]}: {plotted[1]}")
@@ -431,12 +413,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "train",
         help="train the DHG model on a dataset and export model.ts",
-        description="Trains an LSTM (a preset of the paper's Table 1) to predict the expert's next force from "
-        "windows of 20 records (the nine features at 10 Hz), with the paper's defaults: Adam, learning rate 0.004, "
-        "batch 50, RMSE loss, min-max scaling fitted on the training data, a chronological split (the last 13.5 % of "
-        "windows for test). Writes RUN/model.ts (TorchScript: raw windows in, forces in N out), metrics.json, "
-        "loss.png, forces.png (reference vs predicted) and checkpoint.pt (resume with --resume). Runs under torchrun "
-        "for multi-GPU/multi-node (DistributedDataParallel).",
+        description="Trains an LSTM (a preset of the paper's Table 1) to predict the expert's next force (or with "
+        "--horizon K the force K records ahead) from windows of 20 records (the nine features at 10 Hz), with "
+        "the paper's defaults: Adam, learning rate 0.004, batch 50, RMSE loss, min-max scaling fitted on the "
+        "training data, a chronological split (the last 13.5 % of windows for test). Writes RUN/model.ts "
+        "(TorchScript: raw windows in, forces in N out), metrics.json, loss.png, forces.png (reference vs "
+        "predicted) and checkpoint.pt (resume with --resume). Runs under torchrun for multi-GPU/multi-node "
+        "(DistributedDataParallel).",
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -11,7 +11,7 @@ import numpy as np
 
 from dhg.dataset import Dataset, DatasetError, load_raw
 
-__all__ = ["METRIC_COLUMNS", "episode_summaries", "load_with_raw", "plot_episode"]
+__all__ = ["METRIC_COLUMNS", "episode_summaries", "load_with_raw", "plot_episode", "summary_table"]
 
 METRIC_COLUMNS: tuple[tuple[str, str, float], ...] = (
     ("completed", "completed", 1.0),
@@ -46,6 +46,27 @@ def episode_summaries(ds: Dataset, raw: Any | None = None) -> list[dict[str, Any
         }
         for e in ds.episodes
     ]
+
+
+def summary_table(rows: list[dict[str, Any]]) -> Any:
+    """A :class:`rich.table.Table` of :func:`episode_summaries`, metrics in the units of
+    :data:`METRIC_COLUMNS`; ``*`` marks each subject's best attempt."""
+    from rich.table import Table
+
+    table = Table(show_edge=False)
+    for col in ("ep", "subject", "skill", "try", "best", "records", "time (s)", "ticks"):
+        table.add_column(col, justify="left" if col in ("subject", "skill") else "right")
+    for title, _, _ in METRIC_COLUMNS:
+        table.add_column(title, justify="right")
+    for r in rows:
+        cells = [str(r["episode_id"]), r["subject_id"], r["skill"], str(r["attempt"])]
+        cells += ["*" if r["best_of_subject"] else "", str(r["records"]), f"{r['duration_s']:.1f}"]
+        cells.append("" if r["raw_ticks"] is None else str(r["raw_ticks"]))
+        for _, key, factor in METRIC_COLUMNS:
+            v = r["metrics"].get(key)
+            cells.append("" if v is None else ("yes" if v else "no") if isinstance(v, bool) else f"{v * factor:.2f}")
+        table.add_row(*cells)
+    return table
 
 
 def plot_episode(ds: Dataset, episode_id: int, out: str | os.PathLike[str], raw: Any | None = None) -> Path:
