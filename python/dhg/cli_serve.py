@@ -281,7 +281,7 @@ def add_commands(sub: Any, epilog: str) -> None:
         "every second: stopping it (Ctrl-C) or the server crashing keeps everything up to the last "
         "second. A reset of the session's bone starts a new attempt. With --raw it also keeps the 1 kHz "
         "stream (raw.parquet: every tick's pose, device force and guidance share), written in "
-        "one-minute parts that are joined when it stops cleanly. Train on it with "
+        "10-second parts that are joined when it stops cleanly. Train on it with "
         "'dhg train --data DIR' (label experts with --skill expert). With --all it records every "
         "session on the server, each into DIR/<session id> as it appears: one recorder for a class.\n\n"
         "  dhg record --session alice-01 --skill expert --raw --out data/alice\n"

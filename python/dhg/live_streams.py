@@ -5,8 +5,8 @@ the 1 kHz forces (each with its tick and the pose it used) and the 10 Hz states 
 Resetting the session's bone restarts both clocks, which starts a new episode (attempt).
 :class:`EpisodeSplitter` puts both streams into the same episodes. :class:`PoseLog` pairs each
 force with the pose it used, since forces echo only the pose's ``seq``. :class:`RawParts` keeps
-the 1 kHz rows in parts of about a minute, so each write of a long recording rewrites at most
-one part.
+the 1 kHz rows in parts of 10 s, so each write of a long recording rewrites at most one small
+part (a minute-long part cost 38 ms per flush, a 10 s one 18 ms: ``docs/benchmarks.md``).
 
 Ticks here are the session's step numbers from 0 at its start or reset, as in ``raw.parquet``:
 the step with tick ``k`` ends at session time ``(k + 1)`` ms, so its force message says
@@ -159,7 +159,7 @@ class RawParts:
     unchanged (:class:`dhg.dataset.RawPart`). :meth:`joined` makes the single ``raw.parquet``
     of a recording that ends cleanly."""
 
-    def __init__(self, part_rows: int = 60_000) -> None:
+    def __init__(self, part_rows: int = 10_000) -> None:
         self.part_rows = part_rows
         self._closed: list[RawPart] = []
         self._open: list[npt.NDArray[np.float64]] = []

@@ -7,7 +7,7 @@ stream (``raw.parquet``): it subscribes to the client's poses and the server's f
 each force with the pose its tick used. Every ``flush_every_s`` it rewrites the dataset folder
 atomically (:func:`dhg.dataset.write_dataset`): a stop at any moment (Ctrl-C, the server or the
 recorder crashing) leaves the last complete flush on disk, at most one flush old. The 1 kHz
-stream is written in parts of a minute that later flushes hard-link instead of rewriting, and
+stream is written in parts of 10 s that later flushes hard-link instead of rewriting, and
 joined into one ``raw.parquet`` at a clean stop.
 
 A reset of the session's bone (its clock restarts) starts a new episode (attempt) of the same
@@ -59,7 +59,7 @@ class SessionRecorder:
         flush_every_s: float = 1.0,
         zenoh_config_file: str | None = None,
         raw: bool = False,
-        raw_part_rows: int = 60_000,
+        raw_part_rows: int = 10_000,
         zenoh_session: Any | None = None,
     ) -> None:
         """``zenoh_session``: share an open Zenoh session instead of opening one; the recorder then

@@ -8,7 +8,7 @@ ran, and the size of the files.
     python tests/benchmarks/bench_record.py --seconds 90
     python tests/benchmarks/bench_record.py --seconds 90 --no-record   # the trainee alone, to compare
 
-Use more than 60 s to see a part closed and then linked (parts hold 60,000 ticks). The trainee's
+Parts hold 10,000 ticks (10 s), so every run sees parts closed and then linked. The trainee's
 own pose → force figures are printed too: the recorder is a second subscriber to its forces.
 """
 
