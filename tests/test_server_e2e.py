@@ -66,6 +66,17 @@ def _stream(client: TraineeClient, positions: np.ndarray, q: tuple, drill_on: bo
     return (time.monotonic_ns() - t0) * 1e-9
 
 
+def _record(endpoint: str, *args: str) -> subprocess.Popen[str]:
+    """``dhg record --connect endpoint ARGS`` in its own process, output unbuffered on one pipe."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )
+
+
 def test_a_1khz_client_gets_its_forces_and_10hz_guidance(server):
     _, endpoint = server
     counted = {"in_window": 0}
@@ -231,15 +242,7 @@ def test_record_keeps_everything_up_to_the_last_flush_when_killed(server, tmp_pa
 
     _, endpoint = server
     out = tmp_path / "rec"
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    rec = subprocess.Popen(
-        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", "rec-1", "--out", str(out)]
-        + ["--raw"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-    )
+    rec = _record(endpoint, "--session", "rec-1", "--out", str(out), "--raw")
     forces: list[dict[int, dict]] = [{}]  # per attempt, by tick
     last = [-1]
 
@@ -303,14 +306,7 @@ def test_record_survives_a_server_crash_and_keeps_everything_on_ctrl_c(tmp_path)
 
     proc, endpoint = _serve("--idle-timeout", "5.0")
     out = tmp_path / "rec"
-    rec = subprocess.Popen(
-        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", "crash-1", "--out", str(out)]
-        + ["--raw", "--flush-every", "0.5"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=dict(os.environ, PYTHONUNBUFFERED="1"),
-    )
+    rec = _record(endpoint, "--session", "crash-1", "--out", str(out), "--raw", "--flush-every", "0.5")
     try:
         assert rec.stdout is not None and "recording" in rec.stdout.readline()
         with TraineeClient(endpoint, "crash-1") as c:
@@ -347,12 +343,9 @@ def test_record_says_what_it_has_and_which_sessions_exist_while_it_waits(server,
     _, endpoint = server
 
     def record(session_id: str, seconds: float) -> subprocess.Popen[str]:
-        return subprocess.Popen(
-            [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", session_id]
-            + ["--out", str(tmp_path / session_id), "--duration", str(seconds), "--status-every", "0.5"],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
+        out = str(tmp_path / session_id)
+        return _record(
+            endpoint, "--session", session_id, "--out", out, "--duration", str(seconds), "--status-every", "0.5"
         )
 
     with TraineeClient(endpoint, "somebody") as c:
@@ -373,13 +366,7 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
 
     _, endpoint = server
     root = tmp_path / "class"
-    rec = subprocess.Popen(
-        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--all", "--raw", "--out", str(root)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=dict(os.environ, PYTHONUNBUFFERED="1"),
-    )
+    rec = _record(endpoint, "--all", "--raw", "--out", str(root))
     try:
         assert rec.stdout is not None and "recording every session" in rec.stdout.readline()
         for session_id in ("class-a", "class-b"):
@@ -413,14 +400,7 @@ def test_a_recorded_session_trains_a_model_that_the_server_then_serves(server, t
 
     _, endpoint = server
     data, run = tmp_path / "alice", tmp_path / "run"
-    rec = subprocess.Popen(
-        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, "--session", "alice"]
-        + ["--skill", "expert", "--raw", "--out", str(data)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=dict(os.environ, PYTHONUNBUFFERED="1"),
-    )
+    rec = _record(endpoint, "--session", "alice", "--skill", "expert", "--raw", "--out", str(data))
     try:
         assert rec.stdout is not None and "recording" in rec.stdout.readline()
         drill = subprocess.run(

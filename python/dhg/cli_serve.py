@@ -14,7 +14,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -400,11 +400,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
             ticks = f", {rec.raw_rows} ticks written" if args.raw else ""
             print(f"  {t:5.0f} s: {rec.records} records in {rec.attempts} attempt(s){ticks}", flush=True)
 
-    try:
-        with _stop_on_signals() as stop:
-            rec.run(stop, args.duration, status, args.status_every)
-    finally:
-        rec.close()
+    _run_recorder(rec, args, status)
     print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}")
     if args.raw:
         print(
@@ -428,13 +424,18 @@ def _record_all(args: argparse.Namespace) -> int:
     def status(t: float) -> None:
         print(f"  {t:5.0f} s: {len(rec.sessions)} sessions, {rec.records} records", flush=True)
 
+    _run_recorder(rec, args, status)
+    print(f"recorded {rec.records} records of {len(rec.sessions)} sessions to {args.out}")
+    return EXIT_OK
+
+
+def _run_recorder(rec: Any, args: argparse.Namespace, status: Callable[[float], None]) -> None:
+    """Runs a recorder until Ctrl-C, SIGTERM or ``--duration``; it flushes a last time and closes."""
     try:
         with _stop_on_signals() as stop:
             rec.run(stop, args.duration, status, args.status_every)
     finally:
         rec.close()
-    print(f"recorded {rec.records} records of {len(rec.sessions)} sessions to {args.out}")
-    return EXIT_OK
 
 
 def _cmd_live_demo(args: argparse.Namespace) -> int:

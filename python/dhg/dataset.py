@@ -359,6 +359,23 @@ def _fail(path: Path, what: str) -> DatasetError:
     return DatasetError(f"{path}: {what}")
 
 
+def _read_listed(path: Path, expected: dict[str, Any], verify_hashes: bool) -> Any:
+    """A Parquet file of the folder as an Arrow table, after checking it against its entry in the
+    card's ``files``: the SHA-256 (unless ``verify_hashes`` is off), that it parses, and its rows."""
+    pa = _pa()
+    import pyarrow.parquet as pq
+
+    if verify_hashes and expected.get("sha256") != _sha256(path):
+        raise _fail(path, "SHA-256 differs from the card: the file is truncated, corrupt or was changed")
+    try:
+        table = pq.read_table(path)
+    except (OSError, pa.ArrowException) as exc:
+        raise _fail(path, f"unreadable Parquet ({exc})") from None
+    if table.num_rows != expected.get("rows"):
+        raise _fail(path, f"{table.num_rows} rows, the card says {expected.get('rows')}")
+    return table
+
+
 def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Dataset:
     """Loads and validates a dataset folder.
 
@@ -368,8 +385,6 @@ def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Da
             :func:`records_schema`, rows that disagree with the card, interleaved or unordered
             episodes, or a file whose hash does not match the card (truncated or corrupt).
     """
-    import pyarrow as pa
-    import pyarrow.parquet as pq
 
     root = Path(path)
     card_path = root / CARD_FILE
@@ -396,13 +411,7 @@ def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Da
     rec_path = root / RECORDS_FILE
     if not rec_path.is_file():
         raise _fail(root, f"no {RECORDS_FILE}")
-    expected = card.get("files", {}).get(RECORDS_FILE, {})
-    if verify_hashes and expected.get("sha256") != _sha256(rec_path):
-        raise _fail(rec_path, "SHA-256 differs from the card: the file is truncated, corrupt or was changed")
-    try:
-        table = pq.read_table(rec_path)
-    except (OSError, pa.ArrowException) as exc:
-        raise _fail(rec_path, f"unreadable Parquet ({exc})") from None
+    table = _read_listed(rec_path, card.get("files", {}).get(RECORDS_FILE, {}), verify_hashes)
     want = records_schema()
     if table.schema.names != want.names:
         raise _fail(rec_path, f"columns {table.schema.names} differ from {want.names}")
@@ -415,8 +424,6 @@ def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Da
                 rec_path,
                 f"column {f.name!r} has unit {(got.metadata or {}).get(b'unit')}, expected {f.metadata[b'unit']}",
             )
-    if table.num_rows != expected.get("rows"):
-        raise _fail(rec_path, f"{table.num_rows} rows, the card says {expected.get('rows')}")
     cols = table.to_pydict()
     ids = np.asarray(cols["episode_id"], dtype=np.int64)
     starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
@@ -476,7 +483,6 @@ def load_raw(path: str | os.PathLike[str] | Dataset, verify_hashes: bool = True)
             increasing; NaN or infinite values.
     """
     pa = _pa()
-    import pyarrow.parquet as pq
 
     ds = path if isinstance(path, Dataset) else load_dataset(path, verify_hashes)
     names = raw_files(ds.card)
@@ -493,12 +499,7 @@ def load_raw(path: str | os.PathLike[str] | Dataset, verify_hashes: bool = True)
         expected = ds.card["files"][name]
         if not f.is_file():
             raise _fail(f, "missing (the card lists it)")
-        if verify_hashes and expected.get("sha256") != _sha256(f):
-            raise _fail(f, "SHA-256 differs from the card: the file is truncated, corrupt or was changed")
-        try:
-            t = pq.read_table(f)
-        except (OSError, pa.ArrowException) as exc:
-            raise _fail(f, f"unreadable Parquet ({exc})") from None
+        t = _read_listed(f, expected, verify_hashes)
         if t.schema.names == [n for n in want.names if n not in GUIDANCE_COLUMNS]:
             for name_g in GUIDANCE_COLUMNS:  # written before guidance was recorded
                 t = t.append_column(want.field(name_g), pa.array(np.zeros(t.num_rows)))
@@ -507,8 +508,6 @@ def load_raw(path: str | os.PathLike[str] | Dataset, verify_hashes: bool = True)
         wrong = [f"{n} is {t.schema.field(n).type}" for n in want.names if t.schema.field(n).type != want.field(n).type]
         if wrong:
             raise _fail(f, f"column types differ from the format: {', '.join(wrong)}")
-        if t.num_rows != expected.get("rows"):
-            raise _fail(f, f"{t.num_rows} rows, the card says {expected.get('rows')}")
         tables.append(t.cast(want))
     table = pa.concat_tables(tables)
     ids = table.column("episode_id").to_numpy()

@@ -39,7 +39,44 @@ __all__ = ["AllSessionsRecorder", "SessionRecorder"]
 _DRILL_ON = protocol.FLAGS["drill_on"]
 
 
-class SessionRecorder:
+class _FlushLoop:
+    """``run``: the flush loop both recorders share."""
+
+    flush_every_s: float
+
+    def flush(self, final: bool = False) -> Any:
+        raise NotImplementedError
+
+    def run(
+        self,
+        stop: threading.Event,
+        duration_s: float | None = None,
+        status: Callable[[float], None] | None = None,
+        status_every_s: float = 5.0,
+    ) -> None:
+        """Flushes every ``flush_every_s`` until ``stop`` is set (or ``duration_s`` passes), then
+        flushes once more, joining the 1 kHz parts. ``status(elapsed_s)`` is called every
+        ``status_every_s`` (0: never)."""
+        t0 = time.monotonic()
+        next_status = t0 + status_every_s
+        while True:
+            now = time.monotonic()
+            wake = now + self.flush_every_s
+            if duration_s is not None:
+                wake = min(wake, t0 + duration_s)
+            if stop.wait(max(0.0, wake - now)):
+                break
+            self.flush()
+            now = time.monotonic()
+            if status is not None and status_every_s > 0 and now >= next_status:
+                status(now - t0)
+                next_status += status_every_s * (int((now - next_status) // status_every_s) + 1)
+            if duration_s is not None and now - t0 >= duration_s:
+                break
+        self.flush(final=True)
+
+
+class SessionRecorder(_FlushLoop):
     """Records ``session_id`` on the server at ``connect`` into the dataset folder ``out_dir``.
 
     ``skill`` labels the subject (``expert`` demonstrations are what training uses). Records are
@@ -193,6 +230,7 @@ class SessionRecorder:
                     break  # these wait for poses in flight, and so do later episodes' rows
         waiting = next((ep.rows[0][1] for ep in self._split.episodes if ep.rows), None)
         self._poses.forget_below(waiting if waiting is not None else self._paired_seq)
+
         episodes = [(ep, list(ep.records)) for ep in self._split.episodes if ep.episode_id is not None]
         return episodes, ready
 
@@ -297,18 +335,6 @@ class SessionRecorder:
         answer: tells a user waiting on a mistyped id what is there."""
         return _server_sessions(self._z, self.keys["health"], timeout_s)
 
-    def run(
-        self,
-        stop: threading.Event,
-        duration_s: float | None = None,
-        status: Callable[[float], None] | None = None,
-        status_every_s: float = 5.0,
-    ) -> None:
-        """Flushes every ``flush_every_s`` until ``stop`` is set (or ``duration_s`` passes), then
-        flushes once more, joining the 1 kHz parts. ``status(elapsed_s)`` is called every
-        ``status_every_s``."""
-        _flush_loop(self.flush, self.flush_every_s, stop, duration_s, status, status_every_s)
-
     def close(self) -> None:
         """Closes the Zenoh session if it opened it (call :meth:`flush` first to keep the last
         records)."""
@@ -320,7 +346,7 @@ class SessionRecorder:
             pass
 
 
-class AllSessionsRecorder:
+class AllSessionsRecorder(_FlushLoop):
     """Records every session on the server at ``connect``, each into ``out_root/<session id>`` as
     its own dataset (:class:`SessionRecorder`), starting when its first message arrives: a class of
     trainees needs one recorder, and nobody has to know the session ids beforehand.
@@ -389,53 +415,12 @@ class AllSessionsRecorder:
         """Flushes every session (see :meth:`SessionRecorder.flush`); returns how many wrote."""
         return sum(rec.flush(final) for rec in list(self.sessions.values()))
 
-    def run(
-        self,
-        stop: threading.Event,
-        duration_s: float | None = None,
-        status: Callable[[float], None] | None = None,
-        status_every_s: float = 5.0,
-    ) -> None:
-        """Flushes every ``flush_every_s`` until ``stop`` is set (or ``duration_s`` passes), then
-        flushes once more, joining each session's 1 kHz parts. ``status(elapsed_s)`` is called
-        every ``status_every_s``."""
-        _flush_loop(self.flush, self.flush_every_s, stop, duration_s, status, status_every_s)
-
     def close(self) -> None:
         """Closes the Zenoh session (call :meth:`flush` first)."""
         try:
             self._z.close()
         except Exception:
             pass
-
-
-def _flush_loop(
-    flush: Callable[..., Any],
-    every_s: float,
-    stop: threading.Event,
-    duration_s: float | None,
-    status: Callable[[float], None] | None,
-    status_every_s: float,
-) -> None:
-    """Calls ``flush()`` every ``every_s`` and ``status(elapsed_s)`` every ``status_every_s``
-    until ``stop`` is set or ``duration_s`` has passed, then ``flush(final=True)``."""
-    t0 = time.monotonic()
-    next_status = t0 + status_every_s
-    while True:
-        now = time.monotonic()
-        wake = now + every_s
-        if duration_s is not None:
-            wake = min(wake, t0 + duration_s)
-        if stop.wait(max(0.0, wake - now)):
-            break
-        flush()
-        now = time.monotonic()
-        if status is not None and status_every_s > 0 and now >= next_status:
-            status(now - t0)
-            next_status += status_every_s * max(1, int((now - next_status) // status_every_s) + 1)
-        if duration_s is not None and now - t0 >= duration_s:
-            break
-    flush(final=True)
 
 
 def _server_sessions(z: Any, health_key: str, timeout_s: float) -> list[str] | None:
