@@ -190,3 +190,37 @@ def test_load_raw_names_the_columns_that_differ(tmp_path):
     (out / "card.json").write_text(json.dumps(card))
     with pytest.raises(DatasetError, match="column types differ from the format: tick is int64"):
         load_raw(out)
+
+
+class _Sample:
+    """What the recorder reads of a Zenoh sample."""
+
+    def __init__(self, payload: bytes) -> None:
+        self.payload = self
+        self._bytes = payload
+
+    def to_bytes(self) -> bytes:
+        return self._bytes
+
+
+class _NoServer:
+    def get(self, *args, **kwargs):
+        raise ConnectionError("no server in this test")
+
+
+def test_a_force_whose_pose_comes_after_the_flush_is_still_written_by_the_final_one(tmp_path):
+    from dhg import protocol
+    from dhg.recorder import SessionRecorder
+
+    rec = SessionRecorder((), "s1", tmp_path / "rec", raw=True, zenoh_session=_NoServer())
+    state = protocol.encode("state", record_seq=1, time_s=0.1, features=[0.0] * 8 + [37.0])
+    rec.on_sample("state", _Sample(state))
+    rec.on_sample("force", _Sample(protocol.encode("force", pose_seq=5, tick=100, force_n=[0.0, 0.0, 1.5])))
+    assert rec.flush()  # the record is written; the force waits for pose 5, still in flight
+    assert load_raw(tmp_path / "rec") is None and len(load_dataset(tmp_path / "rec").episodes) == 1
+    pose = protocol.encode_pose(5, 0, [0.01, 0.02, 0.03], [1.0, 0.0, 0.0, 0.0], True, 60_000.0)
+    rec.on_sample("pose", _Sample(pose))
+    assert rec.flush(final=True)
+    raw = load_raw(tmp_path / "rec")
+    assert raw.column("tick").to_pylist() == [99] and raw.column("x_m").to_pylist() == [0.01]
+    assert raw.column("force_z_n").to_pylist() == [1.5] and rec.raw_ticks_without_pose == 0

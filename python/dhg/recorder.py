@@ -230,7 +230,7 @@ class SessionRecorder(_FlushLoop):
                     break  # these wait for poses in flight, and so do later episodes' rows
         waiting = next((ep.rows[0][1] for ep in self._split.episodes if ep.rows), None)
         self._poses.forget_below(waiting if waiting is not None else self._paired_seq)
-
+        self._dirty = waiting is not None  # rows held back are written by the next flush, even a final one
         episodes = [(ep, list(ep.records)) for ep in self._split.episodes if ep.episode_id is not None]
         return episodes, ready
 
