@@ -77,6 +77,14 @@ def _record(endpoint: str, *args: str) -> subprocess.Popen[str]:
     )
 
 
+def _ctrl_c(rec: subprocess.Popen[str]) -> str:
+    """Stops a recorder as Ctrl-C does; asserts it exits 0 and returns its output."""
+    rec.send_signal(signal.SIGINT)
+    output, _ = rec.communicate(timeout=30)
+    assert rec.returncode == 0, output
+    return output
+
+
 def test_a_1khz_client_gets_its_forces_and_10hz_guidance(server):
     _, endpoint = server
     counted = {"in_window": 0}
@@ -317,9 +325,7 @@ def test_record_survives_a_server_crash_and_keeps_everything_on_ctrl_c(tmp_path)
             proc.proc.wait(timeout=10)
         time.sleep(1.5)  # the recorder keeps running against a dead server
         assert rec.poll() is None, "the recorder died with the server"
-        rec.send_signal(signal.SIGINT)  # Ctrl-C: a final flush, then a clean exit
-        output, _ = rec.communicate(timeout=20)
-        assert rec.returncode == 0, output
+        output = _ctrl_c(rec)  # a final flush, then a clean exit
     finally:
         for p in (rec, proc.proc):
             if p.poll() is None:
@@ -373,9 +379,7 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
             with TraineeClient(endpoint, session_id) as c:
                 a, d, q = _entry(c)
                 _stream(c, a + d * np.linspace(-2e-3, 1e-3, 1200)[:, None], q)
-        rec.send_signal(signal.SIGINT)
-        output, _ = rec.communicate(timeout=30)
-        assert rec.returncode == 0, output
+        output = _ctrl_c(rec)
     finally:
         if rec.poll() is None:
             rec.kill()
@@ -410,9 +414,7 @@ def test_a_recorded_session_trains_a_model_that_the_server_then_serves(server, t
             text=True,
         )
         assert drill.returncode == 0, drill.stderr
-        rec.send_signal(signal.SIGINT)
-        output, _ = rec.communicate(timeout=20)
-        assert rec.returncode == 0, output
+        _ctrl_c(rec)
     finally:
         if rec.poll() is None:
             rec.kill()
