@@ -218,7 +218,7 @@ def test_a_force_whose_pose_comes_after_the_flush_is_still_written_by_the_final_
     rec.on_sample("force", _Sample(protocol.encode("force", pose_seq=5, tick=100, force_n=[0.0, 0.0, 1.5])))
     assert rec.flush()  # the record is written; the force waits for pose 5, still in flight
     assert load_raw(tmp_path / "rec") is None and len(load_dataset(tmp_path / "rec").episodes) == 1
-    pose = protocol.encode_pose(5, 0, [0.01, 0.02, 0.03], [1.0, 0.0, 0.0, 0.0], True, 60_000.0)
+    pose = protocol.encode_pose(5, 0, [0.01, 0.02, 0.03], [1.0, 0.0, 0.0, 0.0], True, 1250.0)
     rec.on_sample("pose", _Sample(pose))
     assert rec.flush(final=True)
     raw = load_raw(tmp_path / "rec")

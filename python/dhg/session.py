@@ -38,12 +38,12 @@ __all__ = [
 @dataclass(frozen=True)
 class DeviceProfile:
     """Force limits of the haptic device. Defaults: the 3D Systems (Geomagic) Touch (3.3 N peak,
-    0.88 N continuous, 0.4 N/mm stiffness); the 200 N/s rate limit and 2 s peak budget are this
-    project's choices."""
+    0.88 N continuous, 0.4 N/mm stiffness); the motors' 20 s thermal time constant and the
+    200 N/s rate limit are this project's choices (``docs/frames.md``, "Device limits")."""
 
     peak_force_n: float = 3.3
     continuous_force_n: float = 0.88
-    peak_duration_s: float = 2.0
+    thermal_time_constant_s: float = 20.0
     max_stiffness_n_per_m: float = 400.0
     max_force_rate_n_per_s: float = 200.0
     stale_after_s: float = 0.05
@@ -51,17 +51,20 @@ class DeviceProfile:
 
 @dataclass(frozen=True)
 class CuttingLaw:
-    """Thrust and torque ``= ref · (n/n₀)^a · (f/f₀)^b · (ρ/ρ₀)^c · (d/d₀)^e``, calibrated so that a
-    2.5 mm drill in cortical bone at 1250 rpm and 1.5 mm/s needs 17 N and 32 N·mm. The drill
-    diameter ``d`` is the burr's; ``e`` is 0.8 for thrust and 1.8 for torque (Shaw & Oxford 1957)."""
+    """Thrust and torque ``= ref · (n/n₀)^a · (f/f₀)^b · (ρ/ρ₀)^c · (d/d₀)^e``: a 2.5 mm drill in
+    dense cortex at 1250 rpm and 1.5 mm/s needs 21 N and 32 N·mm. The thrust's speed exponent is
+    fitted to Orelaja et al. (2020); the sources of every constant are in the core's
+    ``cutting.rs`` and ``docs/fidelity.md``. The drill diameter ``d`` is the burr's; ``e`` is 0.8
+    for thrust and 1.8 for torque (Shaw & Oxford 1957)."""
 
-    thrust_ref_n: float = 17.0
+    thrust_ref_n: float = 21.0
     torque_ref_n_m: float = 0.032
     reference_rpm: float = 1250.0
     reference_feed_m_s: float = 1.5e-3
     reference_density_kg_m3: float = 1850.0
-    speed_exponent: float = -0.25
-    feed_exponent: float = 0.6
+    thrust_speed_exponent: float = -1.2
+    torque_speed_exponent: float = -0.25
+    feed_exponent: float = 0.45
     density_exponent: float = 1.5
     max_feed_m_s: float = 0.05
     reference_diameter_m: float = 2.5e-3
@@ -163,11 +166,16 @@ class SessionState:
     removed_mass_kg: float
     stale: bool
     rejected_poses: int
+    registration_offset_m: np.ndarray
+    """How far the stylus sits ahead of where the tip's motion put it (m), from stretches the
+    bone stopped holding; the tip follows ``device_m − registration_offset_m``."""
+    device_thermal_load: float
+    """The device motors' thermal load, 0..1 (1: only the continuous force is allowed)."""
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SessionState:
         """From the native state dict."""
-        vec = {"device_m", "tip_m", "axis", "force_n"}
+        vec = {"device_m", "tip_m", "axis", "force_n", "registration_offset_m"}
         values = {k: (np.asarray(v, dtype=float) if k in vec else v) for k, v in d.items()}
         values["layer"] = Layer(int(values["layer"]))
         return cls(**values)

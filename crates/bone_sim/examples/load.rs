@@ -282,7 +282,7 @@ fn run(args: &Args) -> Result<(), String> {
         let s = -2e-3 + 2e-3 * (k as f64 * 1e-3);
         for (i, c) in clients.iter().enumerate() {
             let position = c.entry + c.dir * (s - i as f64 * 1e-5);
-            let pose = Pose { position_m: position, orientation: c.orientation, drill_on: true, spindle_rpm: 60_000.0 };
+            let pose = Pose { position_m: position, orientation: c.orientation, drill_on: true, spindle_rpm: 1250.0 };
             let msg = PoseMsg { seq: (k + 1) as u32, client_time_ns: now_ns(), pose };
             c.sent_ns[(k + 1) as usize].store(msg.client_time_ns, Ordering::Relaxed);
             let _ = c.publisher.put(encode_pose(&msg).to_vec()).wait();

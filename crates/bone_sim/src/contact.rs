@@ -7,8 +7,11 @@
 //! voxels).
 //!
 //! The cutting zone is the burr's front cap within 59° of the drill axis, like a 118° drill
-//! point. Its density falls over the cap's axial length (≈ 0.5 r) as the burr leaves the bone,
-//! which makes the resistance collapse progressively at breakthrough.
+//! point, sampled a voxel ahead of the burr along the axis: the bone the advancing burr meets
+//! next, and never the wall of its own bore (a radial shell would read the wall at the cap's
+//! edge, so a burr back in its bore would cut air as if it were bone). Its density falls over the
+//! cap's axial length (≈ 0.5 r) as the burr leaves the bone, which makes the resistance collapse
+//! progressively at breakthrough.
 
 use nalgebra::{Point3, Vector3};
 
@@ -52,6 +55,11 @@ pub struct CuttingZone {
     pub density_kg_m3: f64,
     /// The layer of most of the cap's points that still hold bone (`Outside` if none).
     pub layer: Layer,
+    /// Mean pristine cutting density (kg/m³) straight ahead of the burr along its axis, half a
+    /// voxel to a voxel and a half beyond its front: what the undrilled bone there is made of.
+    /// A burr in its own bore sees the bone it drilled away; one at an exit sees what lies
+    /// beyond the cortex.
+    pub ahead_pristine_density_kg_m3: f64,
 }
 
 /// Probe points of a burr of a given radius, precomputed in the grid's index space so a
@@ -62,9 +70,12 @@ pub struct BurrProbe {
     directions: [Vector3<f64>; PROBE_POINTS],
     /// Offsets (index units) of the contact shell, half a voxel inside the burr's radius.
     contact_idx: [Vector3<f64>; PROBE_POINTS],
-    /// Offsets (index units) of the cutting cap's shell, a voxel beyond the radius (half a voxel
-    /// beyond what the burr removes, so the cap sees the bone ahead, not the burr's own cut).
-    cutting_idx: [Vector3<f64>; PROBE_POINTS],
+    /// Offsets (index units) of the burr's surface; the cutting cap samples it shifted a voxel
+    /// forward along the drill axis (half a voxel beyond what the burr removes): the bone the
+    /// burr's front would meet next, never the wall of its own bore.
+    surface_idx: [Vector3<f64>; PROBE_POINTS],
+    /// One voxel, the cap's forward shift (m).
+    voxel_m: f64,
 }
 
 impl BurrProbe {
@@ -89,8 +100,8 @@ impl BurrProbe {
         // beyond it: the interpolated surface of what the burr has cut then always lies clear of
         // the contact shell, so a proxy can never be held by material its burr cannot reach.
         let contact_idx = directions.map(|d| to_idx(d * (radius_m - half_voxel).max(0.5 * radius_m)));
-        let cutting_idx = directions.map(|d| to_idx(d * (radius_m + 2.0 * half_voxel)));
-        Self { radius_m, directions, contact_idx, cutting_idx }
+        let surface_idx = directions.map(|d| to_idx(d * radius_m));
+        Self { radius_m, directions, contact_idx, surface_idx, voxel_m: 2.0 * half_voxel }
     }
 
     /// The burr radius (m).
@@ -106,17 +117,23 @@ impl BurrProbe {
         self.radius_m + 0.5 * h[0].min(h[1]).min(h[2])
     }
 
-    /// Probe points touching bone for a burr centred at `center_m`. With `exclude_cap = Some(axis)`
-    /// the cutting cap around `axis` is ignored (while drilling, the cap is the cutting law's
-    /// business, not the contact's).
+    /// Probe points touching bone for a burr centred at `center_m`. With
+    /// `ignore = Some((axis, cos))` the points within `acos(cos)` of `axis` are ignored: with
+    /// [`CAP_COS`], the cutting cap (while drilling, the cap is the cutting law's business, not the
+    /// contact's); with 0, the whole front half (a burr running on through the rim of an exit).
     #[must_use]
-    pub fn contact(&self, bone: &DrilledVolume, center_m: &Point3<f64>, exclude_cap: Option<&Vector3<f64>>) -> Contact {
+    pub fn contact(
+        &self,
+        bone: &DrilledVolume,
+        center_m: &Point3<f64>,
+        ignore: Option<(Vector3<f64>, f64)>,
+    ) -> Contact {
         let c = bone.volume().grid().world_to_index(center_m);
         let grid = bone.volume().grid();
         let h = grid.spacing_m();
         let mut out = Contact { points: 0, gradient_sum: Vector3::zeros() };
         for (dir, off) in self.directions.iter().zip(&self.contact_idx) {
-            if exclude_cap.is_some_and(|axis| dir.dot(axis) >= CAP_COS) {
+            if ignore.is_some_and(|(axis, cos)| dir.dot(&axis) >= cos) {
                 continue;
             }
             let (m, g) = bone.material_and_gradient_at_index(&(c + off));
@@ -132,11 +149,12 @@ impl BurrProbe {
     #[must_use]
     pub fn cutting_zone(&self, bone: &DrilledVolume, center_m: &Point3<f64>, axis: &Vector3<f64>) -> CuttingZone {
         let volume = bone.volume();
-        let c = volume.grid().world_to_index(center_m);
+        // The cap's shell: the burr's front surface shifted forward by a voxel.
+        let c = volume.grid().world_to_index(&(center_m + axis * self.voxel_m));
         let mut density_sum = 0.0;
         let mut count = 0u32;
         let mut per_layer = [0.0f64; Layer::COUNT];
-        for (dir, off) in self.directions.iter().zip(&self.cutting_idx) {
+        for (dir, off) in self.directions.iter().zip(&self.surface_idx) {
             if dir.dot(axis) < CAP_COS {
                 continue;
             }
@@ -154,11 +172,25 @@ impl BurrProbe {
                 per_layer[usize::from(label)] += 1.0;
             }
         }
+        // Straight ahead along the axis, in the pristine bone: the nearest voxel's density at two
+        // points half a voxel and a voxel and a half beyond the front.
+        let mut ahead = 0.0;
+        for beyond in [0.5 * self.voxel_m, 1.5 * self.voxel_m] {
+            let p = volume.grid().world_to_index(&(center_m + axis * (self.radius_m + beyond)));
+            if let Some(l) = volume.nearest_index(&p) {
+                let (label, hu) = (volume.labels()[l], volume.hu()[l]);
+                ahead += 0.5 * f64::from(volume.table().cutting_density_kg_m3(label, hu));
+            }
+        }
         let layer = (1..Layer::COUNT)
             .filter(|&i| per_layer[i] > 0.0)
             .max_by(|&a, &b| per_layer[a].total_cmp(&per_layer[b]))
             .and_then(|i| Layer::from_id(i as u8))
             .unwrap_or(Layer::Outside);
-        CuttingZone { density_kg_m3: if count > 0 { density_sum / f64::from(count) } else { 0.0 }, layer }
+        CuttingZone {
+            density_kg_m3: if count > 0 { density_sum / f64::from(count) } else { 0.0 },
+            layer,
+            ahead_pristine_density_kg_m3: ahead,
+        }
     }
 }

@@ -6,7 +6,7 @@
 //! contact` (see [`HuMapping`](crate::volume::material::HuMapping)); at zero material it is
 //! removed.
 
-use nalgebra::Point3;
+use nalgebra::{Point3, Vector3};
 
 use crate::error::{finite, non_negative, positive, SimError, SimResult};
 use crate::volume::bricks::{MaterialOverlay, BRICK_EDGE};
@@ -106,6 +106,38 @@ impl DrilledVolume {
     /// # Errors
     /// An invalid burr or cut (nothing is changed then).
     pub fn remove(&mut self, burr: &Burr, cut: &Cut) -> SimResult<RemovalReport> {
+        self.erode(burr, cut, None)
+    }
+
+    /// Erodes like [`remove`](Self::remove) a burr that has just advanced `advance_m` (m) along
+    /// `axis` (the unit drilling direction), and removes at once what that advance swept: the
+    /// burr's rear half (behind the plane through its centre normal to the axis), which its front
+    /// has cut already, and the sliver of its front that the advance brought in (inside the burr
+    /// now, outside it before). A drill occupies its own volume: the bore it leaves is as wide as
+    /// its burr wherever its centre has passed, so it can always be withdrawn along it, and a
+    /// burr carried on by the hand through the rim of an exit leaves no lip behind.
+    ///
+    /// # Errors
+    /// An invalid burr, cut, axis or advance (nothing is changed then).
+    pub fn remove_advancing(
+        &mut self,
+        burr: &Burr,
+        cut: &Cut,
+        axis: &Vector3<f64>,
+        advance_m: f64,
+    ) -> SimResult<RemovalReport> {
+        if !(axis.iter().all(|v| v.is_finite()) && (axis.norm() - 1.0).abs() < 1e-6) {
+            return Err(SimError::InvalidParameter {
+                name: "drilling axis norm",
+                value: axis.norm(),
+                reason: "must be a finite unit vector",
+            });
+        }
+        non_negative("advance (m)", advance_m)?;
+        self.erode(burr, cut, Some((axis, advance_m)))
+    }
+
+    fn erode(&mut self, burr: &Burr, cut: &Cut, swept: Option<(&Vector3<f64>, f64)>) -> SimResult<RemovalReport> {
         burr.validate()?;
         cut.validate()?;
         // Borrow the shared volume and the overlay as disjoint fields (no Arc clone per call).
@@ -116,6 +148,10 @@ impl DrilledVolume {
         if scale <= 0.0 {
             return Ok(report);
         }
+        // The swept test in metres along the grid's axes: with `a` the axis in the grid's frame,
+        // a voxel at offset `d` from the centre is swept when d·a ≤ 0 (the rear half) or when it
+        // lies outside the burr's sphere before the advance, |d + δ·a| > r.
+        let swept = swept.map(|(axis, advance_m)| (volume.grid().direction().tr_mul(axis), advance_m));
         let grid = volume.grid();
         let dims = grid.dims();
         let h = grid.spacing_m();
@@ -158,7 +194,12 @@ impl DrilledVolume {
                                 continue;
                             }
                             let (label, hu) = (labels[row + ii], hus[row + ii]);
-                            let rate = f64::from(table.erosion_ref_per_s(label, hu)) * scale;
+                            let cleared = swept.is_some_and(|(a, advance)| {
+                                let d = Vector3::new((ii as f64 - c.x) * h[0], dy, dz);
+                                d.dot(&a) <= 0.0 || (d + a * advance).norm_squared() > r2
+                            });
+                            let rate =
+                                if cleared { 1.0 } else { f64::from(table.erosion_ref_per_s(label, hu)) * scale };
                             let dec = ((rate * full).ceil() as u64).min(u64::from(*slot)) as u16;
                             *slot -= dec;
                             report.voxels_eroded += 1;

@@ -7,14 +7,27 @@
 //! - the proxy stays outside the remaining bone; a spring–damper between the device and the proxy
 //!   gives the force. With the drill off, bone feels like a rigid surface;
 //! - with the drill on and bone in the cutting cap, the proxy advances along the axis at the feed
-//!   the cutting law gives for the user's axial push. The user's push *is* the thrust, scaled into
-//!   the device's range, so the resistance felt follows `F = C·n^a·f^b·ρ^c`. The burr erodes
-//!   the bone around it (the removal model), and the proxy advances sideways as walls erode;
-//! - leaving the bone empties the cutting cap: the resistance collapses over the cap's length, the
-//!   proxy runs ahead to the device, and a push that is not held back plunges. The session reports
-//!   the breakthrough and measures the plunge. A breakthrough needs a burr that bored at least
-//!   0.8 mm into the cortex and sits at the bottom of its bore: pulling back out of the cut
-//!   (pecking, bouncing off the bone) or skidding off the curved surface is not one;
+//!   the cutting law gives for the thrust, `F = C·n^a·f^b·ρ^c`. The thrust is the push the hand
+//!   makes on the bone: the coupling's axial stretch, scaled to physical newtons, and never more
+//!   than the device actually renders (in equilibrium the hand pushes exactly as hard as the
+//!   device pushes back, so a derating device never drives a feed its force does not cut). The
+//!   burr erodes the bone around it (the removal model), and the proxy advances sideways as walls
+//!   erode;
+//! - the stretch is the device's compliance, not the drill's: a real drill is rigid in the hand.
+//!   So the tip never runs into it. Where the bone gives way (the cap's density drops: leaving
+//!   the cortex), the tip advances no faster than the hand moves or than the bone it was in
+//!   allowed, and the stretch the softer bone no longer holds is moved into a *registration
+//!   offset* between stylus and tip: the force drops, the hand, no longer held, surges, and the
+//!   tip goes with it. The same holds in free space: a stretch released by a surface that stops
+//!   holding it (the edge of a bone) becomes offset, not travel. The offset is bled off while
+//!   the hand withdraws in free space (workspace drift control, Conti & Khatib 2005, World
+//!   Haptics: a small mismatch between hand and tool motion goes unnoticed);
+//! - leaving the cortex is a breakthrough: the session reports it and measures the plunge, how
+//!   far the tip runs past the point where it left the cortex before the trainee stops it. A
+//!   breakthrough needs a burr that bored at least 0.8 mm into the cortex, whose cap now cuts
+//!   much less dense material, with much less dense undrilled bone (or none) straight ahead:
+//!   pulling back into its own bore (pecking, bouncing off the bone) or skidding off a curved
+//!   surface is not one;
 //! - every force passes the device's safety stage ([`ForceLimiter`]).
 //!
 //! A tick allocates nothing, takes no locks and does no I/O, as long as the bone's reserved
@@ -25,7 +38,7 @@ use std::sync::Arc;
 
 use nalgebra::{Point3, UnitQuaternion, Vector3};
 
-use crate::contact::BurrProbe;
+use crate::contact::{BurrProbe, CuttingZone, CAP_COS};
 use crate::cutting::CuttingLaw;
 use crate::device::{DeviceProfile, ForceLimiter};
 use crate::error::{positive, SimError, SimResult};
@@ -40,26 +53,44 @@ use crate::volume::Volume;
 /// Cutting-zone density (kg/m³) at or below which the cap counts as empty: any real bone or
 /// marrow in the cap engages the cutting law.
 const EMPTY_CAP_KG_M3: f64 = 2.0;
-/// A breakthrough: the cutting cap's density falls below this fraction of the cortical density it
-/// was cutting (into softer bone, marrow or nothing).
+/// A breakthrough: the cutting cap's density, and the undrilled bone's straight ahead, fall
+/// below this fraction of the cortical density it was cutting (into softer bone, marrow or
+/// nothing).
 const BREAKTHROUGH_DENSITY_FRACTION: f64 = 0.4;
 /// Cutting density (kg/m³) the cortex must reach in the cutting cap before a breakthrough can
 /// be detected (a grazing first contact is not "in the cortex" yet).
 const BREAKTHROUGH_ARM_KG_M3: f64 = 400.0;
 /// A proxy this far (m) behind the deepest point where it cut this cortex, along the drill axis,
-/// has been withdrawn: its empty cap is not a breakthrough.
+/// has been withdrawn: its cut there does not deepen the bore, and an empty cap there is no exit.
 const WITHDRAWN_M: f64 = 0.1e-3;
 /// Depth (m) the burr must have bored into a cortex, along its axis, before that cortex can give
 /// way. The cap arms about 0.3 mm before the burr touches, so crossing the phantom's thinnest
 /// cortex (1 mm, at the head) bores about 1.3 mm; novices skidding on the curved lateral cortex of
 /// the phantom bored up to 0.5 mm before the cap emptied.
 const MIN_BORE_M: f64 = 0.8e-3;
-/// A plunge is the uncontrolled advance after a breakthrough. It ends once the tip has moved
-/// slower than this for `PLUNGE_END_TICKS` ticks. Controlled feeds are 1–4 mm/s; plunges run at
-/// tens of mm/s.
+/// A plunge is the uncontrolled advance after a breakthrough. It ends once the tip has advanced
+/// slower than this over the last [`PLUNGE_WINDOW_TICKS`] ticks. Controlled feeds are 0.5–4 mm/s;
+/// plunges run at tens of mm/s.
 const PLUNGE_END_SPEED_M_S: f64 = 5e-3;
-/// Ticks below `PLUNGE_END_SPEED_M_S` that end a plunge.
-const PLUNGE_END_TICKS: u32 = 20;
+/// The window (ticks) over which a plunge's speed is judged: 100 ms, one period of 10 Hz tremor,
+/// so a trembling hand that holds still reads as still.
+pub const PLUNGE_WINDOW_TICKS: usize = 100;
+/// Fastest spindle speed a pose may ask for (rpm): the edge of what the cutting and thermal laws
+/// are fitted on (thrust on 1000–1500 rpm, Orelaja et al. 2020; temperature trends on
+/// 188–1820 rpm, Augustin et al. 2008, Arch. Orthop. Trauma Surg. 128:71). Orthopaedic twist
+/// drills run at about 1000–1500 rpm; a pose asking for more is refused, as the laws say nothing
+/// there and extrapolating heat from them gives non-physical temperatures.
+pub const MAX_SPINDLE_RPM: f64 = 2000.0;
+/// Largest coordinate (m) a pose's position may have. The world frame is the patient frame of the
+/// CT: anything further than 10 m from its origin is no stylus position.
+pub const MAX_POSITION_M: f64 = 10.0;
+/// The bone gives way where the cap's density falls below this fraction of the bone the burr
+/// has just come through; smaller dips (a textured bone, the burr crossing voxels) are cut as
+/// they come.
+const GIVE_FRACTION: f64 = 0.8;
+/// Fraction of the hand's withdrawal, in free space, by which the registration offset is bled
+/// off each tick (the tip then withdraws 25 % slower than the hand until the offset is gone).
+const OFFSET_BLEED: f64 = 0.25;
 
 /// Everything configurable about a session.
 #[derive(Debug, Clone, PartialEq)]
@@ -177,14 +208,14 @@ impl Pose {
         }
     }
 
-    /// Whether every value is finite, the orientation a unit quaternion and the speed >= 0.
+    /// Whether the pose is physical: every coordinate within ±[`MAX_POSITION_M`] (so finite),
+    /// the orientation a unit quaternion, and the speed within `0..=`[`MAX_SPINDLE_RPM`].
     #[must_use]
     pub fn is_valid(&self) -> bool {
-        self.position_m.iter().all(|v| v.is_finite())
+        self.position_m.iter().all(|v| v.abs() <= MAX_POSITION_M)
             && self.orientation.coords.iter().all(|v| v.is_finite())
             && (self.orientation.norm() - 1.0).abs() < 1e-6
-            && self.spindle_rpm.is_finite()
-            && self.spindle_rpm >= 0.0
+            && (0.0..=MAX_SPINDLE_RPM).contains(&self.spindle_rpm)
     }
 
     /// The drill axis (unit, world frame).
@@ -249,8 +280,15 @@ pub struct SessionState {
     pub removed_mass_kg: f64,
     /// Whether the input is stale (no pose for longer than the device allows).
     pub stale: bool,
-    /// Poses rejected as invalid (NaN, infinite, zero quaternion, negative speed).
+    /// Poses rejected as invalid (non-finite or out-of-range position or speed, a zero
+    /// quaternion; see [`Pose::is_valid`]).
     pub rejected_poses: u64,
+    /// Registration offset (m): how far the stylus sits ahead of where the tip's motion put it,
+    /// from stretches the bone stopped holding (see the module docs). The tip follows
+    /// `device_m − registration_offset_m`.
+    pub registration_offset_m: Vector3<f64>,
+    /// The device motors' thermal load, `0..=1` ([`ForceLimiter::thermal_load`]).
+    pub device_thermal_load: f64,
 }
 
 /// What one tick produced.
@@ -262,7 +300,7 @@ pub struct TickOutput {
     pub record: Option<Record>,
 }
 
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 struct Breakthrough {
     in_cortex: bool,
     /// Highest cutting density seen while cutting this cortex (kg/m³).
@@ -272,8 +310,30 @@ struct Breakthrough {
     cut_m: Point3<f64>,
     /// Where the proxy first engaged this cortex.
     engage_m: Point3<f64>,
+    /// Where the tip was when the cortex gave way.
     point_m: Point3<f64>,
-    still_ticks: u32,
+    /// The drill axis at the breakthrough: the plunge is measured along it.
+    plunge_axis: Vector3<f64>,
+    /// Ticks since the breakthrough.
+    plunge_ticks: usize,
+    /// The tip's advance past `point_m` along `plunge_axis` over the last
+    /// [`PLUNGE_WINDOW_TICKS`] ticks, a ring indexed by `plunge_ticks`.
+    advance_m: [f64; PLUNGE_WINDOW_TICKS],
+}
+
+impl Default for Breakthrough {
+    fn default() -> Self {
+        Self {
+            in_cortex: false,
+            cortex_density_kg_m3: 0.0,
+            cut_m: Point3::origin(),
+            engage_m: Point3::origin(),
+            point_m: Point3::origin(),
+            plunge_axis: Vector3::z(),
+            plunge_ticks: 0,
+            advance_m: [0.0; PLUNGE_WINDOW_TICKS],
+        }
+    }
 }
 
 /// A trainee's drilling session.
@@ -287,8 +347,17 @@ pub struct DrillingSession {
     thermal: Thermal,
     pose: Option<Pose>,
     proxy_m: Point3<f64>,
+    /// The registered device position last tick (stylus − offset), for the coupling's damping.
     prev_device_m: Point3<f64>,
     prev_proxy_m: Point3<f64>,
+    /// The stylus position last tick, as the pose gave it: the hand's own motion.
+    prev_stylus_m: Point3<f64>,
+    /// Registration offset (m): stylus − where the tip's motion puts the hand.
+    offset_m: Vector3<f64>,
+    /// The density of the bone the burr has just come through (kg/m³): the highest cap density
+    /// seen, forgotten over a burr radius of axial travel. A cap suddenly much softer than it is
+    /// bone giving way.
+    recent_density_kg_m3: f64,
     breakthrough: Breakthrough,
     state: SessionState,
 }
@@ -316,6 +385,9 @@ impl DrillingSession {
             proxy_m: entry,
             prev_device_m: entry,
             prev_proxy_m: entry,
+            prev_stylus_m: entry,
+            offset_m: Vector3::zeros(),
+            recent_density_kg_m3: 0.0,
             breakthrough: Breakthrough::default(),
             state,
         })
@@ -350,6 +422,8 @@ impl DrillingSession {
             removed_mass_kg: 0.0,
             stale: true,
             rejected_poses: 0,
+            registration_offset_m: Vector3::zeros(),
+            device_thermal_load: 0.0,
         }
     }
 
@@ -408,7 +482,9 @@ impl DrillingSession {
         self.thermal.reset();
         self.pose = None;
         let entry = self.path.entry_m();
-        (self.proxy_m, self.prev_proxy_m, self.prev_device_m) = (entry, entry, entry);
+        (self.proxy_m, self.prev_proxy_m, self.prev_device_m, self.prev_stylus_m) = (entry, entry, entry, entry);
+        self.offset_m = Vector3::zeros();
+        self.recent_density_kg_m3 = 0.0;
         self.breakthrough = Breakthrough::default();
         self.state = Self::initial_state(&self.path, &self.thermal);
     }
@@ -425,6 +501,8 @@ impl DrillingSession {
                     self.proxy_m = p.position_m;
                     self.prev_proxy_m = p.position_m;
                     self.prev_device_m = p.position_m;
+                    self.prev_stylus_m = p.position_m;
+                    self.offset_m = Vector3::zeros();
                 }
                 self.pose = Some(*p);
                 self.limiter.pose_received();
@@ -448,6 +526,8 @@ impl DrillingSession {
         s.peak_temperature_c = self.thermal.peak_c;
         s.time_above_47_s = self.thermal.time_above_threshold_s;
         s.removed_mass_kg = self.bone.removed_mass_kg();
+        s.registration_offset_m = self.offset_m;
+        s.device_thermal_load = self.limiter.thermal_load();
         let record = (s.ticks % RECORD_PERIOD_TICKS == 0).then(|| Record {
             time_s: s.time_s,
             features: [
@@ -472,26 +552,54 @@ impl DrillingSession {
         let cfg = &self.config;
         let axis = pose.axis();
         let rpm = if pose.drill_on { pose.spindle_rpm } else { 0.0 };
-        let device = pose.position_m;
+        let hand_step = pose.position_m - self.prev_stylus_m;
+        self.prev_stylus_m = pose.position_m;
+        let hand_speed_ax = (hand_step.dot(&axis) / dt).max(0.0);
         let k = cfg.coupling_stiffness_n_per_m;
         let scale = cfg.force_scale();
+        let diameter_m = 2.0 * cfg.burr_radius_m;
+        let device = pose.position_m - self.offset_m;
         let goal = device - self.proxy_m;
         let push_ax = goal.dot(&axis);
         let zone = self.probe.cutting_zone(&self.bone, &self.proxy_m, &axis);
-        let cutting = rpm > 0.0 && zone.density_kg_m3 > EMPTY_CAP_KG_M3 && push_ax > 0.0;
+        let cut_density = zone.density_kg_m3;
+        let cutting = rpm > 0.0 && cut_density > EMPTY_CAP_KG_M3 && push_ax > 0.0;
+        let start_m = self.proxy_m;
         let mut feed = 0.0;
+        let mut thrust = 0.0;
         if cutting {
-            // The axial push is the thrust: the cutting law says how fast it feeds.
-            let thrust = k * push_ax / scale;
-            let f = cfg.cutting.feed_for_thrust_m_s(rpm, thrust, zone.density_kg_m3, 2.0 * cfg.burr_radius_m);
+            // The thrust is the hand's push on the bone: the coupling's stretch, but never more
+            // than the device renders along the axis (what the hand actually pushes against).
+            let rendered_ax = (-self.limiter.output_n().dot(&axis)).max(0.0);
+            thrust = (k * push_ax).min(rendered_ax) / scale;
+            let law = &cfg.cutting;
+            let rho = cut_density;
+            self.recent_density_kg_m3 = self.recent_density_kg_m3.max(rho);
+            let f_law = law.feed_for_thrust_m_s(rpm, thrust, rho, diameter_m);
+            // Where the bone gives way, the tip goes no faster than the hand, or than the bone
+            // it has just come through would let this thrust feed it.
+            let giving = rho.max(GIVE_FRACTION * self.recent_density_kg_m3);
+            let f_recent = law.feed_for_thrust_m_s(rpm, thrust, giving, diameter_m);
+            let f = f_law.min(f_recent.max(hand_speed_ax));
             let advance = (f * dt).min(push_ax).min(cfg.max_proxy_speed_m_s * dt);
             self.proxy_m += axis * advance;
             feed = advance / dt;
+            if f_law > f {
+                // The softer bone resists this feed with less than the stretch pushes: the
+                // stretch it no longer holds becomes registration offset, so the force drops to
+                // the bone's resistance and the hand, no longer held, carries the tip on.
+                let holds_m = law.thrust_n(rpm, feed, rho, diameter_m) * scale / k;
+                let released = (push_ax - advance - holds_m).max(0.0);
+                self.offset_m += axis * released;
+            }
             let lateral = goal - axis * push_ax;
-            self.proxy_m = self.god_move(self.proxy_m, lateral, Some(&axis), dt);
+            self.proxy_m = self.god_move(self.proxy_m, lateral, Some((axis, CAP_COS)), dt);
         } else {
-            self.proxy_m = self.god_move(self.proxy_m, goal, None, dt);
+            let moved = self.god_move(self.proxy_m, goal, None, dt);
+            self.proxy_m = self.follow_the_hand(moved, goal, hand_step);
         }
+        let cfg = &self.config;
+        let device = pose.position_m - self.offset_m;
         let spring = self.proxy_m - device;
         let push_phys = k * spring.norm() / scale;
         if rpm > 0.0 {
@@ -499,11 +607,19 @@ impl DrillingSession {
             if contact > 0.0 {
                 let radius_m = self.probe.cutting_radius_m(self.bone.volume().grid());
                 let burr = Burr { center_m: self.proxy_m, radius_m };
-                // Burr, cut and contact are valid by construction; an error here would change nothing.
-                let _ = self.bone.remove(&burr, &Cut { spindle_rpm: rpm, dt_s: dt, contact });
+                let cut = Cut { spindle_rpm: rpm, dt_s: dt, contact };
+                // A burr moving along its axis leaves its rear half cut. Burr, cut and axis are
+                // valid by construction; an error here would change nothing.
+                let advanced = (self.proxy_m - start_m).dot(&axis);
+                let _ = if advanced > 0.0 {
+                    self.bone.remove_advancing(&burr, &cut, &axis, advanced)
+                } else {
+                    self.bone.remove(&burr, &cut)
+                };
             }
         }
-        let advance_ax = (self.proxy_m - self.prev_proxy_m).dot(&axis);
+        let advance_ax = (self.proxy_m - start_m).dot(&axis);
+        self.recent_density_kg_m3 *= (-advance_ax.abs() / cfg.burr_radius_m).exp();
         // Coupling: spring to the proxy, damping on the relative velocity while apart.
         let v_device = (device - self.prev_device_m) / dt;
         let v_proxy = (self.proxy_m - self.prev_proxy_m) / dt;
@@ -513,18 +629,14 @@ impl DrillingSession {
         let force =
             spring * k + if apart { (v_proxy - v_device) * cfg.coupling_damping_n_s_per_m } else { Vector3::zeros() };
 
-        let (thrust, torque) = if cutting {
-            let (rho, d) = (zone.density_kg_m3, 2.0 * cfg.burr_radius_m);
-            (cfg.cutting.thrust_n(rpm, feed, rho, d), cfg.cutting.torque_n_m(rpm, feed, rho, d))
-        } else {
-            (0.0, 0.0)
-        };
+        let torque = if cutting { cfg.cutting.torque_n_m(rpm, feed, cut_density, diameter_m) } else { 0.0 };
+        let thrust = if cutting && feed > 0.0 { thrust } else { 0.0 };
         self.thermal.step(torque, rpm * TAU / 60.0, thrust, feed, dt);
-        self.track_breakthrough(rpm, cutting, zone.layer, zone.density_kg_m3, push_ax, advance_ax, &axis);
+        self.track_breakthrough(rpm, cutting, &zone, &axis);
 
         let front = self.proxy_m + axis * self.probe.radius_m();
         let s = &mut self.state;
-        s.device_m = device;
+        s.device_m = pose.position_m;
         s.tip_m = self.proxy_m;
         s.axis = axis;
         s.drill_on = pose.drill_on;
@@ -541,6 +653,41 @@ impl DrillingSession {
         force
     }
 
+    /// Free motion (nothing is cut): the proxy moved from `self.proxy_m` to `moved` towards the
+    /// device, `goal` away. It may follow the hand (`hand_step`, the stylus's motion this tick)
+    /// but not run on into a stretch that a surface stopped holding: that part of the motion
+    /// becomes registration offset. While the hand withdraws against the offset, the offset is
+    /// bled off. Returns where the proxy ends.
+    fn follow_the_hand(&mut self, moved: Point3<f64>, goal: Vector3<f64>, hand_step: Vector3<f64>) -> Point3<f64> {
+        let from = self.proxy_m;
+        let gap = goal.norm();
+        let mut end = moved;
+        if gap > 1e-9 {
+            let along = goal / gap;
+            let ran = (moved - from).dot(&along);
+            let excess = ran - hand_step.dot(&along).max(0.0);
+            if excess > 1e-9 {
+                // Back off along the path it came, to where it moved only as far as the hand did.
+                let kept = (moved - from) * ((ran - excess) / ran);
+                let candidate = from + kept;
+                let probe = |p: &Point3<f64>| self.probe.contact(&self.bone, p, None).points;
+                end = if probe(&candidate) <= probe(&from) { candidate } else { from };
+                self.offset_m += moved - end;
+            }
+        }
+        // Bleed the offset while the hand withdraws against it in free space.
+        let offset = self.offset_m.norm();
+        if offset > 0.0 && !self.state.plunging {
+            let dir = self.offset_m / offset;
+            let back = (-hand_step.dot(&dir)).max(0.0);
+            if back > 0.0 && self.probe.contact(&self.bone, &end, None).points == 0 {
+                let bleed = (OFFSET_BLEED * back).min(offset);
+                self.offset_m -= dir * bleed;
+            }
+        }
+        end
+    }
+
     /// Moves the proxy from `from` by `delta` as far as the bone allows, sliding along surfaces.
     /// A move is refused when it brings more probe points into bone than the proxy already has
     /// (so a proxy that is already embedded can always back out).
@@ -548,7 +695,7 @@ impl DrillingSession {
         &self,
         from: Point3<f64>,
         delta: Vector3<f64>,
-        exclude_cap: Option<&Vector3<f64>>,
+        ignore: Option<(Vector3<f64>, f64)>,
         dt: f64,
     ) -> Point3<f64> {
         let len = delta.norm();
@@ -561,9 +708,9 @@ impl DrillingSession {
         let steps = (reach / max_step).ceil().clamp(1.0, 16.0);
         let step = delta * (reach / len / steps);
         let mut p = from;
-        let mut inside = self.probe.contact(&self.bone, &p, exclude_cap).points;
+        let mut inside = self.probe.contact(&self.bone, &p, ignore).points;
         for _ in 0..steps as usize {
-            let candidate = self.probe.contact(&self.bone, &(p + step), exclude_cap);
+            let candidate = self.probe.contact(&self.bone, &(p + step), ignore);
             if candidate.points == 0 || candidate.points <= inside {
                 p += step;
                 inside = candidate.points;
@@ -575,7 +722,7 @@ impl DrillingSession {
             if slide.norm() < 1e-12 {
                 break;
             }
-            let slid = self.probe.contact(&self.bone, &(p + slide), exclude_cap);
+            let slid = self.probe.contact(&self.bone, &(p + slide), ignore);
             if slid.points == 0 || slid.points <= inside {
                 p += slide;
                 inside = slid.points;
@@ -586,50 +733,40 @@ impl DrillingSession {
         p
     }
 
-    #[allow(clippy::too_many_arguments)] // the per-tick facts it needs, all computed by `simulate`
-    fn track_breakthrough(
-        &mut self,
-        rpm: f64,
-        cutting: bool,
-        layer: Layer,
-        density: f64,
-        push_ax: f64,
-        advance_ax: f64,
-        axis: &Vector3<f64>,
-    ) {
+    fn track_breakthrough(&mut self, rpm: f64, cutting: bool, zone: &CuttingZone, axis: &Vector3<f64>) {
         let bt = &mut self.breakthrough;
         let s = &mut self.state;
-        // The bore: the line along the drill axis through its bottom. A burr whose centre is more
-        // than its diameter off that line no longer overlaps the bore: it is somewhere else.
-        let from_bottom = self.proxy_m - bt.cut_m;
-        let in_bore = (from_bottom - axis * from_bottom.dot(axis)).norm() < 2.0 * self.probe.radius_m();
-        if bt.in_cortex
-            && rpm > 0.0
-            && push_ax > 0.0
-            && density < BREAKTHROUGH_DENSITY_FRACTION * bt.cortex_density_kg_m3
-        {
-            // The cap emptied. The cortex gave way only if the burr bored into it and is at the
-            // bottom of its bore. Pulled back along the bore (pecking, bouncing off the bone),
-            // it stays armed for its return; slid off sideways or never bored in (a skid on the
-            // curved cortex), this contact is over.
+        let density = zone.density_kg_m3;
+        if bt.in_cortex && rpm > 0.0 {
+            let soft = BREAKTHROUGH_DENSITY_FRACTION * bt.cortex_density_kg_m3;
+            // The cap cuts little, straight ahead lies much softer undrilled bone (or none), and
+            // the burr is at the bottom of its bore: it is at an exit of the cortex, not back in
+            // its own bore or withdrawn out of it.
             let at_bottom = (self.proxy_m - bt.cut_m).dot(axis) > -WITHDRAWN_M;
-            let bored = (bt.cut_m - bt.engage_m).dot(axis) >= MIN_BORE_M;
-            if at_bottom && bored && in_bore {
+            if at_bottom && density < soft && zone.ahead_pristine_density_kg_m3 < soft {
                 bt.in_cortex = false;
-                bt.point_m = self.proxy_m;
-                bt.still_ticks = 0;
-                s.breakthroughs += 1;
-                s.plunging = true;
-                s.plunge_depth_m = 0.0;
-            } else if at_bottom || !in_bore {
-                bt.in_cortex = false;
+                // Only a burr that bored into the cortex breaks through it; a shallow cut that
+                // ends so is a skid off a curved surface.
+                if (bt.cut_m - bt.engage_m).dot(axis) >= MIN_BORE_M {
+                    bt.point_m = self.proxy_m;
+                    bt.plunge_axis = *axis;
+                    bt.plunge_ticks = 0;
+                    s.breakthroughs += 1;
+                    s.plunging = true;
+                    s.plunge_depth_m = 0.0;
+                }
             }
         }
-        // Arm on real engagement with cortex, and not while the last plunge is still running
-        // (the rest of the same cortex giving way is the same breakthrough). A drill stopped
-        // and restarted in its bore (cooling pauses) goes on with the same bore.
-        if cutting && layer == Layer::Cortical && !s.plunging && density >= BREAKTHROUGH_ARM_KG_M3 {
-            if !bt.in_cortex || !in_bore {
+        let engaging = cutting && zone.layer == Layer::Cortical && density >= BREAKTHROUGH_ARM_KG_M3;
+        if s.plunging && engaging && (self.proxy_m - bt.point_m).dot(&bt.plunge_axis) > MIN_BORE_M {
+            // Cutting cortex again, past the first: the plunge is over, and this is a new cortex.
+            s.plunging = false;
+        }
+        // Arm on real engagement with cortex, not while the last plunge is still running (the
+        // rest of the same cortex giving way is the same breakthrough). A drill stopped and
+        // restarted in its bore (cooling pauses) goes on with the same bore.
+        if engaging && !s.plunging {
+            if !bt.in_cortex {
                 bt.cortex_density_kg_m3 = 0.0;
                 bt.cut_m = self.proxy_m;
                 bt.engage_m = self.proxy_m;
@@ -637,8 +774,7 @@ impl DrillingSession {
             bt.in_cortex = true;
             bt.cortex_density_kg_m3 = bt.cortex_density_kg_m3.max(density);
         }
-        // The bore's bottom: the deepest level cut since engaging, whatever the cap holds there,
-        // under the burr wherever it cuts at that level (a wandering hand widens its bore).
+        // The bore's bottom: the deepest level cut since engaging.
         if bt.in_cortex && cutting {
             let along = (self.proxy_m - bt.cut_m).dot(axis);
             if along > -WITHDRAWN_M {
@@ -646,11 +782,17 @@ impl DrillingSession {
             }
         }
         if s.plunging {
-            s.plunge_depth_m = s.plunge_depth_m.max((self.proxy_m - bt.point_m).dot(axis));
-            let fast = advance_ax > PLUNGE_END_SPEED_M_S * TICK_S;
-            bt.still_ticks = if fast { 0 } else { bt.still_ticks + 1 };
-            // The plunge ends when the drill stops or the tip is back under control.
-            if rpm <= 0.0 || bt.still_ticks >= PLUNGE_END_TICKS {
+            let advance = (self.proxy_m - bt.point_m).dot(&bt.plunge_axis);
+            s.plunge_depth_m = s.plunge_depth_m.max(advance);
+            let slot = bt.plunge_ticks % PLUNGE_WINDOW_TICKS;
+            let window_ago = bt.advance_m[slot];
+            bt.advance_m[slot] = advance;
+            bt.plunge_ticks += 1;
+            // The plunge ends when the drill stops, or when the tip has been back under control
+            // (advancing slower than a controlled feed) over a whole window.
+            let slow = bt.plunge_ticks > PLUNGE_WINDOW_TICKS
+                && advance - window_ago < PLUNGE_END_SPEED_M_S * PLUNGE_WINDOW_TICKS as f64 * TICK_S;
+            if rpm <= 0.0 || slow {
                 s.plunging = false;
             }
         }

@@ -34,7 +34,7 @@ fn pose_at(z: f64) -> Pose {
         position_m: Point3::new(CENTRE, CENTRE, z),
         orientation: UnitQuaternion::identity(),
         drill_on: true,
-        spindle_rpm: 60_000.0,
+        spindle_rpm: 1250.0,
     }
 }
 

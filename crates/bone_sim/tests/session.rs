@@ -93,11 +93,12 @@ fn drill_until(
 
 #[test]
 fn drill_off_bone_is_a_rigid_surface_with_force_along_the_normal_growing_and_capped() {
-    let (mut s, surface, _) = session(&[(Layer::Cortical, 1800.0, 3e-3)]);
-    let r = s.config().burr_radius_m;
     let mut last = 0.0;
     for mm in [0.5, 1.0, 2.0, 4.0, 8.0, 20.0] {
-        // The device sinks `mm` into the bone, slightly off-centre so the proxy must slide.
+        // A cold device each time (a long press derates it: tested in device.rs). The device sinks
+        // `mm` into the bone, slightly off-centre so the proxy must slide.
+        let (mut s, surface, _) = session(&[(Layer::Cortical, 1800.0, 3e-3)]);
+        let r = s.config().burr_radius_m;
         let p =
             Pose { position_m: Point3::new(CENTRE + 0.3e-3, CENTRE, surface - r + mm * 1e-3), ..pose(0.0, false, 0.0) };
         let f = approach(&mut s, surface, p, 400);
@@ -106,9 +107,9 @@ fn drill_off_bone_is_a_rigid_surface_with_force_along_the_normal_growing_and_cap
         assert!(f.norm() >= last - 1e-9, "{mm} mm: force fell from {last} to {}", f.norm());
         last = f.norm();
         assert!(s.state().tip_m.z <= surface - r + 0.3e-3, "the proxy entered the bone: {}", s.state().tip_m);
+        assert_eq!(s.state().removed_mass_kg, 0.0, "a stopped drill removes nothing");
     }
     assert!((last - PEAK).abs() < 1e-9, "a deep push is capped at the peak, got {last}");
-    assert_eq!(s.state().removed_mass_kg, 0.0, "a stopped drill removes nothing");
 }
 
 #[test]
@@ -153,9 +154,13 @@ fn thrust_rises_with_feed_and_falls_with_spindle_speed() {
     // The physical thrust is the device push scaled back up (1 device N ≈ 9.1 N).
     assert!((low_thrust - 1.0 / 0.11).abs() < 1.5, "thrust estimate {low_thrust} N for a 1 N device push");
     assert!((8.0..30.0).contains(&high_thrust));
-    // The same push feeds faster with a faster spindle: less thrust for the same feed.
-    let (feed_fast_spindle, _) = steady_cut(1.0, 2500.0);
-    assert!(feed_fast_spindle > 1.2 * slow_feed, "{slow_feed} at 1250 rpm vs {feed_fast_spindle} at 2500 rpm");
+    // The same push feeds faster with a faster spindle: less thrust for the same feed. The law's
+    // speed exponent (−1.2, Orelaja et al. 2020) and feed exponent (0.45) make 1000 → 1500 rpm
+    // feed (1.5^1.2)^(1/0.45) ≈ 2.95 times faster for the same thrust.
+    let (feed_1000, _) = steady_cut(1.5, 1000.0);
+    let (feed_1500, _) = steady_cut(1.5, 1500.0);
+    let ratio = feed_1500 / feed_1000;
+    assert!((ratio - 1.5f64.powf(1.2 / 0.45)).abs() < 0.3, "feed ratio {ratio} for 1000 → 1500 rpm");
 }
 
 #[test]
@@ -170,7 +175,7 @@ fn breakthrough_drops_the_force_and_the_plunge_is_reported() {
         let out = s.tick(Some(&pose(hand.z, true, 1250.0)));
         force_z = out.force_n.z;
         if s.state().cutting && s.state().tip_m.z > surface + 1e-3 {
-            cutting_force = out.force_n.norm();
+            cutting_force = f64::max(cutting_force, out.force_n.norm());
         }
         if exit_tick.is_none() && s.state().breakthroughs == 1 {
             exit_tick = Some(tick);
@@ -195,9 +200,10 @@ fn breakthrough_drops_the_force_and_the_plunge_is_reported() {
 #[test]
 fn temperature_rises_while_drilling_decays_after_and_the_dose_is_counted() {
     let (s, surface, _) = session(&[(Layer::Cortical, 1800.0, 20e-3)]);
-    let (_, mut s) = drill_until(s, surface, 0.8, 1250.0, surface + 8e-3, 60.0);
+    let (took, mut s) = drill_until(s, surface, 1.3, 1250.0, surface + 3e-3, 60.0);
+    assert!(took.is_finite(), "a 12 N push never bored 3 mm");
     let hot = s.state().temperature_c;
-    assert!(hot > 47.0, "8 mm of slow cortical drilling should pass 47 °C, got {hot}");
+    assert!(hot > 47.0, "slow cortical drilling should pass 47 °C, got {hot}");
     assert!(s.state().time_above_47_s > 0.0);
     let still = s.state().device_m.z;
     let mut prev = hot;
@@ -209,12 +215,15 @@ fn temperature_rises_while_drilling_decays_after_and_the_dose_is_counted() {
     let st = s.state();
     assert!(st.temperature_c < hot - 5.0, "cools when the drill stops: {hot} → {}", st.temperature_c);
     assert_eq!(st.peak_temperature_c, hot.max(st.peak_temperature_c));
-    // Feeding faster through the same depth gives a lower peak.
+    // Feeding faster through the same depth gives a lower peak (Augustin et al. 2008): a harder
+    // push (Matthews & Hirsch 1972) feeds faster.
     let peak = |push| {
         let (s, surface, _) = session(&[(Layer::Cortical, 1800.0, 20e-3)]);
-        drill_until(s, surface, push, 1250.0, surface + 8e-3, 60.0).1.state().peak_temperature_c
+        let (took, s) = drill_until(s, surface, push, 1250.0, surface + 3e-3, 60.0);
+        assert!(took.is_finite(), "a {push} N push never bored 3 mm");
+        s.state().peak_temperature_c
     };
-    assert!(peak(2.0) < peak(0.8) - 1.0, "higher feed, lower peak");
+    assert!(peak(2.0) < peak(1.3) - 1.0, "higher feed, lower peak");
 }
 
 #[test]
@@ -467,7 +476,10 @@ fn an_oblique_bore_through_the_cortex_is_one_breakthrough() {
     }
     let st = s.state();
     assert_eq!(st.breakthroughs, 1, "no breakthrough after {:.1} mm of travel", travel * 1e3);
-    assert!(st.tip_m.z > surface + 0.5 * t, "broke through too early, at z {}", st.tip_m.z - surface);
+    // It gives way as the burr's front (a burr radius ahead of its centre) reaches the far surface,
+    // not before: within the voxel the cap looks ahead and the cap's own length.
+    let front_z = st.tip_m.z + s.config().burr_radius_m * axis.z - surface;
+    assert!((t - 1e-3..=t + 0.5e-3).contains(&front_z), "broke through with the front at z {front_z} of {t}");
 }
 
 #[test]

@@ -20,7 +20,7 @@ pub(crate) const RECORD_COLUMNS: usize = FEATURE_COUNT + 2;
 
 /// Every configurable number of a session, by its flat key (nested ones as `device.x`, ...): the
 /// one list both directions of the dict conversion use.
-fn config_fields(c: &mut SessionConfig) -> [(&'static str, &mut f64); 29] {
+fn config_fields(c: &mut SessionConfig) -> [(&'static str, &mut f64); 30] {
     [
         ("burr_radius_m", &mut c.burr_radius_m),
         ("coupling_stiffness_n_per_m", &mut c.coupling_stiffness_n_per_m),
@@ -30,7 +30,7 @@ fn config_fields(c: &mut SessionConfig) -> [(&'static str, &mut f64); 29] {
         ("max_proxy_speed_m_s", &mut c.max_proxy_speed_m_s),
         ("device.peak_force_n", &mut c.device.peak_force_n),
         ("device.continuous_force_n", &mut c.device.continuous_force_n),
-        ("device.peak_duration_s", &mut c.device.peak_duration_s),
+        ("device.thermal_time_constant_s", &mut c.device.thermal_time_constant_s),
         ("device.max_stiffness_n_per_m", &mut c.device.max_stiffness_n_per_m),
         ("device.max_force_rate_n_per_s", &mut c.device.max_force_rate_n_per_s),
         ("device.stale_after_s", &mut c.device.stale_after_s),
@@ -39,7 +39,8 @@ fn config_fields(c: &mut SessionConfig) -> [(&'static str, &mut f64); 29] {
         ("cutting.reference_rpm", &mut c.cutting.reference_rpm),
         ("cutting.reference_feed_m_s", &mut c.cutting.reference_feed_m_s),
         ("cutting.reference_density_kg_m3", &mut c.cutting.reference_density_kg_m3),
-        ("cutting.speed_exponent", &mut c.cutting.speed_exponent),
+        ("cutting.thrust_speed_exponent", &mut c.cutting.thrust_speed_exponent),
+        ("cutting.torque_speed_exponent", &mut c.cutting.torque_speed_exponent),
         ("cutting.feed_exponent", &mut c.cutting.feed_exponent),
         ("cutting.density_exponent", &mut c.cutting.density_exponent),
         ("cutting.max_feed_m_s", &mut c.cutting.max_feed_m_s),
@@ -135,6 +136,9 @@ fn state_dict<'py>(py: Python<'py>, s: &SessionState) -> PyResult<Bound<'py, PyD
     d.set_item("removed_mass_kg", s.removed_mass_kg)?;
     d.set_item("stale", s.stale)?;
     d.set_item("rejected_poses", s.rejected_poses)?;
+    let o = s.registration_offset_m;
+    d.set_item("registration_offset_m", [o.x, o.y, o.z])?;
+    d.set_item("device_thermal_load", s.device_thermal_load)?;
     Ok(d)
 }
 
