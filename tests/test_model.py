@@ -85,10 +85,15 @@ def test_training_outputs_and_scaler_fitted_on_train_only(run, data):
     ds = load_dataset(data)
     x, y, _ = make_windows(ds, 20)
     split = split_windows(len(x), 20, 0.135, 0.1)
-    train_force = np.concatenate([x[split.train].reshape(-1, 9), y[split.train]])[:, 0:3]
-    model = load_model(out / "model.ts")
-    np.testing.assert_allclose(model.module.force_lo.numpy(), train_force.min(axis=0), rtol=1e-6)
-    assert not np.allclose(model.module.force_lo.numpy(), np.concatenate([x.reshape(-1, 9), y])[:, 0:3].min(axis=0))
+    train_rows = np.concatenate([x[split.train].reshape(-1, 9), y[split.train]])
+    all_rows = np.concatenate([x.reshape(-1, 9), y])
+    module = load_model(out / "model.ts").module
+    lo, hi = module.in_lo.numpy(), module.in_lo.numpy() + module.in_span.numpy()
+    np.testing.assert_allclose(lo, train_rows.min(axis=0), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(hi, train_rows.max(axis=0), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(module.force_lo.numpy(), train_rows[:, 0:3].min(axis=0), rtol=1e-6, atol=1e-9)
+    # A scaler fitted on every window, test windows included, would differ.
+    assert not np.allclose(np.concatenate([lo, hi]), np.concatenate([all_rows.min(axis=0), all_rows.max(axis=0)]))
 
 
 def test_resume_continues_from_the_checkpoint(run, data, tmp_path):

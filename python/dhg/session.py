@@ -78,7 +78,7 @@ class ThermalParams:
 
     heat_capacity_j_per_k: float = 0.5
     thermal_resistance_k_per_w: float = 30.0
-    heat_fraction: float = 0.6
+    heat_fraction: float = 0.16
     body_temperature_c: float = 37.0
     necrosis_threshold_c: float = 47.0
 

@@ -758,14 +758,18 @@ impl DrillingSession {
             }
         }
         let engaging = cutting && zone.layer == Layer::Cortical && density >= BREAKTHROUGH_ARM_KG_M3;
-        if s.plunging && engaging && (self.proxy_m - bt.point_m).dot(&bt.plunge_axis) > MIN_BORE_M {
+        // A cortex already broken through is behind the burr until it is a bore's depth past
+        // where it gave way: what it cuts before that (the rim of an oblique exit, back in its
+        // own bore after pulling back) is the same cortex.
+        let past_last = s.breakthroughs == 0 || (self.proxy_m - bt.point_m).dot(&bt.plunge_axis) > MIN_BORE_M;
+        if s.plunging && engaging && past_last {
             // Cutting cortex again, past the first: the plunge is over, and this is a new cortex.
             s.plunging = false;
         }
         // Arm on real engagement with cortex, not while the last plunge is still running (the
         // rest of the same cortex giving way is the same breakthrough). A drill stopped and
         // restarted in its bore (cooling pauses) goes on with the same bore.
-        if engaging && !s.plunging {
+        if engaging && !s.plunging && past_last {
             if !bt.in_cortex {
                 bt.cortex_density_kg_m3 = 0.0;
                 bt.cut_m = self.proxy_m;

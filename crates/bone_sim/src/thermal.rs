@@ -13,9 +13,12 @@
 
 use crate::error::{finite, positive, SimError, SimResult};
 
-/// Parameters of the lumped model. `C` and `R_th` are this project's calibration: a 2.5 mm drill
-/// feeding through 3.5 mm of cortical bone at 1250 rpm and 1.5 mm/s warms the tip by roughly
-/// 10 °C, and a stopped drill cools with a 15 s time constant.
+/// Parameters of the lumped model, this project's calibration to Augustin et al. (2008, Arch.
+/// Orthop. Trauma Surg. 128:71: 2.5, 3.2 and 4.5 mm drills at 188–1820 rpm and 24–196 mm/min
+/// through pig femur cortex without irrigation): the heat fraction η sets the tip above 47 °C
+/// only for the 4.5 mm drill at 1140 and 1820 rpm (at 56 mm/min through 5 mm of dense cortex), as
+/// they measured, and within their 31–56 °C; `C` and `R_th` make a stopped drill cool with a
+/// 15 s time constant. `docs/fidelity.md` tables the measured figures beside theirs.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ThermalParams {
     /// Lumped heat capacity of the tip region (J/K).
@@ -35,7 +38,7 @@ impl Default for ThermalParams {
         Self {
             heat_capacity_j_per_k: 0.5,
             thermal_resistance_k_per_w: 30.0,
-            heat_fraction: 0.6,
+            heat_fraction: 0.16,
             body_temperature_c: 37.0,
             necrosis_threshold_c: 47.0,
         }
@@ -130,19 +133,19 @@ mod tests {
             th.step(0.032, omega, 17.0, 1.5e-3, 1e-3);
         }
         let hot = th.temperature_c;
-        assert!(hot > 60.0, "20 s of cortical cutting should pass 47 °C, got {hot}");
+        assert!(hot > 50.0, "20 s of cortical cutting should pass 47 °C, got {hot}");
         assert!(th.time_above_threshold_s > 5.0);
         for _ in 0..30_000 {
             th.step(0.0, 0.0, 0.0, 0.0, 1e-3);
         }
-        assert!(th.temperature_c < hot - 20.0 && th.temperature_c > 37.0);
+        assert!(th.temperature_c < hot - 10.0 && th.temperature_c > 37.0);
         assert_eq!(th.peak_c, hot);
         // Steady state is T_body + η·P·R.
         let mut th = Thermal::new(ThermalParams::default()).unwrap();
         for _ in 0..1000 {
             th.step(0.0, 0.0, 1.0, 1.0, 1.0);
         }
-        assert!((th.temperature_c - (37.0 + 0.6 * 30.0)).abs() < 1e-6);
+        assert!((th.temperature_c - (37.0 + 0.16 * 30.0)).abs() < 1e-6);
     }
 
     #[test]
