@@ -73,6 +73,14 @@ LATERAL_STIFFNESS_N_PER_M = 250.0
 """How stiffly the arm holds the drill on the path laterally (N/m)."""
 GENERIC_BREAKTHROUGH_DEPTH_M = 2.2e-3
 """Tip depth at which a surgeon without a plan expects the first cortex to give (m)."""
+EXPERT_ARM_N_PER_M = (300.0, 360.0)
+"""Range of the experts' arm stiffness (N/m); see :attr:`SurgeonStyle.arm_stiffness_n_per_m`."""
+NOVICE_ARM_N_PER_M = (130.0, 170.0)
+"""Range of the novices' arm stiffness (N/m): a looser arm."""
+AIM_FOLLOW_S = 0.5
+"""Time constant (s) with which the arm's aim follows the felt hand position."""
+PUSH_MARGIN_N = 0.4
+"""How much harder than the resistance they feel (N, one reaction delay ago) a subject pushes."""
 MAX_PUSH_N = 3.0
 """Most axial push any subject applies, however strongly a guidance cue asks for more (N)."""
 CUE_LEAK_PER_S = 0.2
@@ -123,6 +131,13 @@ class SurgeonStyle:
     """How briskly the subject leans into a guidance cue (1/s): a cue pushing the drill back
     (the expert pressed harder) adds push, one pulling it in takes push away, at this rate times
     the cue (N) per second, until the cue is nulled. 0 = a passive hand that only feels the cue."""
+    arm_stiffness_n_per_m: float = TRACK_STIFFNESS_N_PER_M
+    """Stiffness of the arm around the point it pushes towards (N/m). The push is made by aiming
+    the hand just ahead of where it was felt one reaction delay ago (an equilibrium point,
+    Feldman 1986; Bizzi et al. 1992), so when the bone gives the hand travels about push /
+    stiffness before the reaction stops it."""
+    ease_fraction: float = 1.0
+    """Fraction of the cortical push kept while easing off before the planned breakthrough."""
 
     def to_dict(self) -> dict[str, float | str | bool]:
         """JSON-ready form."""
@@ -137,7 +152,7 @@ def sample_style(skill: Skill, rng: np.random.Generator) -> SurgeonStyle:
     if skill == "expert":
         return SurgeonStyle(
             skill="expert",
-            push_cortical_n=u(1.3, 1.7),
+            push_cortical_n=u(2.2, 2.7),
             push_soft_n=u(0.25, 0.4),
             feed_m_s=u(1.8e-3, 2.6e-3),
             feed_gain=u(0.9, 1.1),
@@ -155,11 +170,13 @@ def sample_style(skill: Skill, rng: np.random.Generator) -> SurgeonStyle:
             spindle_rpm=u(1100.0, 1400.0),
             cue_follow_per_s=3.0,
             anticipation_m=u(0.2e-3, 0.6e-3),  # drawn last: the draws above stay as they were
+            arm_stiffness_n_per_m=u(EXPERT_ARM_N_PER_M[0], EXPERT_ARM_N_PER_M[1]),
+            ease_fraction=u(0.48, 0.63),
         )
     if skill == "novice":
         return SurgeonStyle(
             skill="novice",
-            push_cortical_n=u(0.9, 1.2),
+            push_cortical_n=u(1.6, 2.1),
             push_soft_n=u(0.3, 0.45),
             feed_m_s=u(0.7e-3, 1.1e-3),
             feed_gain=u(0.3, 0.5),
@@ -177,6 +194,7 @@ def sample_style(skill: Skill, rng: np.random.Generator) -> SurgeonStyle:
             spindle_rpm=u(900.0, 1600.0),
             cue_follow_per_s=2.0,
             anticipation_m=0.0,
+            arm_stiffness_n_per_m=u(NOVICE_ARM_N_PER_M[0], NOVICE_ARM_N_PER_M[1]),
         )
     raise ValueError(f"skill must be 'expert' or 'novice', got {skill!r}")
 
@@ -282,6 +300,9 @@ class SurgeonController:
         self.drill_off_t: float | None = None
         self.max_plunge = 0.0
         self.fb_hist: list[tuple] = []
+        self.s_hist: list[float] = []  # the hand's position along A→B (m), one per tick
+        self.f_ax_hist: list[float] = []  # the device force along A→B (N), one per tick
+        self.aim_s = self.s  # where the arm pushes towards (m along A→B)
         self.cue_hist: list[float] = []
         self.lean = 0.0  # N: push added in response to the guidance cue
         self.tick = 0
@@ -342,7 +363,7 @@ class SurgeonController:
             ceiling = style.push_cortical_n if p_layer == Layer.CORTICAL else style.push_soft_n
             easing = p_depth > self.breakthrough_depth_m - style.anticipation_m
             if style.anticipates_breakthrough and p_layer == Layer.CORTICAL and easing:
-                ceiling = style.push_soft_n  # the cortex is thinning: ease off before it gives
+                ceiling = style.ease_fraction * style.push_cortical_n  # the cortex is thinning: ease off
             if p_bt > self.seen_breakthroughs:
                 self.seen_breakthroughs = p_bt
                 self.retract_until = t + 0.25
@@ -384,13 +405,26 @@ class SurgeonController:
         # Hand dynamics (semi-implicit Euler at 1 kHz).
         fx, fy, fz = force_n
         f_ax = fx * d[0] + fy * d[1] + fz * d[2]
+        self.f_ax_hist.append(f_ax)
         f_u = fx * e1[0] + fy * e1[1] + fz * e1[2]
         f_v = fx * e2[0] + fy * e2[1] + fz * e2[2]
+        self.s_hist.append(self.s)
         if intent_s is not None:
             drive = TRACK_STIFFNESS_N_PER_M * (intent_s - self.s)
+            self.aim_s = self.s
         else:
-            push = min(max(self.push + self.lean, 0.0), MAX_PUSH_N)
-            drive = push * (1.0 + style.noise_fraction * self.noise_state * 5.0)
+            # Nobody leans much harder than the resistance they feel: a push that meets no
+            # resistance (a device that has derated, a bone that gave way) is not kept up.
+            felt_resistance = max(-self.f_ax_hist[max(0, tick - self.delay)], 0.0)
+            push = min(max(self.push + self.lean, 0.0), MAX_PUSH_N, felt_resistance + PUSH_MARGIN_N)
+            push *= 1.0 + style.noise_fraction * self.noise_state * 5.0
+            # The arm pushes towards an aim that moves on at the preferred feed and follows, slowly,
+            # where the hand was felt one reaction delay ago: its stiffness resists travel ahead of
+            # the aim, so a sudden give is caught after about push / stiffness. (An aim that
+            # followed the felt position at once would make a delayed, unstable loop.)
+            felt_s = self.s_hist[max(0, tick - self.delay)]
+            self.aim_s += style.feed_m_s * dt + (felt_s - self.aim_s) * dt / AIM_FOLLOW_S
+            drive = push - style.arm_stiffness_n_per_m * max(self.s - self.aim_s, 0.0)
         damping = style.hand_damping_n_s_per_m
         self.vs += (drive + f_ax - damping * self.vs) / HAND_MASS_KG * dt
         aim_u = self.drift_u + style.tremor_m * math.sin(self.w_tremor * t + self.tremor_phase[0])

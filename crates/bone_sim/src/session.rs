@@ -88,6 +88,9 @@ pub const MAX_POSITION_M: f64 = 10.0;
 /// has just come through; smaller dips (a textured bone, the burr crossing voxels) are cut as
 /// they come.
 const GIVE_FRACTION: f64 = 0.8;
+/// How much faster than the hand (m/s) the tip may move in free motion: a proxy sliding along a
+/// surface as its walls erode moves at mm/s; one released by an edge leaps at up to 1 m/s.
+const RELEASE_SLACK_M_S: f64 = 0.02;
 /// Fraction of the hand's withdrawal, in free space, by which the registration offset is bled
 /// off each tick (the tip then withdraws 25 % slower than the hand until the offset is gone).
 const OFFSET_BLEED: f64 = 0.25;
@@ -576,9 +579,14 @@ impl DrillingSession {
             let rho = cut_density;
             self.recent_density_kg_m3 = self.recent_density_kg_m3.max(rho);
             let f_law = law.feed_for_thrust_m_s(rpm, thrust, rho, diameter_m);
-            // Where the bone gives way, the tip goes no faster than the hand, or than the bone
-            // it has just come through would let this thrust feed it.
-            let giving = rho.max(GIVE_FRACTION * self.recent_density_kg_m3);
+            // Where a cortex gives way (the cap, and the undrilled bone straight ahead, much
+            // softer than the bone the burr has just come through), the tip goes no faster than
+            // the hand, or than that bone would let this thrust feed it. A cap that reads less
+            // bone for other reasons (a burr tilting or wandering on the surface, its own bore)
+            // is cut as it comes.
+            let recent = self.recent_density_kg_m3;
+            let gives = self.breakthrough.in_cortex && zone.ahead_pristine_density_kg_m3 < GIVE_FRACTION * recent;
+            let giving = if gives { rho.max(GIVE_FRACTION * recent) } else { rho };
             let f_recent = law.feed_for_thrust_m_s(rpm, thrust, giving, diameter_m);
             let f = f_law.min(f_recent.max(hand_speed_ax));
             let advance = (f * dt).min(push_ax).min(cfg.max_proxy_speed_m_s * dt);
@@ -596,7 +604,7 @@ impl DrillingSession {
             self.proxy_m = self.god_move(self.proxy_m, lateral, Some((axis, CAP_COS)), dt);
         } else {
             let moved = self.god_move(self.proxy_m, goal, None, dt);
-            self.proxy_m = self.follow_the_hand(moved, goal, hand_step);
+            self.proxy_m = self.follow_the_hand(moved, hand_step);
         }
         let cfg = &self.config;
         let device = pose.position_m - self.offset_m;
@@ -654,26 +662,22 @@ impl DrillingSession {
     }
 
     /// Free motion (nothing is cut): the proxy moved from `self.proxy_m` to `moved` towards the
-    /// device, `goal` away. It may follow the hand (`hand_step`, the stylus's motion this tick)
-    /// but not run on into a stretch that a surface stopped holding: that part of the motion
-    /// becomes registration offset. While the hand withdraws against the offset, the offset is
-    /// bled off. Returns where the proxy ends.
-    fn follow_the_hand(&mut self, moved: Point3<f64>, goal: Vector3<f64>, hand_step: Vector3<f64>) -> Point3<f64> {
+    /// device. It may follow the hand (`hand_step`, the stylus's motion this tick), and slide
+    /// along a surface as slowly as a wall erodes, but not leap into a stretch that a surface
+    /// stopped holding (the edge of a bone): the part of a move faster than the hand's by more
+    /// than [`RELEASE_SLACK_M_S`] becomes registration offset. While the hand withdraws against
+    /// the offset, the offset is bled off. Returns where the proxy ends.
+    fn follow_the_hand(&mut self, moved: Point3<f64>, hand_step: Vector3<f64>) -> Point3<f64> {
         let from = self.proxy_m;
-        let gap = goal.norm();
+        let ran = (moved - from).norm();
+        let allowed = hand_step.norm() + RELEASE_SLACK_M_S * TICK_S;
         let mut end = moved;
-        if gap > 1e-9 {
-            let along = goal / gap;
-            let ran = (moved - from).dot(&along);
-            let excess = ran - hand_step.dot(&along).max(0.0);
-            if excess > 1e-9 {
-                // Back off along the path it came, to where it moved only as far as the hand did.
-                let kept = (moved - from) * ((ran - excess) / ran);
-                let candidate = from + kept;
-                let probe = |p: &Point3<f64>| self.probe.contact(&self.bone, p, None).points;
-                end = if probe(&candidate) <= probe(&from) { candidate } else { from };
-                self.offset_m += moved - end;
-            }
+        if ran > allowed {
+            // Back off along the path it came, to where it moved only as far as the hand did.
+            let candidate = from + (moved - from) * (allowed / ran);
+            let probe = |p: &Point3<f64>| self.probe.contact(&self.bone, p, None).points;
+            end = if probe(&candidate) <= probe(&from) { candidate } else { from };
+            self.offset_m += moved - end;
         }
         // Bleed the offset while the hand withdraws against it in free space.
         let offset = self.offset_m.norm();
