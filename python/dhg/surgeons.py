@@ -73,9 +73,9 @@ LATERAL_STIFFNESS_N_PER_M = 250.0
 """How stiffly the arm holds the drill on the path laterally (N/m)."""
 GENERIC_BREAKTHROUGH_DEPTH_M = 2.2e-3
 """Tip depth at which a surgeon without a plan expects the first cortex to give (m)."""
-EXPERT_ARM_N_PER_M = (300.0, 360.0)
+EXPERT_ARM_N_PER_M = (210.0, 260.0)
 """Range of the experts' arm stiffness (N/m); see :attr:`SurgeonStyle.arm_stiffness_n_per_m`."""
-NOVICE_ARM_N_PER_M = (130.0, 170.0)
+NOVICE_ARM_N_PER_M = (100.0, 130.0)
 """Range of the novices' arm stiffness (N/m): a looser arm."""
 AIM_FOLLOW_S = 0.5
 """Time constant (s) with which the arm's aim follows the felt hand position."""
@@ -157,7 +157,7 @@ def sample_style(skill: Skill, rng: np.random.Generator) -> SurgeonStyle:
             feed_m_s=u(1.8e-3, 2.6e-3),
             feed_gain=u(0.9, 1.1),
             reaction_delay_s=u(0.10, 0.16),
-            hand_damping_n_s_per_m=u(22.0, 32.0),
+            hand_damping_n_s_per_m=u(17.0, 25.0),
             tremor_m=u(0.05e-3, 0.12e-3),
             tremor_hz=u(8.0, 12.0),
             noise_fraction=u(0.04, 0.08),
@@ -171,12 +171,12 @@ def sample_style(skill: Skill, rng: np.random.Generator) -> SurgeonStyle:
             cue_follow_per_s=3.0,
             anticipation_m=u(0.2e-3, 0.6e-3),  # drawn last: the draws above stay as they were
             arm_stiffness_n_per_m=u(EXPERT_ARM_N_PER_M[0], EXPERT_ARM_N_PER_M[1]),
-            ease_fraction=u(0.48, 0.63),
+            ease_fraction=u(0.78, 0.92),
         )
     if skill == "novice":
         return SurgeonStyle(
             skill="novice",
-            push_cortical_n=u(1.6, 2.1),
+            push_cortical_n=u(1.65, 2.15),
             push_soft_n=u(0.3, 0.45),
             feed_m_s=u(0.7e-3, 1.1e-3),
             feed_gain=u(0.3, 0.5),

@@ -580,12 +580,14 @@ impl DrillingSession {
             self.recent_density_kg_m3 = self.recent_density_kg_m3.max(rho);
             let f_law = law.feed_for_thrust_m_s(rpm, thrust, rho, diameter_m);
             // Where a cortex gives way (the cap, and the undrilled bone straight ahead, much
-            // softer than the bone the burr has just come through), the tip goes no faster than
+            // softer than the bone the burr has just come through, while it cuts a cortex or
+            // plunges out of one), the tip goes no faster than
             // the hand, or than that bone would let this thrust feed it. A cap that reads less
             // bone for other reasons (a burr tilting or wandering on the surface, its own bore)
             // is cut as it comes.
             let recent = self.recent_density_kg_m3;
-            let gives = self.breakthrough.in_cortex && zone.ahead_pristine_density_kg_m3 < GIVE_FRACTION * recent;
+            let giving_way = self.breakthrough.in_cortex || self.state.plunging;
+            let gives = giving_way && zone.ahead_pristine_density_kg_m3 < GIVE_FRACTION * recent;
             let giving = if gives { rho.max(GIVE_FRACTION * recent) } else { rho };
             let f_recent = law.feed_for_thrust_m_s(rpm, thrust, giving, diameter_m);
             let f = f_law.min(f_recent.max(hand_speed_ax));
