@@ -73,25 +73,29 @@ def test_without_a_cue_the_hand_is_the_unguided_one():
     assert rows(True) == rows(False)
 
 
-def _expert_push_at(depth_m: float, breakthrough_depth_m: float | None, seconds: float = 2.0) -> float:
-    """How far an expert's hand travels (m) in the last ``seconds`` of 5 s (after the approach and
-    alignment) while the tip is perceived in cortex at ``depth_m`` with nothing resisting: a
-    measure of how hard it pushes."""
+def _expert_push_at(depth_m: float, breakthrough_depth_m: float | None, seconds: float = 5.0) -> float:
+    """The push (N) an expert means to make after ``seconds`` (past the approach and alignment)
+    while the tip is perceived stalled in cortex at ``depth_m``: the feed controller has raised it
+    to the layer's ceiling."""
     rng = np.random.default_rng(8)
     style = dataclasses.replace(sample_style("expert", rng), noise_fraction=0.0, caution_temp_c=90.0)
     surgeon = SurgeonController(PATH, style, rng, breakthrough_depth_m=breakthrough_depth_m)
     feedback = (0.0, 0.0, depth_m, depth_m, 0.0, 37.0, int(Layer.CORTICAL), True, 0, False, 0.0)
-    rows = [surgeon.step(feedback, (0.0, 0.0, 0.0)) for _ in range(5000)]
-    assert surgeon.phase == "feed" and rows[-1] is not None
-    return float(rows[-1][2] - rows[-int(seconds * 1000)][2])
+    for _ in range(int(seconds * 1000)):
+        surgeon.step(feedback, (0.0, 0.0, -1.0))  # the bone pushes back with 1 N
+    assert surgeon.phase == "feed"
+    return surgeon.push
 
 
 def test_an_expert_eases_off_before_the_planned_breakthrough():
     """1.5 mm into the cortex: an expert whose plan says the cortex gives at 1.7 mm pushes only
-    the light push, one whose plan says 6 mm still pushes firmly."""
+    the eased push, one whose plan says 6 mm still pushes its full cortical push."""
+    style = sample_style("expert", np.random.default_rng(8))
     near = _expert_push_at(1.5e-3, breakthrough_depth_m=1.7e-3)
     far = _expert_push_at(1.5e-3, breakthrough_depth_m=6e-3)
-    assert near < 0.5 * far, f"near {near * 1e3:.1f} mm vs far {far * 1e3:.1f} mm"
+    assert abs(far - style.push_cortical_n) < 1e-9, f"far {far} N vs {style.push_cortical_n} N"
+    assert abs(near - style.ease_fraction * style.push_cortical_n) < 1e-9, f"near {near} N"
+    assert near < 0.95 * far
 
 
 def test_the_planned_breakthrough_is_where_the_first_cortex_ends_less_the_burr(coarse_phantom):

@@ -20,6 +20,8 @@ __all__ = [
     "HU_MAX",
     "BRICK_EDGE",
     "MAX_BURR_RADIUS_M",
+    "MAX_POSITION_M",
+    "MAX_SPINDLE_RPM",
     "PROTOCOL_VERSION",
     "WINDOW_RECORDS",
     "MAX_PAYLOAD_BYTES",
@@ -39,6 +41,8 @@ HU_MIN: Final[int]
 HU_MAX: Final[int]
 BRICK_EDGE: Final[int]
 MAX_BURR_RADIUS_M: Final[float]
+MAX_SPINDLE_RPM: Final[float]
+MAX_POSITION_M: Final[float]
 PROTOCOL_VERSION: Final[int]
 WINDOW_RECORDS: Final[int]
 MAX_PAYLOAD_BYTES: Final[int]

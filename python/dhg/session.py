@@ -24,6 +24,8 @@ from dhg.task import PlannedPath
 from dhg.volume import Volume, XRayViews, as_points
 
 __all__ = [
+    "MAX_POSITION_M",
+    "MAX_SPINDLE_RPM",
     "CuttingLaw",
     "DeviceProfile",
     "DrillingSession",
@@ -33,6 +35,13 @@ __all__ = [
     "ThermalParams",
     "poses",
 ]
+
+
+MAX_SPINDLE_RPM: float = float(_bone_sim.MAX_SPINDLE_RPM)
+"""Fastest spindle speed a pose may ask for (rpm); a faster one is refused and counted (the
+cutting and thermal laws are fitted up to about 1800 rpm). Defined in the core."""
+MAX_POSITION_M: float = float(_bone_sim.MAX_POSITION_M)
+"""Largest coordinate (m) of a pose's position; a pose beyond it is refused and counted."""
 
 
 @dataclass(frozen=True)

@@ -413,10 +413,12 @@ class SurgeonController:
             drive = TRACK_STIFFNESS_N_PER_M * (intent_s - self.s)
             self.aim_s = self.s
         else:
-            # Nobody leans much harder than the resistance they feel: a push that meets no
-            # resistance (a device that has derated, a bone that gave way) is not kept up.
+            # Nobody pushes much harder than the resistance they feel: a push that meets no
+            # resistance (a device that has derated, a bone that gave way) is not kept up. The
+            # lean into a guidance cue comes on top: it is what the subject was told to do.
             felt_resistance = max(-self.f_ax_hist[max(0, tick - self.delay)], 0.0)
-            push = min(max(self.push + self.lean, 0.0), MAX_PUSH_N, felt_resistance + PUSH_MARGIN_N)
+            own = min(self.push, felt_resistance + PUSH_MARGIN_N)
+            push = min(max(own + self.lean, 0.0), MAX_PUSH_N)
             push *= 1.0 + style.noise_fraction * self.noise_state * 5.0
             # The arm pushes towards an aim that moves on at the preferred feed and follows, slowly,
             # where the hand was felt one reaction delay ago: its stiffness resists travel ahead of

@@ -43,6 +43,8 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("HU_MAX", HU_MAX)?;
     m.add("BRICK_EDGE", BRICK_EDGE)?;
     m.add("MAX_BURR_RADIUS_M", MAX_BURR_RADIUS_M)?;
+    m.add("MAX_SPINDLE_RPM", crate::session::MAX_SPINDLE_RPM)?;
+    m.add("MAX_POSITION_M", crate::session::MAX_POSITION_M)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }
