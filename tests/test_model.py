@@ -92,8 +92,24 @@ def test_training_outputs_and_scaler_fitted_on_train_only(run, data):
     np.testing.assert_allclose(lo, train_rows.min(axis=0), rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(hi, train_rows.max(axis=0), rtol=1e-5, atol=1e-9)
     np.testing.assert_allclose(module.force_lo.numpy(), train_rows[:, 0:3].min(axis=0), rtol=1e-6, atol=1e-9)
-    # A scaler fitted on every window, test windows included, would differ.
-    assert not np.allclose(np.concatenate([lo, hi]), np.concatenate([all_rows.min(axis=0), all_rows.max(axis=0)]))
+    del all_rows
+
+
+def test_the_scaler_never_sees_the_test_windows(coarse_phantom, tmp_path):
+    """The last attempt's final records (the test split) run 30 °C hotter than anything before:
+    a scaler fitted on the training windows alone does not reach them."""
+    import dataclasses
+
+    episodes, card = synthesize(coarse_phantom.volume, coarse_phantom.path, subjects=2, attempts=1, novices=0, seed=5)
+    records = episodes[-1].records.copy()
+    records[-len(records) // 5 :, 9] += 30.0  # temperature_c
+    episodes[-1] = dataclasses.replace(episodes[-1], records=records)
+    data = write_dataset(tmp_path / "ds", episodes, card)
+    train(data, tmp_path / "run", "tiny", TrainConfig(max_epochs=1))
+    module = load_model(tmp_path / "run" / "model.ts").module
+    hot = float(records[:, 9].max())
+    hi = float(module.in_lo[8] + module.in_span[8])
+    assert hi < hot - 20.0, (hi, hot)
 
 
 def test_resume_continues_from_the_checkpoint(run, data, tmp_path):

@@ -337,7 +337,7 @@ def test_record_survives_a_server_crash_and_keeps_everything_on_ctrl_c(tmp_path)
     # Every 10 Hz state the trainee saw before the crash is in the dataset (the recorder is a
     # second subscriber: allow for one record in flight at the kill).
     assert len(ep.times_s) >= states - 1 >= 10, (len(ep.times_s), states)
-    assert ep.features[:, 7].max() > 0.0
+    assert np.ptp(ep.features[:, 7]) > 0.5e-3, "the recorded tip never moved"
     # Ctrl-C joined the 1 kHz parts into one raw.parquet.
     assert sorted(ds.card["files"]) == ["raw.parquet", "records.parquet"]
     assert "1 kHz stream:" in output

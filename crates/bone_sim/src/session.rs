@@ -565,8 +565,8 @@ impl DrillingSession {
         let goal = device - self.proxy_m;
         let push_ax = goal.dot(&axis);
         let zone = self.probe.cutting_zone(&self.bone, &self.proxy_m, &axis);
-        let cut_density = zone.density_kg_m3;
-        let cutting = rpm > 0.0 && cut_density > EMPTY_CAP_KG_M3 && push_ax > 0.0;
+        let rho = zone.density_kg_m3;
+        let cutting = rpm > 0.0 && rho > EMPTY_CAP_KG_M3 && push_ax > 0.0;
         let start_m = self.proxy_m;
         let mut feed = 0.0;
         let mut thrust = 0.0;
@@ -576,15 +576,13 @@ impl DrillingSession {
             let rendered_ax = (-self.limiter.output_n().dot(&axis)).max(0.0);
             thrust = (k * push_ax).min(rendered_ax) / scale;
             let law = &cfg.cutting;
-            let rho = cut_density;
             self.recent_density_kg_m3 = self.recent_density_kg_m3.max(rho);
             let f_law = law.feed_for_thrust_m_s(rpm, thrust, rho, diameter_m);
             // Where a cortex gives way (the cap, and the undrilled bone straight ahead, much
             // softer than the bone the burr has just come through, while it cuts a cortex or
-            // plunges out of one), the tip goes no faster than
-            // the hand, or than that bone would let this thrust feed it. A cap that reads less
-            // bone for other reasons (a burr tilting or wandering on the surface, its own bore)
-            // is cut as it comes.
+            // plunges out of one), the tip goes no faster than the hand, or than that bone would
+            // let this thrust feed it. A cap that reads less bone for other reasons (a burr
+            // tilting or wandering on the surface, its own bore) is cut as it comes.
             let recent = self.recent_density_kg_m3;
             let giving_way = self.breakthrough.in_cortex || self.state.plunging;
             let gives = giving_way && zone.ahead_pristine_density_kg_m3 < GIVE_FRACTION * recent;
@@ -609,6 +607,7 @@ impl DrillingSession {
             self.proxy_m = self.follow_the_hand(moved, hand_step);
         }
         let cfg = &self.config;
+        let advance_ax = (self.proxy_m - start_m).dot(&axis);
         let device = pose.position_m - self.offset_m;
         let spring = self.proxy_m - device;
         let push_phys = k * spring.norm() / scale;
@@ -618,17 +617,15 @@ impl DrillingSession {
                 let radius_m = self.probe.cutting_radius_m(self.bone.volume().grid());
                 let burr = Burr { center_m: self.proxy_m, radius_m };
                 let cut = Cut { spindle_rpm: rpm, dt_s: dt, contact };
-                // A burr moving along its axis leaves its rear half cut. Burr, cut and axis are
-                // valid by construction; an error here would change nothing.
-                let advanced = (self.proxy_m - start_m).dot(&axis);
-                let _ = if advanced > 0.0 {
-                    self.bone.remove_advancing(&burr, &cut, &axis, advanced)
+                // A burr moving along its axis clears what it swept. Burr, cut and axis are valid
+                // by construction; an error here would change nothing.
+                let _ = if advance_ax > 0.0 {
+                    self.bone.remove_advancing(&burr, &cut, &axis, advance_ax)
                 } else {
                     self.bone.remove(&burr, &cut)
                 };
             }
         }
-        let advance_ax = (self.proxy_m - start_m).dot(&axis);
         self.recent_density_kg_m3 *= (-advance_ax.abs() / cfg.burr_radius_m).exp();
         // Coupling: spring to the proxy, damping on the relative velocity while apart.
         let v_device = (device - self.prev_device_m) / dt;
@@ -639,7 +636,7 @@ impl DrillingSession {
         let force =
             spring * k + if apart { (v_proxy - v_device) * cfg.coupling_damping_n_s_per_m } else { Vector3::zeros() };
 
-        let torque = if cutting { cfg.cutting.torque_n_m(rpm, feed, cut_density, diameter_m) } else { 0.0 };
+        let torque = if cutting { cfg.cutting.torque_n_m(rpm, feed, rho, diameter_m) } else { 0.0 };
         let thrust = if cutting && feed > 0.0 { thrust } else { 0.0 };
         self.thermal.step(torque, rpm * TAU / 60.0, thrust, feed, dt);
         self.track_breakthrough(rpm, cutting, &zone, &axis);
