@@ -211,7 +211,8 @@ def temperature_tables() -> list[str]:
     for d in (2.5e-3, 4.5e-3):
         cells = [f"{d * 1e3:.1f}"]
         for mm_min in (24.0, 56.0, 84.0, 196.0):
-            cells.append(f"{feed_controlled(Layer.CORTICAL, CORTEX_HU, thickness, d, mm_min * 1e-3 / 60.0, 1140.0).peak_c:.1f}")
+            cut = feed_controlled(Layer.CORTICAL, CORTEX_HU, thickness, d, mm_min * 1e-3 / 60.0, 1140.0)
+            cells.append(f"{cut.peak_c:.1f}")
         rows.append(tuple(cells))
     out.append(
         table(
