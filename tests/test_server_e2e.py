@@ -222,6 +222,51 @@ def test_control_refusals_say_what_was_wrong(server):
         assert c.metrics()["burr_radius_m"] == 2e-3
 
 
+def test_guidance_mode_and_gain_round_trip_through_control(server):
+    _, endpoint = server
+    from dhg.errors import InvalidInputError
+
+    with TraineeClient(endpoint, "mode-1") as c:
+        info = c.create(guidance_mode="brake", guidance_gain=0.5)
+        assert (info["guidance_mode"], info["guidance_gain"]) == ("brake", 0.5)
+        assert (c.set_guidance(mode="corridor")["guidance_mode"], c.control("info")["guidance_gain"]) == (
+            "corridor",
+            0.5,
+        ), "setting the mode keeps the gain"
+        info = c.set_guidance(gain=2.0)
+        assert (info["guidance_mode"], info["guidance_gain"]) == ("corridor", 2.0), "setting the gain keeps the mode"
+        assert c.set_guidance(1.0, "paper")["guidance_mode"] == "paper"
+        assert c.metrics()["guidance_mode"] == "paper"
+        with pytest.raises(InvalidInputError, match="paper, corridor, brake, shaped"):
+            c.set_guidance(mode="stiff")
+        with pytest.raises(InvalidInputError, match="needs a"):
+            c.control("set_guidance")
+        assert c.control("info")["guidance_mode"] == "paper", "a refusal changed the mode"
+        # The session reports where its plan says the first cortex gives.
+        assert 1e-3 < c.control("info")["planned_breakthrough_depth_m"] < 5e-3
+
+
+def test_a_trainee_gets_shaped_guidance_from_the_bundled_model(server):
+    """A new session renders ``dhg-serve``'s default, shaped guidance, driven by the bundled model:
+    a stylus 3 mm off the planned line is pulled back towards it, and nothing pushes it on along
+    the drill (the model's axial cue passes only where it resists)."""
+    _, endpoint = server
+    with TraineeClient(endpoint, "shaped-1") as c:
+        a, d, q = _entry(c)
+        assert c.control("info")["guidance_mode"] == "shaped"
+        helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        side = np.cross(d, helper)
+        side /= np.linalg.norm(side)
+        # 3 mm off the line, 10 mm before A, in air.
+        _stream(c, np.repeat((a - 10e-3 * d + 3e-3 * side)[None, :], 1500, axis=0), q)
+        m = c.force
+    assert m["flags"] & protocol.FLAGS["model_available"], "the bundled model never answered"
+    g = np.array(m["guidance_n"])
+    assert g @ side < -0.1, f"no pull back towards the path: {g}"
+    assert g @ d <= 1e-6, f"guidance pushed the drill on: {g}"
+    assert np.linalg.norm(g - (g @ d) * d) <= 0.88 + 1e-6, "the corridor is capped at 0.88 N"
+
+
 def test_a_silent_client_gets_its_force_ramped_to_zero_and_its_session_freed(server):
     _, endpoint = server
     with TraineeClient(endpoint, "silent-1") as c:

@@ -22,6 +22,7 @@ __all__ = [
     "MAX_BURR_RADIUS_M",
     "MAX_POSITION_M",
     "MAX_SPINDLE_RPM",
+    "GUIDANCE_MODES",
     "PROTOCOL_VERSION",
     "WINDOW_RECORDS",
     "MAX_PAYLOAD_BYTES",
@@ -42,6 +43,7 @@ HU_MAX: Final[int]
 BRICK_EDGE: Final[int]
 MAX_BURR_RADIUS_M: Final[float]
 MAX_SPINDLE_RPM: Final[float]
+GUIDANCE_MODES: Final[list[str]]
 MAX_POSITION_M: Final[float]
 PROTOCOL_VERSION: Final[int]
 WINDOW_RECORDS: Final[int]
@@ -125,6 +127,8 @@ class DrilledVolume:
     @property
     def memory_bytes(self) -> int: ...
 
+_GuidanceMode = Literal["paper", "corridor", "brake", "shaped"]
+
 @final
 class DrillingSession:
     def __new__(
@@ -142,6 +146,11 @@ class DrillingSession:
     def feedback(self) -> tuple[float, float, float, float, float, float, int, bool, int, bool, float]: ...
     def set_path(self, entry_m: tuple[float, float, float], target_m: tuple[float, float, float]) -> None: ...
     def path(self) -> tuple[list[float], list[float]]: ...
+    def set_guidance(self, mode: _GuidanceMode, gain: float) -> None: ...
+    def guidance(self) -> tuple[str, float]: ...
+    def set_prediction(self, predicted_n: tuple[float, float, float] | list[float]) -> npt.NDArray[np.float64]: ...
+    @property
+    def planned_breakthrough_depth_m(self) -> float | None: ...
     def reset(self) -> None: ...
     def xray(self) -> tuple[_Image, _Image, _Image]: ...
     @property
@@ -165,6 +174,7 @@ class Server:
         server: dict[str, float] | None = None,
         session: dict[str, float] | None = None,
         wait: str = "sleep",
+        guidance_mode: _GuidanceMode = "shaped",
     ) -> Server: ...
     def health(self, window_s: float = 10.0) -> dict[str, Any]: ...
     def sessions(self) -> list[str]: ...

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from dhg.cli import EXIT_INTERNAL, EXIT_OK, _run
+from dhg.session import GUIDANCE_MODES
 
 EPILOG = """\
 exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input (CT, model file, values),
@@ -123,6 +124,17 @@ def serve_parser() -> argparse.ArgumentParser:
         help=f"give up on one model query after S seconds (default {d.model_timeout_s:g})",
     )
     p.add_argument(
+        "--guidance-mode",
+        choices=GUIDANCE_MODES,
+        default=d.guidance_mode,
+        help="guidance of new sessions (default shaped). 'paper': the paper's cue, predicted expert force "
+        "minus the trainee's; 'corridor': a lateral pull back to the planned line beyond a 0.5 mm "
+        "deadband, nothing along the drill; 'brake': a hold along the drill the moment the cortex gives, "
+        "decaying over 0.4 s, plus the model's cue only where it resists; 'shaped': corridor + brake + a "
+        "soft resistance ramp over the last mm before the planned breakthrough. Each trainee can change "
+        "theirs with the set_guidance control request",
+    )
+    p.add_argument(
         "--guidance-gain",
         type=float,
         default=d.guidance_gain,
@@ -164,6 +176,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         max_sessions=args.max_sessions,
         idle_timeout_s=args.idle_timeout,
         model_timeout_s=args.model_timeout,
+        guidance_mode=args.guidance_mode,
         guidance_gain=args.guidance_gain,
         wait=args.wait,
     )
@@ -244,8 +257,10 @@ def add_commands(sub: Any, epilog: str) -> None:
         help="a virtual trainee that drills through a running dhg-serve",
         description="Connects to a running dhg-serve, creates a session and drills A→B as a virtual "
         "surgeon (the operator model of 'dhg synth') who feels the force the server renders, guidance "
-        "included, and reads the guidance as an instruction: it leans into a cue that pushes the drill back "
-        "(the expert pressed harder) and eases off one that pulls it in. An expert eases off shortly before "
+        "included, and reads the guidance as an instruction. In the paper's mode it leans into a cue that "
+        "pushes the drill back (the expert pressed harder) and eases off one that pulls it in; in the other "
+        "modes (corridor, brake, shaped) it yields to the cue, easing off where it resists. An expert eases "
+        "off shortly before "
         "the depth where the session's planned layers (from the server's CT) show the burr leaving the "
         "first cortex. Prints the skill metrics and the "
         "pose→force and pose→guidance latencies at the end.\n\n"
@@ -261,6 +276,11 @@ def add_commands(sub: Any, epilog: str) -> None:
     p.add_argument("--skill", choices=("novice", "expert"), default="novice", help="operator model (default novice)")
     p.add_argument("--guidance", choices=("on", "off"), default="on", help="feel the guidance force (default on)")
     p.add_argument("--gain", type=float, default=1.0, metavar="G", help="guidance gain when on (default 1)")
+    p.add_argument(
+        "--guidance-mode",
+        choices=GUIDANCE_MODES,
+        help="the session's guidance mode (default: the server's, shaped unless dhg-serve --guidance-mode)",
+    )
     p.add_argument("--duration", type=float, default=20.0, metavar="S", help="longest run in seconds (default 20)")
     p.add_argument(
         "--drill-mm",
@@ -343,8 +363,19 @@ def _cmd_trainee(args: argparse.Namespace) -> int:
     gain = args.gain if args.guidance == "on" else 0.0
     with TraineeClient(args.connect, args.session, prefix=args.prefix) as client:
         client.health(1.0)  # fails fast, with a clear message, when no server answers
-        print(f"session {client.session_id}: {args.skill}, guidance {args.guidance} (gain {gain:g}), seed {args.seed}")
-        run = run_trainee(client, args.skill, gain, args.duration, args.seed, burr_radius_m=burr_radius_m)
+        run = run_trainee(
+            client,
+            args.skill,
+            gain,
+            args.duration,
+            args.seed,
+            burr_radius_m=burr_radius_m,
+            guidance_mode=args.guidance_mode,
+            on_start=lambda mode: print(
+                f"session {client.session_id}: {args.skill}, guidance {args.guidance} ({mode}, gain {gain:g}), "
+                f"seed {args.seed}"
+            ),
+        )
     print(f"  drill diameter         {run.burr_radius_m * 2e3:g} mm")
     planned = run.planned_breakthrough_depth_m
     print(
@@ -354,6 +385,7 @@ def _cmd_trainee(args: argparse.Namespace) -> int:
         "session": run.session_id,
         "burr_radius_m": run.burr_radius_m,
         "planned_breakthrough_depth_m": run.planned_breakthrough_depth_m,
+        "guidance_mode": run.guidance_mode,
         "metrics": run.metrics,
         "latency": run.latency,
         "poses": run.poses_sent,

@@ -210,11 +210,18 @@ class TraineeClient:
         return self._json(self.keys["control"], {"op": op, **fields}, timeout_s)
 
     def create(
-        self, path: Any = None, guidance_gain: float | None = None, burr_radius_m: float | None = None
+        self,
+        path: Any = None,
+        guidance_gain: float | None = None,
+        burr_radius_m: float | None = None,
+        guidance_mode: str | None = None,
     ) -> dict[str, Any]:
         """Creates (or finds) this session, optionally with its own planned path, guidance gain and
+        mode (``paper``, ``corridor``, ``brake``, ``shaped``; the server's default otherwise), and
         burr radius (m)."""
         fields: dict[str, Any] = {}
+        if guidance_mode is not None:
+            fields["guidance_mode"] = str(guidance_mode)
         if path is not None:
             fields |= {"entry_m": [float(v) for v in path.entry_m], "target_m": [float(v) for v in path.target_m]}
         if guidance_gain is not None:
@@ -223,9 +230,15 @@ class TraineeClient:
             fields["burr_radius_m"] = float(burr_radius_m)
         return self.control("create", **fields)
 
-    def set_guidance(self, gain: float) -> dict[str, Any]:
-        """Sets the guidance gain (0 = guidance computed and published, not felt)."""
-        return self.control("set_guidance", gain=float(gain))
+    def set_guidance(self, gain: float | None = None, mode: str | None = None) -> dict[str, Any]:
+        """Sets the guidance gain (0 = guidance computed and published, not felt), the mode
+        (``paper``, ``corridor``, ``brake``, ``shaped``), or both; what is not given stays."""
+        fields: dict[str, Any] = {}
+        if gain is not None:
+            fields["gain"] = float(gain)
+        if mode is not None:
+            fields["mode"] = str(mode)
+        return self.control("set_guidance", **fields)
 
     def set_drill(self, burr_radius_m: float) -> dict[str, Any]:
         """Swaps this session's burr for one of ``burr_radius_m`` (m, at most 0.02), as a surgeon

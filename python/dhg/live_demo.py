@@ -97,7 +97,7 @@ def plot_live_runs(runs: list[Any], out: str | Path, title: str = "") -> Path:
 
     fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True, constrained_layout=True)
     for run, colour in zip(runs, ("tab:blue", "tab:orange", "tab:green"), strict=False):
-        label = f"{run.skill}, gain {run.guidance_gain:g}"
+        label = f"{run.skill}, {run.guidance_mode} gain {run.guidance_gain:g}"
         r = run.records
         if len(r):
             axes[0].plot(r[:, 0], np.linalg.norm(r[:, 1:4], axis=1), color=colour, label=label)
@@ -151,7 +151,8 @@ def run_live_demo(out: str | Path, duration_s: float = 20.0, seed: int = 7, echo
     table = Table(title="Virtual novice, same hand: with and without guidance (phantom femur)")
     table.add_column("")
     for run in runs:
-        table.add_column(f"gain {run.guidance_gain:g}", justify="right")
+        label = f"{run.guidance_mode}, gain {run.guidance_gain:g}" if run.guidance_gain > 0 else "unguided"
+        table.add_column(label, justify="right")
 
     def fmt(key: str, scale: float = 1.0, spec: str = ".2f") -> list[str]:
         return [format(float(r.metrics[key]) * scale, spec) for r in runs]
@@ -169,7 +170,7 @@ def run_live_demo(out: str | Path, duration_s: float = 20.0, seed: int = 7, echo
     table.add_row(*_row("guidance messages", [str(r.latency["guidance"]) for r in runs]))
     table.add_row(
         *_row(
-            "mean |guidance| (N)",
+            "mean |model cue| (N)",
             [
                 f"{np.mean([np.linalg.norm(g['guidance_n']) for g in r.guidance]):.3f}" if r.guidance else "-"
                 for r in runs

@@ -61,6 +61,9 @@ class ServerSettings:
     """A session without poses or control requests for this long is freed (s)."""
     model_timeout_s: float = 0.25
     """Timeout of one model query (s)."""
+    guidance_mode: str = "shaped"
+    """Guidance mode of new sessions: ``paper``, ``corridor``, ``brake`` or ``shaped`` (the default:
+    corridor + brake + a warning before the planned breakthrough; ``docs/protocol.md``)."""
     guidance_gain: float = 1.0
     """Guidance gain of new sessions (0 = computed and published, not rendered)."""
     guidance_max_n: float = 0.88
@@ -308,6 +311,7 @@ def start_engine(
         server=s.native(),
         session=flat,
         wait=s.wait,
+        guidance_mode=s.guidance_mode,
     )
 
 

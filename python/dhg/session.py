@@ -11,7 +11,7 @@ for one.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -24,6 +24,7 @@ from dhg.task import PlannedPath
 from dhg.volume import Volume, XRayViews, as_points
 
 __all__ = [
+    "GUIDANCE_MODES",
     "MAX_POSITION_M",
     "MAX_SPINDLE_RPM",
     "CuttingLaw",
@@ -36,6 +37,10 @@ __all__ = [
     "poses",
 ]
 
+
+GuidanceMode = Literal["paper", "corridor", "brake", "shaped"]
+GUIDANCE_MODES: tuple[str, ...] = tuple(_bone_sim.GUIDANCE_MODES)
+"""The guidance modes, as the core defines them (``crates/bone_sim/src/guidance.rs``)."""
 
 MAX_SPINDLE_RPM: float = float(_bone_sim.MAX_SPINDLE_RPM)
 """Fastest spindle speed a pose may ask for (rpm); a faster one is refused and counted (the
@@ -175,6 +180,12 @@ class SessionState:
     removed_mass_kg: float
     stale: bool
     rejected_poses: int
+    guidance_n: np.ndarray
+    """The guidance share added to the bone's force this tick (N)."""
+    feedback_n: np.ndarray
+    """The bone's part of the rendered force, ``force_n − guidance_n`` (N); records hold this."""
+    model_available: bool
+    """Whether a model reply younger than the guidance timeout is in use."""
     registration_offset_m: np.ndarray
     """How far the stylus sits ahead of where the tip's motion put it (m), from stretches the
     bone stopped holding; the tip follows ``device_m − registration_offset_m``."""
@@ -184,7 +195,7 @@ class SessionState:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SessionState:
         """From the native state dict."""
-        vec = {"device_m", "tip_m", "axis", "force_n", "registration_offset_m"}
+        vec = {"device_m", "tip_m", "axis", "force_n", "registration_offset_m", "guidance_n", "feedback_n"}
         values = {k: (np.asarray(v, dtype=float) if k in vec else v) for k, v in d.items()}
         values["layer"] = Layer(int(values["layer"]))
         return cls(**values)
@@ -290,8 +301,39 @@ class DrillingSession:
         """X-ray views of the bone as this session has drilled it."""
         return XRayViews(*self._s.xray())
 
+    def set_guidance(self, mode: GuidanceMode, gain: float) -> None:
+        """Renders guidance in ``mode`` at ``gain`` (0..4; 0: none) from now on. Modes:
+        ``"paper"`` (the paper's force-matching cue: predicted expert force − the trainee's),
+        ``"corridor"`` (a lateral spring–damper towards the planned line beyond a deadband, no force
+        along the drill), ``"brake"`` (a hold along the axis the moment the cortex gives, decaying,
+        plus the model's cue where it resists: never a push forward), ``"shaped"`` (corridor +
+        brake + a soft resistance ramp before the planned breakthrough). See ``docs/protocol.md``.
+        Guidance needs model replies (:meth:`set_prediction`, at 10 Hz); without them it fades out."""
+        if mode not in GUIDANCE_MODES:
+            raise InvalidInputError(f"guidance mode must be one of {', '.join(GUIDANCE_MODES)}, got {mode!r}")
+        self._s.set_guidance(mode, float(gain))
+
+    @property
+    def guidance(self) -> tuple[str, float]:
+        """The guidance (mode, gain)."""
+        return self._s.guidance()
+
+    def set_prediction(self, predicted_n: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """A model reply: the predicted expert force (N, world frame). Returns the paper's guidance
+        as mixed: gain × (predicted − the trainee's current force feedback), clamped (N)."""
+        p = np.asarray(predicted_n, dtype=np.float64).reshape(-1)
+        if p.shape != (3,):
+            raise ShapeError(f"predicted_n must be a force (3,), got shape {np.shape(predicted_n)}")
+        return self._s.set_prediction(tuple(float(v) for v in p))
+
+    @property
+    def planned_breakthrough_depth_m(self) -> float | None:
+        """Tip depth along A→B (m) at which the planning CT shows the burr leaving the first
+        cortex (the cortex's end less the burr radius), or None when the path crosses none."""
+        return self._s.planned_breakthrough_depth_m
+
     def reset(self) -> None:
-        """Restores the undrilled bone and a fresh state."""
+        """Restores the undrilled bone and a fresh state (guidance mode and gain are kept)."""
         self._s.reset()
 
     @property

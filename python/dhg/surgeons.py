@@ -250,6 +250,11 @@ class SurgeonController:
     ``breakthrough_depth_m`` is the tip depth along A→B (m) at which the plan shows the burr
     leaving the first cortex (:func:`planned_breakthrough_depth_m`); anticipating surgeons ease
     off :attr:`SurgeonStyle.anticipation_m` before it.
+
+    ``cue_meaning`` is what the surgeon was told the guidance means: ``"match"`` (the paper's
+    force-matching cue: lean into a cue that pushes the drill back, ease off one that pulls it in)
+    or ``"yield"`` (guidance that shapes the motion, as the corridor, brake and shaped modes do:
+    ease off where it resists, go with it where it pulls).
     """
 
     def __init__(
@@ -259,8 +264,14 @@ class SurgeonController:
         rng: np.random.Generator,
         rules: TaskRules | None = None,
         breakthrough_depth_m: float | None = None,
+        cue_meaning: Literal["match", "yield"] = "match",
     ) -> None:
+        if cue_meaning not in ("match", "yield"):
+            raise ValueError(f"cue_meaning must be 'match' or 'yield', got {cue_meaning!r}")
         self.style, self.rng, self.path = style, rng, path
+        # "match": the paper's force-matching cue (lean into a cue that pushes back); "yield": a cue
+        # that shapes the motion (corridor, brake, warning), so ease off where it resists.
+        self.cue_sign = -1.0 if cue_meaning == "match" else 1.0
         # Where the plan says the cortex gives (tip depth, m); without a plan, ~3.5 mm of cortex and a 2.5 mm burr.
         self.breakthrough_depth_m = (
             GENERIC_BREAKTHROUGH_DEPTH_M if breakthrough_depth_m is None else float(breakthrough_depth_m)
@@ -387,7 +398,7 @@ class SurgeonController:
                 # Lean into the cue as perceived a reaction delay ago: a cue along -d (pushing the
                 # drill back) means the expert pressed harder.
                 cue_seen = self.cue_hist[max(0, tick - self.delay)]
-                self.lean += (-style.cue_follow_per_s * cue_seen - CUE_LEAK_PER_S * self.lean) * dt
+                self.lean += (self.cue_sign * style.cue_follow_per_s * cue_seen - CUE_LEAK_PER_S * self.lean) * dt
             self.drill_on = not self.cooling
             if p_depth >= self.length - style.stop_margin_m:
                 self.phase, self.phase_t0 = "stop", t

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -50,6 +51,8 @@ class TraineeRun:
     planned_breakthrough_depth_m: float | None = None
     """The tip depth (m) at which the trainee planned the first cortex to give (``None``: the
     generic 2.2 mm, for lack of a cortex on the path or of layers in the session info)."""
+    guidance_mode: str = "paper"
+    """The session's guidance mode."""
 
 
 def state_records(states: list[dict[str, Any]]) -> npt.NDArray[np.float64]:
@@ -65,6 +68,9 @@ def planned_depth_from_info(info: dict[str, Any]) -> float | None:
     """The planned breakthrough depth (m) for a session, from the info its control query returns:
     the end of the first cortical run in ``path_layers`` less the session's burr radius. ``None``
     when the info has no layers (an older server) or the path crosses no cortex."""
+    if "planned_breakthrough_depth_m" in info:  # the server's own plan (the session's guidance uses it)
+        planned = info["planned_breakthrough_depth_m"]
+        return None if planned is None else float(planned)
     layers = info.get("path_layers")
     if not layers:
         return None
@@ -85,6 +91,8 @@ def run_trainee(
     burr_radius_m: float | None = None,
     cue_follow_per_s: float | None = None,
     breakthrough_depth_m: float | None = None,
+    guidance_mode: str | None = None,
+    on_start: Callable[[str], None] | None = None,
 ) -> TraineeRun:
     """Creates the client's session (with ``guidance_gain``; 0 = unguided), drills for up to
     ``duration_s`` (s) or until the surgeon stops at B, and returns metrics and latencies.
@@ -99,7 +107,10 @@ def run_trainee(
     rules = rules or TaskRules()
     if cue_follow_per_s is not None and not (math.isfinite(cue_follow_per_s) and cue_follow_per_s >= 0):
         raise InvalidInputError(f"cue_follow_per_s must be a finite rate >= 0 (1/s), got {cue_follow_per_s!r}")
-    info = client.create(guidance_gain=guidance_gain, burr_radius_m=burr_radius_m)
+    info = client.create(guidance_gain=guidance_gain, burr_radius_m=burr_radius_m, guidance_mode=guidance_mode)
+    mode = str(info.get("guidance_mode", "paper"))
+    if on_start is not None:
+        on_start(mode)
     path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))
     if breakthrough_depth_m is None:
         breakthrough_depth_m = planned_depth_from_info(info)
@@ -107,7 +118,9 @@ def run_trainee(
     style = sample_style(skill, rng)
     if cue_follow_per_s is not None:
         style = dataclasses.replace(style, cue_follow_per_s=float(cue_follow_per_s))
-    surgeon = SurgeonController(path, style, rng, rules, breakthrough_depth_m=breakthrough_depth_m)
+    # Told what the cue means: match the expert's force (the paper's cue) or yield to it (the others).
+    cue = "match" if mode == "paper" else "yield"
+    surgeon = SurgeonController(path, style, rng, rules, breakthrough_depth_m=breakthrough_depth_m, cue_meaning=cue)
     a = path.entry_m
     resting = (a[0], a[1], a[2], -0.025, 0.0, 37.0, 0, False, 0, False, 0.0)
     period_ns = 1_000_000
@@ -161,4 +174,5 @@ def run_trainee(
         wall_s=wall_s,
         burr_radius_m=float(info["burr_radius_m"]),
         planned_breakthrough_depth_m=breakthrough_depth_m,
+        guidance_mode=mode,
     )

@@ -14,6 +14,7 @@ pub mod cutting;
 pub mod device;
 pub mod engine;
 pub mod error;
+pub mod guidance;
 pub mod path;
 pub mod protocol;
 pub mod record;

@@ -156,6 +156,31 @@ impl PlannedPath {
         Ok(runs)
     }
 
+    /// Where along the path (m from A) the pristine bone's first cortical stretch ends, sampled
+    /// every `step_m` as [`layer_runs`](Self::layer_runs) samples it: halfway between the run's
+    /// last sample and the next (at most |AB|). `None` when the path crosses no cortex or the
+    /// step is invalid. Allocation-free, so a tick thread may call it.
+    #[must_use]
+    pub fn first_cortex_exit_m(&self, volume: &Volume, step_m: f64) -> Option<f64> {
+        if !(step_m.is_finite() && step_m >= MIN_LAYER_STEP_M) {
+            return None;
+        }
+        let n = ((self.length_m + step_m / 2.0) / step_m).ceil().max(1.0) as usize;
+        let (first, last) = self
+            .span_near(volume.grid(), (n - 1) as f64 * step_m)
+            .map(|(lo, hi)| ((lo / step_m).ceil() as usize, ((hi / step_m).floor() as usize).min(n - 1)))?;
+        let mut in_cortex = false;
+        for i in first..=last {
+            let depth_m = i as f64 * step_m;
+            let cortical = volume.layer_at(&(self.entry_m + self.direction * depth_m)).ok() == Some(Layer::Cortical);
+            if in_cortex && !cortical {
+                return Some((depth_m - step_m / 2.0).min(self.length_m));
+            }
+            in_cortex |= cortical;
+        }
+        in_cortex.then(|| ((last as f64 + 0.5) * step_m).min(self.length_m))
+    }
+
     /// The depths (m, within `0..=max_depth_m`) between which the path passes within a voxel of
     /// `grid`'s voxels (a slab test in index space), or `None` where it never does.
     fn span_near(&self, grid: &Grid, max_depth_m: f64) -> Option<(f64, f64)> {
@@ -216,6 +241,11 @@ mod tests {
         assert!((runs[2].end_m - 13.5e-3).abs() < 0.06e-3, "{runs:?}");
         assert!(path.layer_runs(&vol, 0.0).is_err());
         assert!(path.layer_runs(&vol, f64::NAN).is_err());
+        // The first cortex's exit, as a surgeon reads it off the runs: halfway to the next sample.
+        let exit = path.first_cortex_exit_m(&vol, 0.1e-3).unwrap();
+        assert!((exit - (runs[1].end_m + 0.05e-3)).abs() < 1e-12, "{exit} vs {runs:?}");
+        let air = PlannedPath::new(Point3::new(0.0, 0.0, 0.5e-3), Point3::new(13.5e-3, 0.0, 0.5e-3)).unwrap();
+        assert_eq!(air.first_cortex_exit_m(&vol, 0.1e-3), None);
     }
 
     /// Every sample looked up, the plain way the clipped sampling must agree with.

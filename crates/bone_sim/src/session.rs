@@ -42,6 +42,7 @@ use crate::contact::{BurrProbe, CuttingZone, CAP_COS};
 use crate::cutting::CuttingLaw;
 use crate::device::{DeviceProfile, ForceLimiter};
 use crate::error::{positive, SimError, SimResult};
+use crate::guidance::{GuidanceMode, GuidanceParams, Guide, GuideInput};
 use crate::path::PlannedPath;
 use crate::record::{Record, RECORD_PERIOD_TICKS, TICK_S};
 use crate::removal::{Burr, Cut, MAX_BURR_RADIUS_M};
@@ -292,6 +293,13 @@ pub struct SessionState {
     pub registration_offset_m: Vector3<f64>,
     /// The device motors' thermal load, `0..=1` ([`ForceLimiter::thermal_load`]).
     pub device_thermal_load: f64,
+    /// The guidance share added to the bone's force this tick (N; see [`crate::guidance`]).
+    pub guidance_n: Vector3<f64>,
+    /// The bone's part of the rendered force: `force_n − guidance_n` (N). The 10 Hz record's
+    /// force is this, so a guided session's records hold what the bone did.
+    pub feedback_n: Vector3<f64>,
+    /// Whether a model reply younger than the guidance timeout is in use.
+    pub model_available: bool,
 }
 
 /// What one tick produced.
@@ -361,6 +369,14 @@ pub struct DrillingSession {
     /// seen, forgotten over a burr radius of axial travel. A cap suddenly much softer than it is
     /// bone giving way.
     recent_density_kg_m3: f64,
+    /// The tip's velocity over the last tick (m/s).
+    tip_velocity_m_s: Vector3<f64>,
+    /// Whether a cortex began to give way this tick (for the guidance brake).
+    giving: bool,
+    /// The guidance share's modes and state.
+    guide: Guide,
+    /// Tip depth (m) at which the planning CT shows the burr leaving the first cortex.
+    planned_breakthrough_m: Option<f64>,
     breakthrough: Breakthrough,
     state: SessionState,
 }
@@ -391,9 +407,14 @@ impl DrillingSession {
             prev_stylus_m: entry,
             offset_m: Vector3::zeros(),
             recent_density_kg_m3: 0.0,
+            tip_velocity_m_s: Vector3::zeros(),
+            giving: false,
+            guide: Guide::new(GuidanceParams::default(), GuidanceMode::Paper, 0.0),
+            planned_breakthrough_m: None,
             breakthrough: Breakthrough::default(),
             state,
-        })
+        }
+        .with_planned_breakthrough())
     }
 
     fn initial_state(path: &PlannedPath, thermal: &Thermal) -> SessionState {
@@ -427,6 +448,9 @@ impl DrillingSession {
             rejected_poses: 0,
             registration_offset_m: Vector3::zeros(),
             device_thermal_load: 0.0,
+            guidance_n: Vector3::zeros(),
+            feedback_n: Vector3::zeros(),
+            model_available: false,
         }
     }
 
@@ -469,12 +493,68 @@ impl DrillingSession {
         check_burr_radius(radius_m)?;
         self.probe = BurrProbe::new(self.bone.volume().grid(), radius_m);
         self.config.burr_radius_m = radius_m;
+        self.planned_breakthrough_m = self.planned_breakthrough();
         Ok(())
     }
 
     /// Sets a new planned path (depth and deviation are measured against it from now on).
+    /// Allocation-free.
     pub fn set_path(&mut self, path: PlannedPath) {
         self.path = path;
+        self.planned_breakthrough_m = self.planned_breakthrough();
+    }
+
+    fn with_planned_breakthrough(mut self) -> Self {
+        self.planned_breakthrough_m = self.planned_breakthrough();
+        self
+    }
+
+    /// The step (m) at which the planned path's layers are read, as a surgeon reads them off the
+    /// planning CT (`dhg.surgeons.planned_breakthrough_depth_m` samples the same).
+    pub const PLAN_STEP_M: f64 = 0.25e-3;
+
+    fn planned_breakthrough(&self) -> Option<f64> {
+        self.path
+            .first_cortex_exit_m(self.bone.volume(), Self::PLAN_STEP_M)
+            .map(|exit| exit - self.config.burr_radius_m)
+    }
+
+    /// The tip depth (m) at which the planning CT shows the burr leaving the first cortex on
+    /// the path (the cortex's end less the burr radius: the front leads the centre), if any.
+    #[must_use]
+    pub fn planned_breakthrough_depth_m(&self) -> Option<f64> {
+        self.planned_breakthrough_m
+    }
+
+    /// Sets the guidance mode and gain (see [`crate::guidance`]). Gain 0 renders no guidance.
+    ///
+    /// # Errors
+    /// A gain outside `0..=4` (nothing changes then).
+    pub fn set_guidance(&mut self, mode: GuidanceMode, gain: f64) -> SimResult<()> {
+        crate::guidance::check_gain(gain)?;
+        self.guide.set_mode(mode);
+        self.guide.set_gain(gain);
+        Ok(())
+    }
+
+    /// Replaces the guidance limits and force laws.
+    ///
+    /// # Errors
+    /// Invalid params (nothing changes then).
+    pub fn set_guidance_params(&mut self, params: GuidanceParams) -> SimResult<()> {
+        self.guide.set_params(params)
+    }
+
+    /// The guidance state.
+    #[must_use]
+    pub fn guide(&self) -> &Guide {
+        &self.guide
+    }
+
+    /// A model reply: the predicted expert force (N). Sets the paper's guidance, predicted −
+    /// the trainee's current force feedback, and returns it as mixed (gain applied, clamped).
+    pub fn set_prediction(&mut self, predicted_n: Vector3<f64>) -> Vector3<f64> {
+        self.guide.set_target(predicted_n - self.state.feedback_n)
     }
 
     /// Restores the undrilled bone and a fresh state (as after [`new`](Self::new)); O(drilled
@@ -488,6 +568,9 @@ impl DrillingSession {
         (self.proxy_m, self.prev_proxy_m, self.prev_device_m, self.prev_stylus_m) = (entry, entry, entry, entry);
         self.offset_m = Vector3::zeros();
         self.recent_density_kg_m3 = 0.0;
+        self.tip_velocity_m_s = Vector3::zeros();
+        self.giving = false;
+        self.guide.reset();
         self.breakthrough = Breakthrough::default();
         self.state = Self::initial_state(&self.path, &self.thermal);
     }
@@ -513,17 +596,31 @@ impl DrillingSession {
             Some(_) => self.state.rejected_poses += 1,
             None => {}
         }
+        self.giving = false;
         let desired = if let Some(pose) = self.pose {
             self.simulate(&pose, dt)
         } else {
             self.thermal.step(0.0, 0.0, 0.0, 0.0, dt);
             Vector3::zeros()
         };
-        let force_n = self.limiter.step(desired, dt);
+        let input = GuideInput {
+            tip_m: self.state.tip_m,
+            tip_velocity_m_s: self.tip_velocity_m_s,
+            axis: self.state.axis,
+            path: &self.path,
+            breakthrough_depth_m: self.planned_breakthrough_m,
+            broken_through: self.state.breakthroughs > 0,
+            giving: self.giving,
+        };
+        let share_n = self.guide.step(&input, dt);
+        let force_n = self.limiter.step(desired + share_n, dt);
         let s = &mut self.state;
         s.ticks += 1;
         s.time_s = s.ticks as f64 * dt;
         s.force_n = force_n;
+        s.guidance_n = share_n;
+        s.feedback_n = force_n - share_n;
+        s.model_available = self.guide.is_live();
         s.stale = self.limiter.is_stale();
         s.temperature_c = self.thermal.temperature_c;
         s.peak_temperature_c = self.thermal.peak_c;
@@ -531,12 +628,13 @@ impl DrillingSession {
         s.removed_mass_kg = self.bone.removed_mass_kg();
         s.registration_offset_m = self.offset_m;
         s.device_thermal_load = self.limiter.thermal_load();
+        let feedback_n = s.feedback_n;
         let record = (s.ticks % RECORD_PERIOD_TICKS == 0).then(|| Record {
             time_s: s.time_s,
             features: [
-                force_n.x,
-                force_n.y,
-                force_n.z,
+                feedback_n.x,
+                feedback_n.y,
+                feedback_n.z,
                 s.tip_m.x,
                 s.tip_m.y,
                 s.tip_m.z,
@@ -599,6 +697,7 @@ impl DrillingSession {
                 let holds_m = law.thrust_n(rpm, feed, rho, diameter_m) * scale / k;
                 let released = (push_ax - advance - holds_m).max(0.0);
                 self.offset_m += axis * released;
+                self.giving |= released > 0.0;
             }
             let lateral = goal - axis * push_ax;
             self.proxy_m = self.god_move(self.proxy_m, lateral, Some((axis, CAP_COS)), dt);
@@ -630,6 +729,7 @@ impl DrillingSession {
         // Coupling: spring to the proxy, damping on the relative velocity while apart.
         let v_device = (device - self.prev_device_m) / dt;
         let v_proxy = (self.proxy_m - self.prev_proxy_m) / dt;
+        self.tip_velocity_m_s = v_proxy;
         self.prev_device_m = device;
         self.prev_proxy_m = self.proxy_m;
         let apart = spring.norm() > 1e-7;
@@ -756,6 +856,7 @@ impl DrillingSession {
                     bt.plunge_ticks = 0;
                     s.breakthroughs += 1;
                     s.plunging = true;
+                    self.giving = true;
                     s.plunge_depth_m = 0.0;
                 }
             }

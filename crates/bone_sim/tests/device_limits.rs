@@ -1,10 +1,12 @@
 //! The device limits, property-tested over random pose sequences (docs/frames.md, "Device
-//! limits"): whatever poses arrive, the force a session sends is finite, never above the peak,
+//! limits"): whatever poses arrive and whatever guidance is asked for (any mode, gain, model
+//! reply), the force a session sends is finite, never above the peak,
 //! never changes faster than the rate limit, and never uses more than the continuous budget of
 //! the motors' thermal model.
 
 mod common;
 
+use bone_sim::guidance::GuidanceMode;
 use bone_sim::{DeviceProfile, DrillingSession, Layer, PlannedPath, Pose, SessionConfig};
 use common::{slab, H};
 use nalgebra::{Point3, UnitQuaternion, Vector3};
@@ -50,12 +52,19 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
 
     #[test]
-    fn forces_stay_within_the_device_limits(steps in prop::collection::vec(step(), 20..120)) {
+    fn forces_stay_within_the_device_limits(
+        steps in prop::collection::vec(step(), 20..120),
+        mode in prop::sample::select(GuidanceMode::ALL.to_vec()),
+        gain in 0.0..4.0_f64,
+        predicted in prop::array::uniform3(-5.0..5.0_f64),
+    ) {
         let layers = [(Layer::Cortical, 1800.0, 3e-3), (Layer::Cancellous, 350.0, 6e-3)];
         let (vol, surface) = slab(NXY, &layers);
         let path = PlannedPath::new(Point3::new(CENTRE, CENTRE, surface), Point3::new(CENTRE, CENTRE, surface + 9e-3))
             .unwrap();
         let mut s = DrillingSession::new(vol, path, SessionConfig::default()).unwrap();
+        // Guidance in any mode and gain, a model replying with anything every 100 ms.
+        s.set_guidance(mode, gain).unwrap();
         let dev = DeviceProfile::geomagic_touch();
         let max_step = dev.max_force_rate_n_per_s * 1e-3;
         let mut p = Point3::new(CENTRE, CENTRE, surface - 2e-3);
@@ -75,6 +84,9 @@ proptest! {
                 _ => Some(Pose { position_m: Point3::new(1e30, p.y, p.z), ..good }),
             };
             for _ in 0..st.hold {
+                if s.state().ticks % 100 == 0 {
+                    s.set_prediction(Vector3::from(predicted));
+                }
                 let f = s.tick(pose.as_ref()).force_n;
                 prop_assert!(f.iter().all(|v| v.is_finite()), "NaN force {f}");
                 prop_assert!(f.norm() <= dev.peak_force_n + 1e-12, "|F| = {} above the peak", f.norm());

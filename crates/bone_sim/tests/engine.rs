@@ -9,6 +9,7 @@ use std::sync::atomic::Ordering;
 
 use bone_sim::engine::handoff::{Command, Output, PoseSample};
 use bone_sim::engine::{build, EngineConfig, EngineLink, TickCore, TickThread, WaitMode, GRACE_PERIODS};
+use bone_sim::guidance::GuidanceMode;
 use bone_sim::protocol::flags;
 use bone_sim::{Layer, PlannedPath, Pose};
 use common::{slab, H};
@@ -39,7 +40,7 @@ fn pose_at(z: f64) -> Pose {
 }
 
 fn activate(link: &mut EngineLink, slot: u16, generation: u32, gain: f64) {
-    link.commands.push(Command::Activate { slot, generation, path: None, gain }).unwrap();
+    link.commands.push(Command::Activate { slot, generation, path: None, mode: GuidanceMode::Paper, gain }).unwrap();
 }
 
 fn send(link: &mut EngineLink, slot: usize, generation: u32, seq: u32, z: f64) {
@@ -113,7 +114,7 @@ fn guidance_is_prediction_minus_feedback_scaled_clamped_and_mixed_in() {
     let (mut core, mut link, surface) = engine(1);
     activate(&mut link, 0, 1, 1.0);
     press(&mut core, &mut link, surface, 1e-3, 200);
-    let feedback = core.session(0).unwrap().state().force_n;
+    let feedback = core.session(0).unwrap().state().feedback_n;
     // The model says the expert felt 0.3 N less push-back along z than the trainee does now.
     let predicted = [feedback.x, feedback.y, feedback.z + 0.3];
     link.commands.push(prediction(1, predicted, 5)).unwrap();
@@ -127,7 +128,7 @@ fn guidance_is_prediction_minus_feedback_scaled_clamped_and_mixed_in() {
     assert!((last.guidance_n.z - 0.3).abs() < 1e-6, "{last:?}");
     assert!(last.flags & flags::MODEL_AVAILABLE != 0 && last.flags & flags::GUIDANCE_ACTIVE != 0);
     // Feedback + share is what the device gets.
-    let fb = core.session(0).unwrap().state().force_n;
+    let fb = core.session(0).unwrap().state().feedback_n;
     assert!((last.force_n - (fb + last.guidance_n)).norm() < 0.05, "{last:?} vs {fb:?}");
 
     // A wild prediction is clamped to the 0.88 N guidance limit.
@@ -152,7 +153,7 @@ fn without_replies_guidance_fades_out_and_the_model_is_reported_unavailable() {
     let (mut core, mut link, surface) = engine(1);
     activate(&mut link, 0, 1, 1.0);
     press(&mut core, &mut link, surface, 1e-3, 100);
-    let fb = core.session(0).unwrap().state().force_n;
+    let fb = core.session(0).unwrap().state().feedback_n;
     link.commands.push(prediction(1, [fb.x + 0.5, fb.y, fb.z], 1)).unwrap();
     let f = forces(&press_hold(&mut core, &mut link, surface + 1e-3, 1000));
     // Live for the 0.35 s timeout, then faded at 8 N/s: gone well before 1 s.
@@ -172,7 +173,8 @@ fn gain_zero_publishes_guidance_but_renders_none() {
     link.commands.push(prediction(1, [0.5, 0.0, 0.0], 1)).unwrap();
     let out = press_hold(&mut core, &mut link, surface + 1e-3, 100);
     let g = out.iter().find_map(|o| if let Output::Guidance { msg, .. } = o { Some(*msg) } else { None }).unwrap();
-    assert!(g.guidance_n.norm() > 0.1 && g.gain == 0.0);
+    // The prediction is published; the guidance, times the gain, is zero, and none is rendered.
+    assert!(g.predicted_force_n.norm() > 0.4 && g.gain == 0.0 && g.guidance_n == nalgebra::Vector3::zeros());
     assert!(forces(&out).iter().all(|m| m.guidance_n.norm() == 0.0));
 }
 

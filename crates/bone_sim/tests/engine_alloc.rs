@@ -10,6 +10,7 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use bone_sim::engine::handoff::{Command, PoseSample};
 use bone_sim::engine::{build, EngineConfig};
+use bone_sim::guidance::GuidanceMode;
 use bone_sim::{Layer, PlannedPath, Pose};
 use common::{slab, H};
 use nalgebra::{Point3, UnitQuaternion};
@@ -54,7 +55,9 @@ fn ticks_do_not_allocate() {
     cfg.reserve_bricks = 256;
     let (mut core, mut link) = build(&vol, &cfg).unwrap();
     for slot in 0..4u16 {
-        link.commands.push(Command::Activate { slot, generation: 1, path: None, gain: 1.0 }).unwrap();
+        link.commands
+            .push(Command::Activate { slot, generation: 1, path: None, mode: GuidanceMode::Shaped, gain: 1.0 })
+            .unwrap();
     }
     let pose = |z: f64| Pose {
         position_m: Point3::new(centre, centre, z),

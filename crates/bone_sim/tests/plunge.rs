@@ -7,6 +7,7 @@
 mod common;
 
 use bone_sim::contact::CAP_COS;
+use bone_sim::guidance::GuidanceMode;
 use bone_sim::session::{MAX_POSITION_M, MAX_SPINDLE_RPM};
 use bone_sim::{DrillingSession, Layer, PlannedPath, Pose, SessionConfig};
 use common::{slab, H};
@@ -334,4 +335,66 @@ fn an_exit_far_off_the_planned_path_is_a_breakthrough() {
     let st = s.state();
     assert_eq!(st.breakthroughs, 1, "{st:?}");
     assert!(st.deviation_m > 4e-3, "it was off the path: {} m", st.deviation_m);
+}
+
+/// The plunge (m) of a 0.4 kg hand pushing `push_phys_n` through cortex into cancellous bone and
+/// holding still `delay_s` after the breakthrough, with the session's guidance set to `mode` at
+/// gain 1 (a model replying every 100 ms with the trainee's own force: no paper cue) or off.
+/// Also returns the ticks from the cortex giving to the first resisting guidance force.
+fn guided_plunge(push_phys_n: f64, delay_s: f64, mode: Option<GuidanceMode>) -> (f64, Option<usize>) {
+    let (mut s, surface, _) = session(&CORTEX_OVER_CANCELLOUS);
+    if let Some(mode) = mode {
+        s.set_guidance(mode, 1.0).unwrap();
+    }
+    let (mut z, mut v, mut force_z) = (surface - 2e-3, 0.0, 0.0);
+    let (mut hold, mut bt, mut first_resist) = (None::<f64>, None::<usize>, None);
+    for tick in 0..60_000 {
+        if tick % 100 == 0 && mode.is_some() {
+            let own = s.state().feedback_n;
+            s.set_prediction(own);
+        }
+        match hold {
+            Some(h) => z = h,
+            None => {
+                for _ in 0..10 {
+                    v += (push_phys_n * SCALE + force_z - 20.0 * v) / 0.4 * 1e-4;
+                    z += v * 1e-4;
+                }
+            }
+        }
+        force_z = s.tick(Some(&pose(z, true))).force_n.z;
+        let st = s.state();
+        assert!(st.guidance_n.z <= 1e-12, "tick {tick}: guidance pushed the drill on: {}", st.guidance_n);
+        if bt.is_none() && st.breakthroughs > 0 {
+            bt = Some(tick);
+        }
+        if first_resist.is_none() && st.guidance_n.z < -0.05 {
+            first_resist = Some(tick);
+        }
+        if let Some(t0) = bt {
+            if hold.is_none() && tick >= t0 + (delay_s * 1000.0) as usize {
+                hold = Some(z);
+            }
+            if tick > t0 + 1500 {
+                break;
+            }
+        }
+    }
+    let t0 = bt.expect("no breakthrough");
+    (s.state().plunge_depth_m, first_resist.map(|t| t.saturating_sub(t0)))
+}
+
+#[test]
+fn the_brake_holds_within_milliseconds_of_the_give_and_cuts_the_plunge() {
+    for push in [12.0, 18.0] {
+        let (free, none) = guided_plunge(push, 0.25, None);
+        assert_eq!(none, None);
+        for mode in [GuidanceMode::Brake, GuidanceMode::Shaped] {
+            let (braked, resist) = guided_plunge(push, 0.25, Some(mode));
+            // The cortex starts to give (the brake arms) before the breakthrough is declared.
+            let after = resist.expect("the brake never held");
+            assert!(after <= 2, "{mode:?}, {push} N: the first hold came {after} ms after the breakthrough");
+            assert!(braked < 0.5 * free, "{mode:?}, {push} N: plunge {braked} m against {free} m unguided");
+        }
+    }
 }

@@ -4,6 +4,7 @@
 
 use std::time::Instant;
 
+use crate::guidance::GuidanceMode;
 use crate::path::PlannedPath;
 use crate::protocol::{ForceMsg, GuidanceMsg, StateMsg};
 use crate::record::Record;
@@ -35,6 +36,8 @@ pub enum Command {
         generation: u32,
         /// Planned path; the engine's default when `None`.
         path: Option<PlannedPath>,
+        /// Initial guidance mode.
+        mode: GuidanceMode,
         /// Initial guidance gain.
         gain: f64,
     },
@@ -62,11 +65,14 @@ pub enum Command {
         /// Burr radius (m).
         radius_m: f64,
     },
-    /// Change the guidance gain (0 disables mixing; guidance is still computed and published).
-    SetGain {
+    /// Change the guidance mode and gain (gain 0 renders no guidance; the paper's guidance is
+    /// still computed and published).
+    SetGuidance {
         /// Slot index.
         slot: u16,
-        /// Gain, 0..=`MAX_GAIN`.
+        /// Mode.
+        mode: GuidanceMode,
+        /// Gain, 0..=`MAX_GAIN`, checked by the sender.
         gain: f64,
     },
     /// A model reply for a slot's window.

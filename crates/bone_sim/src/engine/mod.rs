@@ -27,7 +27,6 @@
 //! wakes a little late loses no time. The pose subscriber unparks the tick thread when it hands
 //! over a pose.
 
-pub mod guidance;
 pub mod handoff;
 pub mod realtime;
 mod slot;
@@ -39,11 +38,11 @@ use std::thread::{self, JoinHandle, Thread};
 use std::time::{Duration, Instant};
 
 use crate::error::{SimError, SimResult};
+use crate::guidance::{check_gain, GuidanceMode, GuidanceParams};
 use crate::path::PlannedPath;
 use crate::session::{DrillingSession, SessionConfig};
 use crate::volume::drilled::DrilledVolume;
 use crate::volume::Volume;
-use guidance::{check_gain, GuidanceParams};
 use handoff::{Command, Output, PoseSample};
 use slot::Slot;
 use stats::TickStats;
@@ -194,6 +193,8 @@ pub struct EngineConfig {
     pub default_path: PlannedPath,
     /// Guidance limits.
     pub guidance: GuidanceParams,
+    /// Guidance mode of a new session.
+    pub default_mode: GuidanceMode,
     /// Guidance gain of a new session.
     pub default_gain: f64,
     /// Drilled bricks each session may hold before a tick would allocate.
@@ -211,6 +212,7 @@ impl EngineConfig {
             session: SessionConfig::default(),
             default_path,
             guidance: GuidanceParams::default(),
+            default_mode: GuidanceMode::Shaped,
             default_gain: 1.0,
             reserve_bricks: 1024,
             wait: WaitMode::Sleep,
@@ -336,10 +338,10 @@ impl TickCore {
     fn apply(&mut self, cmd: Command) {
         let slot_of = |s: u16| s as usize;
         match cmd {
-            Command::Activate { slot, generation, path, gain } => {
+            Command::Activate { slot, generation, path, mode, gain } => {
                 let default = &self.default_path;
                 if let Some(s) = self.slots.get_mut(slot_of(slot)) {
-                    s.activate(generation, path.unwrap_or_else(|| default.clone()), gain);
+                    s.activate(generation, path.unwrap_or_else(|| default.clone()), mode, gain);
                     self.schedule[slot_of(slot)] = Schedule::new(Instant::now());
                 }
             }
@@ -364,9 +366,9 @@ impl TickCore {
                     let _ = s.session.set_burr_radius(radius_m);
                 }
             }
-            Command::SetGain { slot, gain } => {
+            Command::SetGuidance { slot, mode, gain } => {
                 if let Some(s) = self.slots.get_mut(slot_of(slot)) {
-                    s.set_gain(gain);
+                    s.set_guidance(mode, gain);
                 }
             }
             Command::Prediction { slot, generation, window_seq, predicted_n, latency_s, pose_client_time_ns } => {

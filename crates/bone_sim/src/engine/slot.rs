@@ -1,15 +1,13 @@
-//! One session slot as the tick thread sees it: the drilling session, its guidance mixer, and the
-//! device-limit stage that the rendered force (feedback + guidance) passes last.
+//! One session slot as the tick thread sees it: the drilling session (which renders its own
+//! guidance and passes bone force + guidance through its device limits) and its pose input.
 
 use nalgebra::Vector3;
 
-use super::guidance::{GuidanceMixer, GuidanceParams};
 use super::handoff::{Output, PoseSample};
-use crate::device::ForceLimiter;
 use crate::error::SimResult;
+use crate::guidance::{GuidanceMode, GuidanceParams};
 use crate::path::PlannedPath;
 use crate::protocol::{flags, ForceMsg, GuidanceMsg, StateMsg};
-use crate::record::TICK_S;
 use crate::session::{DrillingSession, SessionState};
 
 /// A tick-side session slot.
@@ -18,8 +16,6 @@ pub(crate) struct Slot {
     pub(crate) active: bool,
     pub(crate) generation: u32,
     pub(crate) session: DrillingSession,
-    guidance: GuidanceMixer,
-    output: ForceLimiter,
     poses: triple_buffer::Output<PoseSample>,
     /// Whether the pose in `poses`' output buffer is newer than the last one ticked.
     fresh: bool,
@@ -57,15 +53,14 @@ impl Slot {
         guidance: GuidanceParams,
         poses: triple_buffer::Output<PoseSample>,
     ) -> SimResult<Self> {
-        let output = ForceLimiter::new(session.config().device.clone())?;
+        let mut session = session;
+        session.set_guidance_params(guidance)?;
         let voxel_m3 = session.bone().volume().grid().voxel_volume_m3();
         let default_burr_m = session.config().burr_radius_m;
         Ok(Self {
             active: false,
             generation: 0,
             session,
-            guidance: GuidanceMixer::new(guidance, 0.0),
-            output,
             poses,
             fresh: false,
             pose_seq: 0,
@@ -90,13 +85,12 @@ impl Slot {
     }
 
     /// Starts a fresh session: undrilled bone, new state, no guidance.
-    pub(crate) fn activate(&mut self, generation: u32, path: PlannedPath, gain: f64) {
+    pub(crate) fn activate(&mut self, generation: u32, path: PlannedPath, mode: GuidanceMode, gain: f64) {
         self.session.set_path(path);
         // Valid: it is the radius the session was built with.
         let _ = self.session.set_burr_radius(self.default_burr_m);
         self.session.reset();
-        self.output.reset();
-        self.guidance.reset(gain);
+        self.set_guidance(mode, gain);
         self.generation = generation;
         self.active = true;
         (self.pose_seq, self.pose_time_ns, self.record_seq) = (0, 0, 0);
@@ -104,14 +98,12 @@ impl Slot {
 
     pub(crate) fn reset(&mut self) {
         self.session.reset();
-        self.output.reset();
-        let gain = self.guidance.gain();
-        self.guidance.reset(gain);
         self.record_seq = 0;
     }
 
-    pub(crate) fn set_gain(&mut self, gain: f64) {
-        self.guidance.set_gain(gain);
+    pub(crate) fn set_guidance(&mut self, mode: GuidanceMode, gain: f64) {
+        // The gain was checked by the sender; a bad one would leave the guidance as it was.
+        let _ = self.session.set_guidance(mode, gain);
     }
 
     /// Applies a model reply: guidance = predicted expert force − the current force feedback.
@@ -124,9 +116,8 @@ impl Slot {
         pose_time_ns: u64,
     ) -> Output {
         let predicted = Vector3::from(predicted_n);
-        let guidance_n = predicted - self.session.state().force_n;
-        self.guidance.set_target(guidance_n);
-        let gain = self.guidance.gain();
+        let guidance_n = self.session.set_prediction(predicted);
+        let gain = self.session.guide().gain();
         Output::Guidance {
             slot: idx,
             generation: self.generation,
@@ -160,15 +151,11 @@ impl Slot {
             }
         }
         let out = self.session.tick(fresh.as_ref());
-        if fresh.is_some_and(|p| p.is_valid()) {
-            self.output.pose_received();
-        }
-        let share = self.guidance.step(TICK_S);
-        let rendered = self.output.step(out.force_n + share, TICK_S);
+        let rendered = out.force_n;
         let s = self.session.state();
+        let share = s.guidance_n;
         let mut fl = flags_of(s);
-        let live = self.guidance.is_live();
-        if live {
+        if s.model_available {
             fl |= flags::MODEL_AVAILABLE;
         }
         if share.norm() > 0.0 {
@@ -215,7 +202,7 @@ impl Slot {
                     breakthroughs: s.breakthroughs.min(u32::from(u16::MAX)) as u16,
                     rejected_poses: s.rejected_poses.min(u64::from(u32::MAX)) as u32,
                     deviation_m: s.deviation_m,
-                    guidance_gain: self.guidance.gain(),
+                    guidance_gain: self.session.guide().gain(),
                 },
             });
         }

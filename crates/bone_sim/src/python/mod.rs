@@ -44,6 +44,8 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("BRICK_EDGE", BRICK_EDGE)?;
     m.add("MAX_BURR_RADIUS_M", MAX_BURR_RADIUS_M)?;
     m.add("MAX_SPINDLE_RPM", crate::session::MAX_SPINDLE_RPM)?;
+    let modes: Vec<&str> = crate::guidance::GuidanceMode::ALL.iter().map(|m| m.name()).collect();
+    m.add("GUIDANCE_MODES", modes)?;
     m.add("MAX_POSITION_M", crate::session::MAX_POSITION_M)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())

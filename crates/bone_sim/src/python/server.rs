@@ -10,9 +10,9 @@ use super::convert::detached;
 use super::errors::IntoPyResult;
 use super::session::{config_from_dict, set_flat_fields};
 use super::volume::{xray_tuple, PyVolume, Views};
-use crate::engine::guidance::GuidanceParams;
 use crate::engine::{EngineConfig, WaitMode};
 use crate::error::SimError;
+use crate::guidance::{GuidanceMode, GuidanceParams};
 use crate::path::PlannedPath;
 use crate::protocol::LAYOUTS;
 use crate::transport::{Server, ServerConfig};
@@ -23,7 +23,7 @@ fn server_fields<'a>(
     s: &'a mut ServerConfig,
     g: &'a mut f64,
 ) -> [(&'static str, &'a mut f64); 6] {
-    let GuidanceParams { max_n, max_rate_n_per_s, timeout_s } = &mut e.guidance;
+    let GuidanceParams { max_n, max_rate_n_per_s, timeout_s, .. } = &mut e.guidance;
     [
         ("idle_timeout_s", &mut s.idle_timeout_s),
         ("model_timeout_s", &mut s.model_timeout_s),
@@ -56,8 +56,9 @@ impl PyServer {
     /// its Zenoh session from `zenoh_json5`. `server` is a flat dict of the keys of
     /// `dhg.serve.ServerSettings`; `session` a flat `dhg.SessionConfig` dict. `wait` is how the
     /// tick and publisher threads wait: `"sleep"`, or `"spin"` (two cores busy, no wake-up latency).
+    /// `guidance_mode` is a new session's guidance mode (`paper`, `corridor`, `brake`, `shaped`).
     #[new]
-    #[pyo3(signature = (volume, entry_m, target_m, zenoh_json5, prefix="dhg", max_sessions=16, server=None, session=None, wait="sleep"))]
+    #[pyo3(signature = (volume, entry_m, target_m, zenoh_json5, prefix="dhg", max_sessions=16, server=None, session=None, wait="sleep", guidance_mode="shaped"))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -70,11 +71,13 @@ impl PyServer {
         server: Option<&Bound<'_, PyDict>>,
         session: Option<&Bound<'_, PyDict>>,
         wait: &str,
+        guidance_mode: &str,
     ) -> PyResult<Self> {
         let path = PlannedPath::new(entry_m.into(), target_m.into()).py()?;
         let mut engine = EngineConfig::new(path);
         engine.max_sessions = max_sessions;
         engine.wait = WaitMode::from_name(wait).py()?;
+        engine.default_mode = GuidanceMode::from_name(guidance_mode).py()?;
         engine.session = config_from_dict(session)?;
         let mut cfg =
             ServerConfig { prefix: prefix.to_owned(), idle_timeout_s: 5.0, model_timeout_s: 0.25, zenoh_json5 };

@@ -9,6 +9,7 @@ use super::convert::detached;
 use super::errors::IntoPyResult;
 use super::volume::{xray_tuple, PyVolume, Views};
 use crate::error::SimError;
+use crate::guidance::GuidanceMode;
 use crate::path::PlannedPath;
 use crate::record::{Record, FEATURE_COUNT};
 use crate::session::{DrillingSession, Pose, SessionConfig, SessionState};
@@ -139,6 +140,9 @@ fn state_dict<'py>(py: Python<'py>, s: &SessionState) -> PyResult<Bound<'py, PyD
     let o = s.registration_offset_m;
     d.set_item("registration_offset_m", [o.x, o.y, o.z])?;
     d.set_item("device_thermal_load", s.device_thermal_load)?;
+    d.set_item("guidance_n", [s.guidance_n.x, s.guidance_n.y, s.guidance_n.z])?;
+    d.set_item("feedback_n", [s.feedback_n.x, s.feedback_n.y, s.feedback_n.z])?;
+    d.set_item("model_available", s.model_available)?;
     Ok(d)
 }
 
@@ -255,6 +259,34 @@ impl PySession {
     fn path(&self) -> ([f64; 3], [f64; 3]) {
         let (a, b) = (self.inner.path().entry_m(), self.inner.path().target_m());
         ([a.x, a.y, a.z], [b.x, b.y, b.z])
+    }
+
+    /// Sets the guidance mode (`paper`, `corridor`, `brake`, `shaped`) and gain (0..=4; 0 off).
+    fn set_guidance(&mut self, mode: &str, gain: f64) -> PyResult<()> {
+        let mode = GuidanceMode::from_name(mode).py()?;
+        self.inner.set_guidance(mode, gain).py()
+    }
+
+    /// The guidance (mode, gain).
+    fn guidance(&self) -> (&'static str, f64) {
+        (self.inner.guide().mode().name(), self.inner.guide().gain())
+    }
+
+    /// A model reply: the predicted expert force (N, (3,)). Returns the paper's guidance as
+    /// mixed: gain · (predicted − the current force feedback), clamped.
+    fn set_prediction<'py>(&mut self, py: Python<'py>, predicted_n: [f64; 3]) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        if !predicted_n.iter().all(|v| v.is_finite()) {
+            let value = predicted_n.into_iter().find(|v| !v.is_finite()).unwrap_or(f64::NAN);
+            return Err(SimError::NonFinite { what: "predicted force (N)", value }).py();
+        }
+        let g = self.inner.set_prediction(nalgebra::Vector3::from(predicted_n));
+        Ok(vec![g.x, g.y, g.z].into_pyarray(py))
+    }
+
+    /// The tip depth (m) at which the planning CT shows the burr leaving the first cortex, or None.
+    #[getter]
+    fn planned_breakthrough_depth_m(&self) -> Option<f64> {
+        self.inner.planned_breakthrough_depth_m()
     }
 
     /// Restores the undrilled bone and a fresh state.

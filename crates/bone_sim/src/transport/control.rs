@@ -11,12 +11,12 @@ use zenoh::sample::{Locality, Sample};
 use zenoh::Wait;
 
 use super::{lock, Shared};
-use crate::engine::guidance::check_gain;
 use crate::engine::handoff::Command;
 use crate::error::{SimError, SimResult};
+use crate::guidance::{check_gain, GuidanceMode};
 use crate::path::PlannedPath;
 use crate::protocol::{self, Refusal};
-use crate::session::check_burr_radius;
+use crate::session::{check_burr_radius, DrillingSession};
 
 /// Leaves under `<prefix>/session/<id>/` that clients may put or query.
 const CLIENT_LEAVES: [&str; 3] = ["pose", "control", "metrics"];
@@ -120,10 +120,10 @@ fn path_of(v: &Value) -> SimResult<PlannedPath> {
 }
 
 /// The step (m) at which a session's info samples the pristine layers along its path.
-const PATH_LAYER_STEP_M: f64 = 0.25e-3;
+const PATH_LAYER_STEP_M: f64 = DrillingSession::PLAN_STEP_M;
 
 fn session_info(shared: &Shared, id: &str) -> SimResult<Value> {
-    let (mut info, path) = {
+    let (mut info, path, burr_m) = {
         let reg = lock(&shared.registry);
         let slot = reg.slot_of(id).ok_or_else(|| SimError::Engine(format!("no session {id:?}")))?;
         let info = &reg.slots[slot as usize];
@@ -131,17 +131,21 @@ fn session_info(shared: &Shared, id: &str) -> SimResult<Value> {
         let v = json!({
             "session": id,
             "slot": slot,
+            "guidance_mode": info.mode.name(),
             "guidance_gain": info.gain,
             "burr_radius_m": info.burr_radius_m,
             "entry_m": [a.x, a.y, a.z],
             "target_m": [b.x, b.y, b.z],
             "poses_received": info.poses_received,
         });
-        (v, info.path.clone())
+        (v, info.path.clone(), info.burr_radius_m)
     };
     // Sampled outside the registry lock: the pose subscriber needs it at 1 kHz per client.
     let runs = path.layer_runs(&shared.volume, PATH_LAYER_STEP_M)?;
     info["path_layer_step_m"] = json!(PATH_LAYER_STEP_M);
+    // Where the session's guidance and a planning trainee expect the first cortex to give.
+    let planned = path.first_cortex_exit_m(&shared.volume, DrillingSession::PLAN_STEP_M).map(|e| e - burr_m);
+    info["planned_breakthrough_depth_m"] = json!(planned);
     info["path_layers"] =
         runs.iter().map(|r| json!({ "layer": r.layer.name(), "start_m": r.start_m, "end_m": r.end_m })).collect();
     Ok(info)
@@ -152,6 +156,26 @@ fn set_burr(reg: &mut super::registry::Registry, slot: u16, value: &Value) -> Si
     let radius_m = check_burr_radius(value.as_f64().unwrap_or(f64::NAN))?;
     reg.send(Command::SetBurr { slot, radius_m })?;
     reg.slots[slot as usize].burr_radius_m = radius_m;
+    Ok(())
+}
+
+/// A guidance mode named by a JSON string.
+fn mode_of(v: &Value) -> SimResult<GuidanceMode> {
+    GuidanceMode::from_name(v.as_str().unwrap_or("(not a string)"))
+}
+
+/// Sets the guidance of `slot`, keeping what is not given.
+fn set_guidance(
+    reg: &mut super::registry::Registry,
+    slot: u16,
+    mode: Option<GuidanceMode>,
+    gain: Option<f64>,
+) -> SimResult<()> {
+    let info = &reg.slots[slot as usize];
+    let (mode, gain) = (mode.unwrap_or(info.mode), gain.unwrap_or(info.gain));
+    reg.send(Command::SetGuidance { slot, mode, gain })?;
+    let info = &mut reg.slots[slot as usize];
+    (info.mode, info.gain) = (mode, gain);
     Ok(())
 }
 
@@ -168,12 +192,12 @@ pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> 
                 // Everything is checked before the session exists: a refused create creates nothing.
                 let path = if req.get("entry_m").is_some() { Some(path_of(req)?) } else { None };
                 let gain = req.get("guidance_gain").map(|g| check_gain(g.as_f64().unwrap_or(f64::NAN))).transpose()?;
+                let mode = req.get("guidance_mode").map(mode_of).transpose()?;
                 let burr =
                     req.get("burr_radius_m").map(|r| check_burr_radius(r.as_f64().unwrap_or(f64::NAN))).transpose()?;
                 let (s, created) = reg.open(id, path)?;
-                if let Some(gain) = gain {
-                    reg.send(Command::SetGain { slot: s, gain })?;
-                    reg.slots[s as usize].gain = gain;
+                if mode.is_some() || gain.is_some() {
+                    set_guidance(&mut reg, s, mode, gain)?;
                 }
                 if let Some(radius_m) = burr {
                     reg.send(Command::SetBurr { slot: s, radius_m })?;
@@ -197,9 +221,17 @@ pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> 
             }
             "set_guidance" => {
                 let s = slot(&reg)?;
-                let gain = check_gain(req.get("gain").and_then(Value::as_f64).unwrap_or(f64::NAN))?;
-                reg.send(Command::SetGain { slot: s, gain })?;
-                reg.slots[s as usize].gain = gain;
+                let gain = req.get("gain").map(|g| check_gain(g.as_f64().unwrap_or(f64::NAN))).transpose()?;
+                let mode = req.get("mode").map(mode_of).transpose()?;
+                if mode.is_none() && gain.is_none() {
+                    return Err(SimError::Payload {
+                        message: "control",
+                        reason:
+                            "set_guidance needs a \"mode\" (paper, corridor, brake, shaped), a \"gain\" (0–4), or both"
+                                .into(),
+                    });
+                }
+                set_guidance(&mut reg, s, mode, gain)?;
             }
             "set_drill" => {
                 let s = slot(&reg)?;
@@ -232,6 +264,7 @@ pub(crate) fn metrics(shared: &Shared, id: &str) -> SimResult<Value> {
     let info = &reg.slots[slot as usize];
     let mut v = info.metrics.to_json(&info.path.target_m());
     v["session"] = json!(id);
+    v["guidance_mode"] = json!(info.mode.name());
     v["guidance_gain"] = json!(info.gain);
     v["burr_radius_m"] = json!(info.burr_radius_m);
     Ok(v)

@@ -169,7 +169,7 @@ impl Server {
             link.commands,
             link.poses,
             engine_config.default_path.clone(),
-            engine_config.default_gain,
+            (engine_config.default_mode, engine_config.default_gain),
             engine_config.session.burr_radius_m,
         );
         let shared = Arc::new(Shared {

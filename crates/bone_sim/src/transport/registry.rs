@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use crate::engine::handoff::{Command, PoseSample};
 use crate::error::{SimError, SimResult};
+use crate::guidance::GuidanceMode;
 use crate::path::PlannedPath;
 use crate::protocol::PoseMsg;
 
@@ -49,6 +50,8 @@ pub struct SlotInfo {
     pub poses_received: u64,
     /// Planned path in effect.
     pub path: PlannedPath,
+    /// Guidance mode in effect.
+    pub mode: GuidanceMode,
     /// Guidance gain in effect.
     pub gain: f64,
     /// Burr radius in effect (m).
@@ -67,6 +70,7 @@ pub struct Registry {
     /// The slots.
     pub slots: Vec<SlotInfo>,
     default_path: PlannedPath,
+    default_mode: GuidanceMode,
     default_gain: f64,
     default_burr_m: f64,
 }
@@ -78,7 +82,7 @@ impl Registry {
         commands: rtrb::Producer<Command>,
         poses: Vec<triple_buffer::Input<PoseSample>>,
         default_path: PlannedPath,
-        default_gain: f64,
+        (default_mode, default_gain): (GuidanceMode, f64),
         default_burr_m: f64,
     ) -> Self {
         let now = Instant::now();
@@ -91,12 +95,13 @@ impl Registry {
                 last_seen: now,
                 poses_received: 0,
                 path: default_path.clone(),
+                mode: default_mode,
                 gain: default_gain,
                 burr_radius_m: default_burr_m,
                 metrics: SessionMetrics::default(),
             })
             .collect();
-        Self { commands, by_id: HashMap::new(), slots, default_path, default_gain, default_burr_m }
+        Self { commands, by_id: HashMap::new(), slots, default_path, default_mode, default_gain, default_burr_m }
     }
 
     /// Sends a command to the tick thread.
@@ -128,9 +133,9 @@ impl Registry {
         let info = &mut self.slots[slot];
         let generation = info.generation.wrapping_add(1);
         let path = path.unwrap_or_else(|| self.default_path.clone());
-        let gain = self.default_gain;
+        let (mode, gain) = (self.default_mode, self.default_gain);
         self.commands
-            .push(Command::Activate { slot: slot as u16, generation, path: Some(path.clone()), gain })
+            .push(Command::Activate { slot: slot as u16, generation, path: Some(path.clone()), mode, gain })
             .map_err(|_| SimError::Engine("the engine's command ring is full".into()))?;
         let info = &mut self.slots[slot];
         info.id = Some(id.to_owned());
@@ -138,6 +143,7 @@ impl Registry {
         info.last_seen = Instant::now();
         info.poses_received = 0;
         info.path = path;
+        info.mode = mode;
         info.gain = gain;
         info.burr_radius_m = self.default_burr_m;
         info.metrics = SessionMetrics::default();

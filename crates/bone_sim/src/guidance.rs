@@ -1,0 +1,585 @@
+//! Guidance: the share of the rendered force that DHG adds to the bone's, computed in the 1 kHz
+//! loop of every session (offline and in `dhg-serve` alike) in one of four modes.
+//!
+//! - [`GuidanceMode::Paper`]: the paper's force-matching cue (Fekri et al. 2021, section 2.4).
+//!   Each model reply sets a target, the predicted expert force minus the trainee's force
+//!   feedback at that moment; the share follows `gain · target`, clamped to `max_n` and moved at
+//!   most `max_rate_n_per_s`, so a new target is a ramp and a lost model a fade-out.
+//! - [`GuidanceMode::Corridor`]: a guidance virtual fixture (Rosenberg 1993; Abbott, Marayong &
+//!   Okamura 2007): a compliant corridor around the planned line A→B. Beyond a deadband, a
+//!   spring–damper pulls the tip back towards the line, at right angles to the drill axis only:
+//!   it never pushes or holds the drill along its axis. Capped at `max_n`.
+//! - [`GuidanceMode::Brake`]: a breakthrough watcher in the force loop (after the force-drop
+//!   detection of Ong & Bouazza-Marouf 1999, which stops a drill within about 1 mm). When the
+//!   cortex starts to give, the guidance renders a hold along the axis against further advance,
+//!   a stiff spring–damper from where the tip was, capped by a force that decays over a few
+//!   hundred milliseconds, so the hand surging on meets resistance before any human reaction
+//!   (150–250 ms) could act. Plus the model's axial cue, only where it resists: this mode never
+//!   pushes the drill forward.
+//! - [`GuidanceMode::Shaped`]: corridor + brake + a warning as the predicted breakthrough nears:
+//!   a soft resistive ramp along the axis over the last `warning_span_m` before it, growing to
+//!   `warning_n`. A ramp rather than a vibration: the Touch renders a low force faithfully but a
+//!   vibration strong enough to notice through the stylus costs force the limits are better spent
+//!   on, and a gentle rise in resistance asks for what experts do there, ease off (Wallace et al.
+//!   2019: controlled advancement, 0.9 mm of plunge against 4.2 mm).
+//!
+//! In every mode the gain scales the whole share (0: no guidance), and the share fades out over
+//! `fade_s` when the model is lost (no reply younger than `timeout_s`), as the paper's cue does.
+//! The session's device limiter bounds the sum of bone force and share, so no mode can leave the
+//! device's limits. The guide allocates nothing and takes no locks.
+
+use nalgebra::{Point3, Vector3};
+
+use crate::error::{non_negative, positive, SimError, SimResult};
+use crate::path::PlannedPath;
+
+/// Largest accepted guidance gain.
+pub const MAX_GAIN: f64 = 4.0;
+
+/// What the guidance share renders.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum GuidanceMode {
+    /// The paper's force-matching cue: predicted expert force − the trainee's force.
+    Paper,
+    /// A lateral corridor around the planned path.
+    Corridor,
+    /// A hold along the axis when the cortex gives, and the model's cue where it resists.
+    Brake,
+    /// Corridor + brake + a warning ramp before the predicted breakthrough.
+    Shaped,
+}
+
+impl GuidanceMode {
+    /// Every mode, in the order the docs list them.
+    pub const ALL: [GuidanceMode; 4] = [Self::Paper, Self::Corridor, Self::Brake, Self::Shaped];
+    /// The allowed names, as error messages quote them.
+    pub const NAMES: &'static str = "paper, corridor, brake, shaped";
+
+    /// The mode's name on the wire and in Python.
+    #[must_use]
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Paper => "paper",
+            Self::Corridor => "corridor",
+            Self::Brake => "brake",
+            Self::Shaped => "shaped",
+        }
+    }
+
+    /// The mode called `name`.
+    ///
+    /// # Errors
+    /// `InvalidOption` for any other name.
+    pub fn from_name(name: &str) -> SimResult<Self> {
+        Self::ALL.into_iter().find(|m| m.name() == name).ok_or_else(|| SimError::InvalidOption {
+            name: "guidance mode",
+            value: name.to_owned(),
+            allowed: Self::NAMES,
+        })
+    }
+
+    fn corridor(self) -> bool {
+        matches!(self, Self::Corridor | Self::Shaped)
+    }
+
+    fn brake(self) -> bool {
+        matches!(self, Self::Brake | Self::Shaped)
+    }
+}
+
+/// Guidance limits and force laws (device newtons, SI units).
+#[derive(Debug, Clone, PartialEq)]
+pub struct GuidanceParams {
+    /// Largest paper-cue and corridor share (N); the Touch's continuous force by default, so
+    /// they can be held indefinitely.
+    pub max_n: f64,
+    /// Fastest change of the paper cue's share (N/s).
+    pub max_rate_n_per_s: f64,
+    /// Age after which a model reply counts as lost and guidance fades out (s).
+    pub timeout_s: f64,
+    /// Time over which the other modes' share fades in and out with the model (s).
+    pub fade_s: f64,
+    /// Half-width of the corridor in which no lateral force acts (m).
+    pub corridor_deadband_m: f64,
+    /// Corridor stiffness beyond the deadband (N/m).
+    pub corridor_stiffness_n_per_m: f64,
+    /// Corridor damping of lateral motion beyond the deadband (N·s/m).
+    pub corridor_damping_n_s_per_m: f64,
+    /// Most the brake holds at the moment the cortex gives (N).
+    pub brake_hold_n: f64,
+    /// Time constant with which the brake's hold decays (s).
+    pub brake_decay_s: f64,
+    /// Stiffness of the brake's hold against advance past where the cortex gave (N/m).
+    pub brake_stiffness_n_per_m: f64,
+    /// Damping of the brake against forward motion (N·s/m).
+    pub brake_damping_n_s_per_m: f64,
+    /// Largest warning resistance, reached at the predicted breakthrough (N).
+    pub warning_n: f64,
+    /// How far before the predicted breakthrough the warning ramp starts (m).
+    pub warning_span_m: f64,
+}
+
+impl Default for GuidanceParams {
+    fn default() -> Self {
+        Self {
+            max_n: 0.88,
+            max_rate_n_per_s: 8.0,
+            timeout_s: 0.35,
+            fade_s: 0.25,
+            // The experts' lateral spread on the phantom is 0.3 mm mean, 0.8 mm at most
+            // (docs/benchmarks.md): inside 0.5 mm the corridor leaves the hand alone.
+            corridor_deadband_m: 0.5e-3,
+            // 0.88 N at 2.7 mm off the line: at most the Touch's 400 N/m, so it is rendered stably.
+            corridor_stiffness_n_per_m: 400.0,
+            corridor_damping_n_s_per_m: 2.0,
+            // About the push of a hand drilling cortex on the Touch (1.6–2.7 N), so a surge is
+            // met at once; within the 3.3 N peak; decaying with 0.4 s, so it outlasts a novice's
+            // 0.25–0.40 s reaction and is down to a tenth within a second.
+            brake_hold_n: 2.2,
+            brake_decay_s: 0.4,
+            brake_stiffness_n_per_m: 400.0,
+            brake_damping_n_s_per_m: 20.0,
+            warning_n: 0.35,
+            warning_span_m: 1.0e-3,
+        }
+    }
+}
+
+impl GuidanceParams {
+    /// Checks every field.
+    ///
+    /// # Errors
+    /// A non-positive or non-finite value.
+    pub fn validate(&self) -> SimResult<()> {
+        positive("guidance max_n", self.max_n)?;
+        positive("guidance max_rate_n_per_s", self.max_rate_n_per_s)?;
+        positive("guidance timeout_s", self.timeout_s)?;
+        positive("guidance fade_s", self.fade_s)?;
+        non_negative("guidance corridor_deadband_m", self.corridor_deadband_m)?;
+        non_negative("guidance corridor_stiffness_n_per_m", self.corridor_stiffness_n_per_m)?;
+        non_negative("guidance corridor_damping_n_s_per_m", self.corridor_damping_n_s_per_m)?;
+        non_negative("guidance brake_hold_n", self.brake_hold_n)?;
+        positive("guidance brake_decay_s", self.brake_decay_s)?;
+        non_negative("guidance brake_stiffness_n_per_m", self.brake_stiffness_n_per_m)?;
+        non_negative("guidance brake_damping_n_s_per_m", self.brake_damping_n_s_per_m)?;
+        non_negative("guidance warning_n", self.warning_n)?;
+        positive("guidance warning_span_m", self.warning_span_m).map(|_| ())
+    }
+}
+
+/// Checks a guidance gain.
+///
+/// # Errors
+/// A gain outside `0..=MAX_GAIN`.
+pub fn check_gain(gain: f64) -> SimResult<f64> {
+    if gain.is_finite() && (0.0..=MAX_GAIN).contains(&gain) {
+        Ok(gain)
+    } else {
+        Err(SimError::InvalidParameter { name: "guidance gain", value: gain, reason: "must be within 0..=4" })
+    }
+}
+
+/// What the guide needs to know about the drill this tick.
+#[derive(Debug, Clone, Copy)]
+pub struct GuideInput<'a> {
+    /// The drill tip (m).
+    pub tip_m: Point3<f64>,
+    /// The tip's velocity (m/s).
+    pub tip_velocity_m_s: Vector3<f64>,
+    /// The drill axis (unit).
+    pub axis: Vector3<f64>,
+    /// The planned path.
+    pub path: &'a PlannedPath,
+    /// Where along A→B the first cortex is predicted to give (m of tip depth), if known.
+    pub breakthrough_depth_m: Option<f64>,
+    /// Whether the first cortex has given way already.
+    pub broken_through: bool,
+    /// Whether a cortex began to give way this tick (the session's breakthrough watcher).
+    pub giving: bool,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Hold {
+    from_m: Point3<f64>,
+    axis: Vector3<f64>,
+    age_s: f64,
+}
+
+/// One session's guidance (no allocation; runs on the tick thread).
+#[derive(Debug, Clone)]
+pub struct Guide {
+    params: GuidanceParams,
+    mode: GuidanceMode,
+    gain: f64,
+    target_n: Vector3<f64>,
+    target_age_s: f64,
+    paper_n: Vector3<f64>,
+    fade: f64,
+    hold: Option<Hold>,
+    was_giving: bool,
+    share_n: Vector3<f64>,
+}
+
+impl Guide {
+    /// A guide with no model target yet.
+    #[must_use]
+    pub fn new(params: GuidanceParams, mode: GuidanceMode, gain: f64) -> Self {
+        Self {
+            params,
+            mode,
+            gain,
+            target_n: Vector3::zeros(),
+            target_age_s: f64::INFINITY,
+            paper_n: Vector3::zeros(),
+            fade: 0.0,
+            hold: None,
+            was_giving: false,
+            share_n: Vector3::zeros(),
+        }
+    }
+
+    /// Back to no target and no share, keeping params, mode and gain.
+    pub fn reset(&mut self) {
+        *self = Self::new(self.params.clone(), self.mode, self.gain);
+    }
+
+    /// The limits and laws.
+    #[must_use]
+    pub fn params(&self) -> &GuidanceParams {
+        &self.params
+    }
+
+    /// Replaces the limits and laws.
+    ///
+    /// # Errors
+    /// Invalid params (nothing changes then).
+    pub fn set_params(&mut self, params: GuidanceParams) -> SimResult<()> {
+        params.validate()?;
+        self.params = params;
+        Ok(())
+    }
+
+    /// Sets the mode (the share then changes at the rates each part allows).
+    pub fn set_mode(&mut self, mode: GuidanceMode) {
+        self.mode = mode;
+    }
+
+    /// The mode.
+    #[must_use]
+    pub fn mode(&self) -> GuidanceMode {
+        self.mode
+    }
+
+    /// Sets the gain (already checked with [`check_gain`]).
+    pub fn set_gain(&mut self, gain: f64) {
+        self.gain = gain;
+    }
+
+    /// The gain.
+    #[must_use]
+    pub fn gain(&self) -> f64 {
+        self.gain
+    }
+
+    /// A model reply: the paper's guidance (N), predicted expert force − the trainee's force.
+    /// Non-finite targets are ignored. Returns what the paper cue will aim at, `gain · target`
+    /// clamped to `max_n`.
+    pub fn set_target(&mut self, guidance_n: Vector3<f64>) -> Vector3<f64> {
+        if guidance_n.iter().all(|x| x.is_finite()) {
+            self.target_n = guidance_n;
+            self.target_age_s = 0.0;
+        }
+        self.clamped(self.target_n * self.gain)
+    }
+
+    /// Whether the newest model reply is still fresh.
+    #[must_use]
+    pub fn is_live(&self) -> bool {
+        self.target_age_s <= self.params.timeout_s
+    }
+
+    /// The share rendered on the last step (N).
+    #[must_use]
+    pub fn share_n(&self) -> Vector3<f64> {
+        self.share_n
+    }
+
+    /// Whether the brake is holding.
+    #[must_use]
+    pub fn is_braking(&self) -> bool {
+        self.hold.is_some()
+    }
+
+    fn clamped(&self, v: Vector3<f64>) -> Vector3<f64> {
+        let n = v.norm();
+        if n > self.params.max_n {
+            v * (self.params.max_n / n)
+        } else {
+            v
+        }
+    }
+
+    /// Advances by `dt_s` and returns the share to add to the bone's force (N).
+    pub fn step(&mut self, input: &GuideInput<'_>, dt_s: f64) -> Vector3<f64> {
+        let p = &self.params;
+        self.target_age_s += dt_s;
+        let live = self.is_live();
+        // The paper cue: gain · target, clamped and rate-limited, fading out when the model is lost.
+        let want = if live { self.clamped(self.target_n * self.gain) } else { Vector3::zeros() };
+        let delta = want - self.paper_n;
+        let max_step = p.max_rate_n_per_s * dt_s;
+        let d = delta.norm();
+        self.paper_n += if d > max_step { delta * (max_step / d) } else { delta };
+        let step = dt_s / p.fade_s;
+        self.fade = if live { (self.fade + step).min(1.0) } else { (self.fade - step).max(0.0) };
+
+        // The brake arms when a cortex starts to give, once per give.
+        if self.mode.brake() && input.giving && !self.was_giving && self.hold.is_none() {
+            self.hold = Some(Hold { from_m: input.tip_m, axis: input.axis, age_s: 0.0 });
+        }
+        self.was_giving = input.giving;
+
+        let share = match self.mode {
+            GuidanceMode::Paper => self.paper_n,
+            mode => {
+                let mut f = Vector3::zeros();
+                if mode.corridor() {
+                    f += self.corridor(input);
+                }
+                if mode.brake() {
+                    f += self.brake(input, dt_s);
+                    // The model's axial cue, only where it resists the advance.
+                    let cue_ax = self.paper_n.dot(&input.axis);
+                    if cue_ax < 0.0 {
+                        f += input.axis * cue_ax;
+                    }
+                }
+                if mode == GuidanceMode::Shaped {
+                    f += self.warning(input);
+                }
+                f * self.fade
+            }
+        };
+        self.share_n = if share.iter().all(|x| x.is_finite()) { share } else { Vector3::zeros() };
+        self.share_n
+    }
+
+    /// The corridor's lateral force: towards the line A→B, at right angles to the drill axis.
+    fn corridor(&self, input: &GuideInput<'_>) -> Vector3<f64> {
+        let p = &self.params;
+        let d = input.path.direction();
+        let rel = input.tip_m - input.path.entry_m();
+        let off = rel - d * rel.dot(&d);
+        let dist = off.norm();
+        if dist <= p.corridor_deadband_m {
+            return Vector3::zeros();
+        }
+        let out = off / dist;
+        let v_out = input.tip_velocity_m_s.dot(&out);
+        let mut f = -out
+            * (p.corridor_stiffness_n_per_m * (dist - p.corridor_deadband_m) + p.corridor_damping_n_s_per_m * v_out);
+        f -= input.axis * f.dot(&input.axis);
+        self.clamped(f * self.gain)
+    }
+
+    /// The brake's hold along the axis: against advance only, decaying.
+    fn brake(&mut self, input: &GuideInput<'_>, dt_s: f64) -> Vector3<f64> {
+        let p = &self.params;
+        let Some(hold) = self.hold.as_mut() else { return Vector3::zeros() };
+        hold.age_s += dt_s;
+        let cap = p.brake_hold_n * self.gain * (-hold.age_s / p.brake_decay_s).exp();
+        if cap < 0.01 * p.brake_hold_n * self.gain.max(1e-9) || self.gain == 0.0 {
+            self.hold = None;
+            return Vector3::zeros();
+        }
+        let past = (input.tip_m - hold.from_m).dot(&hold.axis).max(0.0);
+        let v_fwd = input.tip_velocity_m_s.dot(&hold.axis).max(0.0);
+        let resist = (p.brake_stiffness_n_per_m * past + p.brake_damping_n_s_per_m * v_fwd) * self.gain;
+        -hold.axis * resist.min(cap)
+    }
+
+    /// The warning: a resistance ramping up over the last span before the predicted breakthrough.
+    fn warning(&self, input: &GuideInput<'_>) -> Vector3<f64> {
+        let p = &self.params;
+        let Some(at) = input.breakthrough_depth_m else { return Vector3::zeros() };
+        if input.broken_through {
+            return Vector3::zeros();
+        }
+        let depth = input.path.depth_m(&input.tip_m);
+        let ramp = ((depth - (at - p.warning_span_m)) / p.warning_span_m).clamp(0.0, 1.0);
+        -input.axis * (p.warning_n * ramp * self.gain)
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::float_cmp)] // exact zeros are intended here
+mod tests {
+    use super::*;
+
+    fn path() -> PlannedPath {
+        PlannedPath::new(Point3::origin(), Point3::new(0.0, 0.0, 0.08)).unwrap()
+    }
+
+    fn input(path: &PlannedPath, tip: Point3<f64>, v: Vector3<f64>) -> GuideInput<'_> {
+        GuideInput {
+            tip_m: tip,
+            tip_velocity_m_s: v,
+            axis: Vector3::z(),
+            path,
+            breakthrough_depth_m: Some(0.01),
+            broken_through: false,
+            giving: false,
+        }
+    }
+
+    fn live(mode: GuidanceMode) -> Guide {
+        let mut g = Guide::new(GuidanceParams::default(), mode, 1.0);
+        g.set_target(Vector3::zeros());
+        for _ in 0..300 {
+            let p = path();
+            g.step(&input(&p, Point3::new(0.0, 0.0, 0.005), Vector3::zeros()), 1e-3);
+            g.set_target(Vector3::zeros());
+        }
+        g
+    }
+
+    #[test]
+    fn the_paper_cue_ramps_clamps_and_fades_out_when_the_model_goes_quiet() {
+        let p = GuidanceParams::default();
+        let path = path();
+        let at = input(&path, Point3::new(0.0, 0.0, 0.005), Vector3::zeros());
+        let mut m = Guide::new(p.clone(), GuidanceMode::Paper, 1.0);
+        let aimed = m.set_target(Vector3::new(5.0, 0.0, 0.0));
+        assert!((aimed.norm() - p.max_n).abs() < 1e-12, "the target as mixed is clamped: {aimed}");
+        let first = m.step(&at, 1e-3);
+        assert!((first.x - p.max_rate_n_per_s * 1e-3).abs() < 1e-12, "a step is a ramp: {first}");
+        let mut last = first;
+        for _ in 0..300 {
+            last = m.step(&at, 1e-3);
+        }
+        assert!((last.norm() - p.max_n).abs() < 1e-9, "clamped to max_n: {last}");
+        let mut prev = last.norm();
+        for _ in 0..1000 {
+            let now = m.step(&at, 1e-3).norm();
+            assert!(prev - now <= p.max_rate_n_per_s * 1e-3 + 1e-12);
+            prev = now;
+        }
+        assert!(!m.is_live() && prev < 1e-12, "faded out: {prev}");
+    }
+
+    #[test]
+    fn zero_gain_mixes_nothing_and_bad_gains_and_modes_are_refused() {
+        let path = path();
+        for mode in GuidanceMode::ALL {
+            let mut m = Guide::new(GuidanceParams::default(), mode, 0.0);
+            for _ in 0..500 {
+                m.set_target(Vector3::new(0.5, 0.5, -0.5));
+                let mut i = input(&path, Point3::new(0.004, 0.0, 0.0095), Vector3::new(0.0, 0.0, 0.05));
+                i.giving = true;
+                assert_eq!(m.step(&i, 1e-3), Vector3::zeros(), "{mode:?}");
+            }
+        }
+        assert!(check_gain(-0.1).is_err() && check_gain(f64::NAN).is_err() && check_gain(4.5).is_err());
+        assert_eq!(check_gain(0.5), Ok(0.5));
+        assert!(GuidanceMode::from_name("stiff").unwrap_err().to_string().contains("paper, corridor, brake, shaped"));
+        for m in GuidanceMode::ALL {
+            assert_eq!(GuidanceMode::from_name(m.name()), Ok(m));
+        }
+    }
+
+    #[test]
+    fn the_corridor_acts_only_across_the_axis_beyond_its_deadband_and_is_capped() {
+        let path = path();
+        let mut g = live(GuidanceMode::Corridor);
+        let p = g.params().clone();
+        let mut last = 0.0;
+        for off_mm in [0.0, 0.3, 0.5, 0.8, 1.5, 3.0, 10.0, 50.0] {
+            let tip = Point3::new(off_mm * 1e-3, 0.0, 0.02);
+            let f = g.step(&input(&path, tip, Vector3::new(0.0, 0.0, 0.003)), 1e-3);
+            g.set_target(Vector3::zeros());
+            assert!(f.z.abs() < 1e-12, "{off_mm} mm: a force {f} along the drill axis");
+            if off_mm * 1e-3 <= p.corridor_deadband_m {
+                assert_eq!(f, Vector3::zeros(), "{off_mm} mm is inside the deadband");
+            } else {
+                assert!(f.x < 0.0 && f.y.abs() < 1e-12, "{off_mm} mm: {f} does not point back to the line");
+                assert!(f.norm() >= last - 1e-12 && f.norm() <= p.max_n + 1e-12, "{off_mm} mm: {f}");
+            }
+            last = f.norm();
+        }
+        assert!((last - p.max_n).abs() < 1e-9, "far off the path the corridor is capped: {last}");
+    }
+
+    #[test]
+    fn the_brake_holds_at_once_never_pushes_forward_and_lets_go() {
+        let path = path();
+        let mut g = live(GuidanceMode::Brake);
+        let p = g.params().clone();
+        // The cortex gives at z = 10 mm; the tip surges on at 50 mm/s.
+        let mut z = 0.01;
+        let mut max_hold = 0.0_f64;
+        for tick in 0..2000 {
+            let mut i = input(&path, Point3::new(0.0, 0.0, z), Vector3::new(0.0, 0.0, 0.05));
+            i.giving = tick < 30;
+            let f = g.step(&i, 1e-3);
+            g.set_target(Vector3::zeros());
+            assert!(f.z <= 0.0, "tick {tick}: the brake pushed forward: {f}");
+            assert!(f.x == 0.0 && f.y == 0.0);
+            if tick == 1 {
+                assert!(f.z < -0.05, "no hold within 2 ms of the give: {f}");
+            }
+            max_hold = max_hold.max(-f.z);
+            z += 0.05e-3;
+        }
+        // The spring–damper's resistance grows as the tip runs on, under a cap that decays.
+        assert!(max_hold <= p.brake_hold_n + 1e-12 && max_hold > 0.6 * p.brake_hold_n, "hold {max_hold} N");
+        assert!(!g.is_braking(), "the hold is over after 2 s");
+        // And the model's axial cue passes only where it resists.
+        let mut i = input(&path, Point3::new(0.0, 0.0, 0.03), Vector3::zeros());
+        i.broken_through = true;
+        for _ in 0..300 {
+            g.set_target(Vector3::new(0.0, 0.0, 0.5)); // "push on"
+            assert!(g.step(&i, 1e-3).z <= 0.0);
+        }
+        for _ in 0..300 {
+            g.set_target(Vector3::new(0.0, 0.0, -0.5)); // "hold back"
+            g.step(&i, 1e-3);
+        }
+        assert!((g.share_n().z + 0.5).abs() < 1e-6, "{}", g.share_n());
+    }
+
+    #[test]
+    fn the_shaped_warning_ramps_up_before_the_predicted_breakthrough() {
+        let path = path();
+        let mut g = live(GuidanceMode::Shaped);
+        let p = g.params().clone();
+        let at = |g: &mut Guide, depth: f64, broken: bool| {
+            let mut i = input(&path, Point3::new(0.0, 0.0, depth), Vector3::zeros());
+            i.broken_through = broken;
+            let f = g.step(&i, 1e-3);
+            g.set_target(Vector3::zeros());
+            f.z
+        };
+        assert_eq!(at(&mut g, 0.008, false), 0.0);
+        let half = at(&mut g, 0.0095, false);
+        assert!((half + 0.5 * p.warning_n).abs() < 1e-9, "{half}");
+        assert!((at(&mut g, 0.0101, false) + p.warning_n).abs() < 1e-9);
+        assert_eq!(at(&mut g, 0.0101, true), 0.0, "once through, no warning");
+    }
+
+    #[test]
+    fn every_mode_fades_out_when_the_model_is_lost() {
+        let path = path();
+        for mode in GuidanceMode::ALL {
+            let mut g = live(mode);
+            g.set_target(Vector3::new(0.3, 0.0, -0.3));
+            let i = input(&path, Point3::new(0.003, 0.0, 0.0099), Vector3::zeros());
+            let on = g.step(&i, 1e-3);
+            assert!(on.norm() > 0.0, "{mode:?}");
+            let mut f = on;
+            for _ in 0..2000 {
+                f = g.step(&i, 1e-3);
+            }
+            assert!(!g.is_live() && f == Vector3::zeros(), "{mode:?}: {f}");
+        }
+    }
+}
