@@ -44,6 +44,7 @@ import numpy.typing as npt
 
 from dhg.errors import InvalidInputError
 from dhg.layers import Layer
+from dhg.protocol import WINDOW_RECORDS
 from dhg.session import DrillingSession
 from dhg.task import PlannedPath, TaskRules
 from dhg.volume import DrilledVolume, Volume
@@ -83,6 +84,8 @@ PUSH_MARGIN_N = 0.4
 """How much harder than the resistance they feel (N, one reaction delay ago) a subject pushes."""
 MAX_PUSH_N = 3.0
 """Most axial push any subject applies, however strongly a guidance cue asks for more (N)."""
+YIELD_SETTLE_S = 0.2
+"""How fast a surgeon who yields to the guidance settles onto what it asks (s)."""
 CUE_LEAK_PER_S = 0.2
 """How fast the lean a cue built up fades once the cue is gone (1/s): a remembered instruction
 fades, and a model biased in one direction cannot wind the push up for ever."""
@@ -271,7 +274,7 @@ class SurgeonController:
         self.style, self.rng, self.path = style, rng, path
         # "match": the paper's force-matching cue (lean into a cue that pushes back); "yield": a cue
         # that shapes the motion (corridor, brake, warning), so ease off where it resists.
-        self.cue_sign = -1.0 if cue_meaning == "match" else 1.0
+        self.yields = cue_meaning == "yield"
         # Where the plan says the cortex gives (tip depth, m); without a plan, ~3.5 mm of cortex and a 2.5 mm burr.
         self.breakthrough_depth_m = (
             GENERIC_BREAKTHROUGH_DEPTH_M if breakthrough_depth_m is None else float(breakthrough_depth_m)
@@ -398,7 +401,12 @@ class SurgeonController:
                 # Lean into the cue as perceived a reaction delay ago: a cue along -d (pushing the
                 # drill back) means the expert pressed harder.
                 cue_seen = self.cue_hist[max(0, tick - self.delay)]
-                self.lean += (self.cue_sign * style.cue_follow_per_s * cue_seen - CUE_LEAK_PER_S * self.lean) * dt
+                if self.yields:
+                    # Yielding: give way by what the cue asks, after the reaction delay (a hand
+                    # settling onto the new force within about 0.2 s), not more.
+                    self.lean += (cue_seen - self.lean) * dt / YIELD_SETTLE_S
+                else:
+                    self.lean += (-style.cue_follow_per_s * cue_seen - CUE_LEAK_PER_S * self.lean) * dt
             self.drill_on = not self.cooling
             if p_depth >= self.length - style.stop_margin_m:
                 self.phase, self.phase_t0 = "stop", t
@@ -469,33 +477,54 @@ def run_episode(
     attempt: int = 0,
     rules: TaskRules | None = None,
     keep_raw: bool = False,
+    predictor: Callable[[npt.NDArray[np.float64]], npt.ArrayLike] | None = None,
+    cue_meaning: Literal["match", "yield"] = "match",
 ) -> Episode:
     """Drills the session's planned path once with a surgeon of ``style``. The session is reset
-    first. Deterministic for the generator's state."""
+    first. Deterministic for the generator's state.
+
+    With a ``predictor`` (a window of the last 20 records' nine features, (20, 9), to the predicted
+    expert force (3,) in N; ``dhg.export.load_model(...).predict`` on one window), the model is
+    queried at every 10 Hz record, as ``dhg-serve`` queries it, and the session renders guidance
+    in whatever mode and gain it was given (:meth:`DrillingSession.set_guidance`); the window is
+    padded at the front with the first record until 20 exist, as the server pads it. Offline, the
+    reply is applied at once (the server's takes the model's latency, about 5–10 ms). The surgeon
+    feels the guidance and reads it as ``cue_meaning`` says (:class:`SurgeonController`)."""
     rules = rules or TaskRules()
     session.reset()
     native = session._s
     path: PlannedPath = session.path
     planned = planned_breakthrough_depth_m(session.volume, path, session.config.burr_radius_m)
-    surgeon = SurgeonController(path, style, rng, rules, breakthrough_depth_m=planned)
+    surgeon = SurgeonController(path, style, rng, rules, breakthrough_depth_m=planned, cue_meaning=cue_meaning)
     max_ticks = surgeon.max_ticks
     records: list[npt.NDArray[np.float64]] = []
     raw_poses = np.empty((max_ticks, 9)) if keep_raw else None
     raw_forces = np.empty((max_ticks, 3)) if keep_raw else None
     force = (0.0, 0.0, 0.0)
+    cue = (0.0, 0.0, 0.0)
     end_tick = max_ticks
+    window = np.empty((WINDOW_RECORDS, 9))
     for tick in range(max_ticks):
-        row = surgeon.step(native.feedback(), force)
+        row = surgeon.step(native.feedback(), force, cue)
         if row is None:
             end_tick = tick
             break
         f, record = native.tick(row)
         force = (float(f[0]), float(f[1]), float(f[2]))
+        if predictor is not None:
+            cue = native.guidance_share()
         if keep_raw:
             raw_poses[tick] = row
             raw_forces[tick] = force
         if record is not None:
             records.append(record)
+            if predictor is not None:
+                recent = records[-WINDOW_RECORDS:]
+                pad = WINDOW_RECORDS - len(recent)
+                window[:pad] = recent[0][1:10]
+                for i, r in enumerate(recent):
+                    window[pad + i] = r[1:10]
+                native.set_prediction(tuple(float(v) for v in np.asarray(predictor(window)).reshape(3)))
     rec = np.array(records) if records else np.empty((0, 11))
     st = session.state
     metrics = skill_metrics(
@@ -518,6 +547,7 @@ def run_episode(
         metrics=metrics,
         raw_poses=raw_poses[:end_tick] if keep_raw else None,
         raw_forces_n=raw_forces[:end_tick] if keep_raw else None,
+        extra={"reached_target": float(surgeon.phase == "done")},
     )
 
 

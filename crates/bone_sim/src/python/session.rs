@@ -244,6 +244,12 @@ impl PySession {
         )
     }
 
+    /// The guidance share of the last tick's force (N), as a tuple: cheap, for per-tick loops.
+    fn guidance_share(&self) -> (f64, f64, f64) {
+        let g = self.inner.state().guidance_n;
+        (g.x, g.y, g.z)
+    }
+
     /// The current state as a dict (SI units).
     fn state<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         state_dict(py, self.inner.state())
