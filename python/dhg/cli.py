@@ -511,7 +511,7 @@ def build_parser() -> argparse.ArgumentParser:
         "arm, offline through the 1 kHz core that dhg-serve runs (faster than real time), with the model in this "
         "process queried at every 10 Hz record. Arms: 'none' (the baseline, first) and the guidance modes "
         "paper, corridor, brake, shaped at gain 1 ('shaped@0.5' sets a gain). The same hands in every arm, so arms "
-        "are compared by paired differences against 'none': per metric, the mean difference and its 95 %% interval. "
+        "are compared by paired differences against 'none': per metric, the mean difference and its 95 % interval. "
         "Writes DIR/results.md (a Markdown table), DIR/results.json (every attempt's metrics) and DIR/study.png "
         "(the paired differences).\n\n"
         "  dhg study --out out/study --novices 20                      # seeds 1000..1019, every arm\n"
