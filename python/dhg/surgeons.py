@@ -65,6 +65,7 @@ __all__ = [
 ]
 
 Skill = Literal["expert", "novice"]
+CueMeaning = Literal["match", "yield", "felt"]
 
 HAND_MASS_KG = 0.4
 """Effective mass of hand and stylus (kg)."""
@@ -141,6 +142,10 @@ class SurgeonStyle:
     stiffness before the reaction stops it."""
     ease_fraction: float = 1.0
     """Fraction of the cortical push kept while easing off before the planned breakthrough."""
+    hand_mass_kg: float = HAND_MASS_KG
+    """Effective mass of hand, arm and stylus at the stylus tip (kg)."""
+    lateral_stiffness_n_per_m: float = LATERAL_STIFFNESS_N_PER_M
+    """How stiffly the arm holds the drill on its aim across the path (N/m)."""
 
     def to_dict(self) -> dict[str, float | str | bool]:
         """JSON-ready form."""
@@ -255,9 +260,10 @@ class SurgeonController:
     off :attr:`SurgeonStyle.anticipation_m` before it.
 
     ``cue_meaning`` is what the surgeon was told the guidance means: ``"match"`` (the paper's
-    force-matching cue: lean into a cue that pushes the drill back, ease off one that pulls it in)
-    or ``"yield"`` (guidance that shapes the motion, as the corridor, brake and shaped modes do:
-    ease off where it resists, go with it where it pulls).
+    force-matching cue: lean into a cue that pushes the drill back, ease off one that pulls it in),
+    ``"yield"`` (guidance that shapes the motion, as the corridor, brake and shaped modes do:
+    ease off where it resists, go with it where it pulls) or ``"felt"`` (nothing: the cue acts
+    on the hand only through the arm's impedance, as any other force does).
     """
 
     def __init__(
@@ -267,14 +273,15 @@ class SurgeonController:
         rng: np.random.Generator,
         rules: TaskRules | None = None,
         breakthrough_depth_m: float | None = None,
-        cue_meaning: Literal["match", "yield"] = "match",
+        cue_meaning: CueMeaning = "match",
     ) -> None:
-        if cue_meaning not in ("match", "yield"):
-            raise ValueError(f"cue_meaning must be 'match' or 'yield', got {cue_meaning!r}")
+        if cue_meaning not in ("match", "yield", "felt"):
+            raise ValueError(f"cue_meaning must be 'match', 'yield' or 'felt', got {cue_meaning!r}")
         self.style, self.rng, self.path = style, rng, path
         # "match": the paper's force-matching cue (lean into a cue that pushes back); "yield": a cue
         # that shapes the motion (corridor, brake, warning), so ease off where it resists.
         self.yields = cue_meaning == "yield"
+        self.reads_cue = cue_meaning != "felt"
         # Where the plan says the cortex gives (tip depth, m); without a plan, ~3.5 mm of cortex and a 2.5 mm burr.
         self.breakthrough_depth_m = (
             GENERIC_BREAKTHROUGH_DEPTH_M if breakthrough_depth_m is None else float(breakthrough_depth_m)
@@ -401,7 +408,9 @@ class SurgeonController:
                 # Lean into the cue as perceived a reaction delay ago: a cue along -d (pushing the
                 # drill back) means the expert pressed harder.
                 cue_seen = self.cue_hist[max(0, tick - self.delay)]
-                if self.yields:
+                if not self.reads_cue:
+                    pass  # felt only: the cue is in force_n, which the arm's impedance answers
+                elif self.yields:
                     # Yielding: give way by what the cue asks, after the reaction delay (a hand
                     # settling onto the new force within about 0.2 s), not more.
                     self.lean += (cue_seen - self.lean) * dt / YIELD_SETTLE_S
@@ -447,15 +456,16 @@ class SurgeonController:
             self.aim_s += style.feed_m_s * dt + (felt_s - self.aim_s) * dt / AIM_FOLLOW_S
             drive = push - style.arm_stiffness_n_per_m * max(self.s - self.aim_s, 0.0)
         damping = style.hand_damping_n_s_per_m
-        self.vs += (drive + f_ax - damping * self.vs) / HAND_MASS_KG * dt
+        mass, k_lat = style.hand_mass_kg, style.lateral_stiffness_n_per_m
+        self.vs += (drive + f_ax - damping * self.vs) / mass * dt
         aim_u = self.drift_u + style.tremor_m * math.sin(self.w_tremor * t + self.tremor_phase[0])
         aim_v = self.drift_v + style.tremor_m * math.sin(self.w_tremor * t + self.tremor_phase[1])
         if self.phase == "approach":
             frac = 1.0 - _min_jerk(t - self.phase_t0, self.approach_s)
             aim_u += self.u0 * frac
             aim_v += self.v0 * frac
-        self.vu += (LATERAL_STIFFNESS_N_PER_M * (aim_u - self.u) + f_u - damping * self.vu) / HAND_MASS_KG * dt
-        self.vv += (LATERAL_STIFFNESS_N_PER_M * (aim_v - self.v) + f_v - damping * self.vv) / HAND_MASS_KG * dt
+        self.vu += (k_lat * (aim_u - self.u) + f_u - damping * self.vu) / mass * dt
+        self.vv += (k_lat * (aim_v - self.v) + f_v - damping * self.vv) / mass * dt
         self.s += self.vs * dt
         self.u += self.vu * dt
         self.v += self.vv * dt
@@ -478,7 +488,7 @@ def run_episode(
     rules: TaskRules | None = None,
     keep_raw: bool = False,
     predictor: Callable[[npt.NDArray[np.float64]], npt.ArrayLike] | None = None,
-    cue_meaning: Literal["match", "yield"] = "match",
+    cue_meaning: CueMeaning = "match",
 ) -> Episode:
     """Drills the session's planned path once with a surgeon of ``style``. The session is reset
     first. Deterministic for the generator's state.
