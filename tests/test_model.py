@@ -237,3 +237,16 @@ def test_distributed_training_with_two_cpu_processes(data, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["epochs"] == 2 and (out / "model.ts").is_file()
     load_model(out / "model.ts").predict(np.zeros((1, 20, 9)))
+
+
+def test_a_trained_model_carries_the_experts_demonstration_profiles(run, data):
+    """dhg train stores the profiles of its dataset's experts in the model file, so a server
+    given the model has them (dhg.profiles)."""
+    from dhg.profiles import build_profiles
+
+    out, _ = run
+    p = load_model(out / "model.ts").profiles
+    assert p is not None and p.episodes == 2
+    assert p == build_profiles(load_dataset(data)), "the stored profiles are not the dataset's"
+    assert len(p.breakthrough_depths_m) == 2 and all(0 < b < 10e-3 for b in p.breakthrough_depths_m)
+    assert max(p.thrust_mean_n) > 0.5, "no thrust in the cortex"

@@ -246,6 +246,44 @@ def test_guidance_mode_and_gain_round_trip_through_control(server):
         assert 1e-3 < c.control("info")["planned_breakthrough_depth_m"] < 5e-3
 
 
+def test_fading_sets_each_attempts_gain_through_control(server):
+    """set_fading starts a per-trainee schedule: each reset after a drilled attempt sets the next
+    gain from its plunge and deviation, every probe_every-th attempt is guidance-free, and the
+    schedule is read back in the session info."""
+    _, endpoint = server
+    from dhg.errors import InvalidInputError
+
+    with TraineeClient(endpoint, "fading-1") as c:
+        a, d, q = _entry(c)
+        info = c.set_fading({"probe_every": 2, "forget": 0.5, "learn": 0.2})
+        f = info["fading"]
+        assert (f["attempts"], f["gain"], f["probe"], info["guidance_gain"]) == (0, 1.0, False, 1.0)
+        assert info["fading"]["params"]["plunge_tolerance_m"] == pytest.approx(1e-3), "defaults fill the rest"
+        assert c.control("reset")["fading"]["attempts"] == 0, "an attempt that never drilled does not count"
+
+        def attempt() -> dict:
+            # 0.3 s in the air before A: no plunge, no deviation inside the bone: error 0.
+            _stream(c, np.repeat((a - 10e-3 * d)[None, :], 300, axis=0), q)
+            _wait(lambda: c.metrics()["records"] >= 2, 10.0)
+            return c.control("reset")
+
+        info = attempt()  # assistance 0.5 · 1 + 0.2 · 0; attempt 2 is a probe
+        assert info["fading"]["attempts"] == 1 and info["fading"]["probe"]
+        assert info["guidance_gain"] == 0.0 and info["fading"]["assistance"] == pytest.approx(0.5)
+        info = attempt()
+        assert not info["fading"]["probe"] and info["guidance_gain"] == pytest.approx(0.25)
+        assert info["fading"]["last_error"] == pytest.approx(0.0)
+        with pytest.raises(InvalidInputError, match="forget"):
+            c.set_fading({"forget": 1.5})
+        with pytest.raises(InvalidInputError, match="unknown field"):
+            c.set_fading({"speed": 1})
+        with pytest.raises(InvalidInputError, match="needs"):
+            c.control("set_fading")
+        assert c.control("info")["fading"]["attempts"] == 2, "a refusal changed the schedule"
+        info = c.set_fading(enabled=False)
+        assert info["fading"] is None and info["guidance_gain"] == pytest.approx(0.25), "stopping keeps the gain"
+
+
 def test_a_trainee_gets_shaped_guidance_from_the_bundled_model(server):
     """A new session renders ``dhg-serve``'s default, shaped guidance, driven by the bundled model:
     a stylus 3 mm off the planned line is pulled back towards it, and nothing pushes it on along

@@ -1,4 +1,4 @@
-"""``dhg study``: paired arms offline, statistics, outputs (a 2 × 2 smoke run)."""
+"""``dhg study``: the protocol, paired arms offline, statistics, outputs (a 2 × 2 smoke run)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dhg.errors import InvalidInputError
-from dhg.study import ARMS, StudyResult, parse_arms
+from dhg.study import ARMS, Protocol, StudyResult, parse_arms, run_study
 
 
 def test_arms_parse_with_gains_and_refuse_nonsense():
@@ -20,7 +20,8 @@ def test_arms_parse_with_gains_and_refuse_nonsense():
         ("shaped@0.5", "shaped", 0.5),
         ("brake", "brake", 1.0),
     ]
-    assert set(ARMS) == {"none", "paper", "corridor", "brake", "shaped"}
+    assert set(ARMS) == {"none", "paper", "corridor", "brake", "shaped", "shaped-fading"}
+    assert ARMS["shaped-fading"].fading and ARMS["shaped-fading"].mode == "shaped"
     for bad, match in (
         ("stiff", "unknown arm"),
         ("shaped", "first arm"),
@@ -31,26 +32,37 @@ def test_arms_parse_with_gains_and_refuse_nonsense():
             parse_arms(bad)
 
 
+def _attempts(plunges_pre_train_post):
+    return [
+        [{"phase": ph, "plunge_depth_m": v} for ph, v in zip(("pre", "train", "post"), seed, strict=True)]
+        for seed in plunges_pre_train_post
+    ]
+
+
 def test_paired_statistics_are_per_seed_differences():
     arms = parse_arms("none,brake")
     r = StudyResult(
         arms,
         [1, 2, 3],
         {
-            "none": [{"plunge_depth_m": v} for v in (0.004, 0.006, 0.008)],
-            "brake": [{"plunge_depth_m": v} for v in (0.001, 0.002, 0.004)],
+            "none": _attempts([(0.005, 0.004, 0.003), (0.005, 0.006, 0.005), (0.009, 0.008, 0.004)]),
+            "brake": _attempts([(0.005, 0.001, 0.004), (0.005, 0.002, 0.006), (0.009, 0.004, 0.009)]),
         },
     )
-    mean, lo, hi = r.paired("brake", "plunge_depth_m")
-    d = np.array([-0.003, -0.004, -0.004])
-    assert mean == pytest.approx(d.mean())
     from scipy import stats
 
-    half = stats.t.ppf(0.975, 2) * d.std(ddof=1) / np.sqrt(3)
-    assert (lo, hi) == pytest.approx((d.mean() - half, d.mean() + half))
+    def interval(d):
+        half = stats.t.ppf(0.975, len(d) - 1) * d.std(ddof=1) / np.sqrt(len(d))
+        return d.mean(), d.mean() - half, d.mean() + half
+
+    # The first training attempt, paired with the unguided arm's.
+    assert r.paired("brake", "plunge_depth_m") == pytest.approx(interval(np.array([-0.003, -0.004, -0.004])))
+    # The post-test, paired likewise; and post − pre within an arm.
+    assert r.paired("brake", "plunge_depth_m", "post") == pytest.approx(interval(np.array([0.001, 0.001, 0.005])))
+    assert r.learning("none", "plunge_depth_m") == pytest.approx(interval(np.array([-0.002, 0.0, -0.005])))
 
 
-def test_a_study_smoke_run_writes_its_table_json_and_figure(tmp_path):
+def test_a_study_smoke_run_writes_its_tables_json_and_figure(tmp_path):
     out = tmp_path / "study"
     done = subprocess.run(
         [
@@ -63,9 +75,13 @@ def test_a_study_smoke_run_writes_its_table_json_and_figure(tmp_path):
             "--seeds",
             "3,4",
             "--arms",
-            "none,shaped",
+            "none,shaped-fading",
+            "--train",
+            "2",
+            "--probe-every",
+            "2",
             "--duration",
-            "40",
+            "30",
             "--workers",
             "2",
         ],
@@ -75,12 +91,30 @@ def test_a_study_smoke_run_writes_its_table_json_and_figure(tmp_path):
     )
     assert done.returncode == 0, done.stderr
     table = (out / "results.md").read_text()
-    assert "| none |" in table and "| shaped |" in table and "95 % interval" in table
+    assert "| none |" in table and "| shaped-fading |" in table and "95 % interval" in table
+    assert "Post-test" in table and "post-test − pre-test" in table
     data = json.loads((out / "results.json").read_text())
-    assert data["seeds"] == [3, 4] and set(data["metrics"]) == {"none", "shaped"}
-    assert len(data["metrics"]["shaped"]) == 2 and "plunge_depth_m" in data["metrics"]["shaped"][0]
-    assert "plunge_depth_m" in data["paired"]["shaped"]
+    assert data["seeds"] == [3, 4] and set(data["attempts"]) == {"none", "shaped-fading"}
+    assert data["operator"] == "impedance" and data["protocol"]["train"] == 2
+    for arm in ("none", "shaped-fading"):
+        for atts in data["attempts"][arm]:
+            assert [a["phase"] for a in atts] == ["pre", "train", "train", "post"]
+            assert atts[-1]["gain"] == 0.0 and "plunge_depth_m" in atts[-1]
+    # Both arms start from the same pre-test; the fading arm's second training attempt is a probe.
+    assert data["attempts"]["none"][0][0] == data["attempts"]["shaped-fading"][0][0]
+    for atts in data["attempts"]["shaped-fading"]:
+        assert (atts[1]["gain"], atts[2]["probe"], atts[2]["gain"]) == (1.0, True, 0.0)
+    assert all(a["gain"] == 0.0 for atts in data["attempts"]["none"] for a in atts)
+    assert "plunge_depth_m" in data["paired_post"]["shaped-fading"]
     assert (out / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_protocol_needs_training_and_an_operator_it_knows(tmp_path):
+    arms = parse_arms("none,shaped")
+    with pytest.raises(InvalidInputError, match="training attempt"):
+        run_study([1], arms, tmp_path / "m.ts", Protocol(train=0))
+    with pytest.raises(InvalidInputError, match="operator"):
+        run_study([1], arms, tmp_path / "m.ts", operator="robot")  # type: ignore[arg-type]
 
 
 def test_study_refuses_bad_arguments_with_exit_code_3(tmp_path):

@@ -506,18 +506,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "study",
-        help="do virtual novices drill better with guidance? paired arms, offline, with statistics",
-        description="Each novice seed (one hand: style, tremor, reaction, noise) drills the planned path once per "
-        "arm, offline through the 1 kHz core that dhg-serve runs (faster than real time), with the model in this "
-        "process queried at every 10 Hz record. Arms: 'none' (the baseline, first) and the guidance modes "
-        "paper, corridor, brake, shaped at gain 1 ('shaped@0.5' sets a gain). The same hands in every arm, so arms "
-        "are compared by paired differences against 'none': per metric, the mean difference and its 95 % interval. "
-        "Writes DIR/results.md (a Markdown table), DIR/results.json (every attempt's metrics) and DIR/study.png "
-        "(the paired differences).\n\n"
+        help="does guidance make virtual novices drill better, and learn? paired arms, offline, with statistics",
+        description="Each novice seed (one hand: style, tremor, reaction, noise) follows a protocol per arm, offline "
+        "through the 1 kHz core that dhg-serve runs (faster than real time), with the model in this process queried "
+        "at every 10 Hz record: a guidance-free pre-test (the same for every arm), --train attempts in the arm's "
+        "guidance, and a guidance-free post-test. The novice learns across attempts from the errors it experiences "
+        "(error-based learning with forgetting, Emken et al. 2007). Arms: 'none' (the baseline, first), the guidance "
+        "modes paper, corridor, brake, shaped at gain 1 ('shaped@0.5' sets a gain), and shaped-fading (the gain "
+        "follows the core's assist-as-needed schedule, with guidance-free probes). The same hands in every arm, so "
+        "arms are compared by paired differences against 'none', per metric the mean difference and its 95 % "
+        "interval: in the first training attempt (guidance's immediate effect) and in the post-test (what training "
+        "left); and post-test - pre-test within each arm. Operators (--operator): 'impedance', an arm that answers "
+        "every force through the mass, damping and stiffness measured at a haptic handle (van Beek et al. 2015) with "
+        "a 150-250 ms reaction, told nothing of the cue; 'instructed', the dhg synth novice who was told what the cue "
+        "means. Writes DIR/results.md (tables), DIR/results.json (every attempt) and DIR/study.png.\n\n"
         "  dhg study --out out/study --novices 20                      # seeds 1000..1019, every arm\n"
-        "  dhg study --out out/s --seeds 3,4 --arms none,brake,shaped@0.5\n\n"
-        "The virtual novice does not learn across attempts yet, so a study measures guidance's immediate effect, "
-        "not retention.",
+        "  dhg study --out out/s --seeds 3,4 --arms none,brake,shaped@0.5 --train 1 --operator instructed",
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -525,7 +529,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--novices", type=int, default=20, metavar="N", help="novices, seeds 1000..1000+N-1 (default 20)")
     p.add_argument("--seeds", metavar="S,S,...", help="novice seeds instead of --novices")
     p.add_argument(
-        "--arms", default="none,paper,corridor,brake,shaped", help="arms, comma-separated, 'none' first (default: all)"
+        "--arms",
+        default="none,paper,corridor,brake,shaped,shaped-fading",
+        help="arms, comma-separated, 'none' first (default: all)",
+    )
+    p.add_argument(
+        "--operator",
+        choices=("impedance", "instructed"),
+        default="impedance",
+        help="operator model (default impedance)",
+    )
+    p.add_argument("--train", type=int, default=3, metavar="N", help="guided training attempts per arm (default 3)")
+    p.add_argument(
+        "--probe-every",
+        type=int,
+        default=4,
+        metavar="N",
+        help="fading arms: every Nth training attempt is a guidance-free probe (default 4; 0: none)",
     )
     p.add_argument("--model", metavar="FILE.ts", help="TorchScript model (default: the bundled one)")
     p.add_argument("--duration", type=float, default=150.0, metavar="S", help="most seconds per attempt (default 150)")
@@ -542,7 +562,7 @@ def cmd_study(args: argparse.Namespace) -> int:
     import json
 
     from dhg.models import default_model_path
-    from dhg.study import parse_arms, run_study
+    from dhg.study import Protocol, parse_arms, run_study
 
     arms = parse_arms(args.arms)
     if args.seeds:
@@ -557,15 +577,17 @@ def cmd_study(args: argparse.Namespace) -> int:
     model = Path(args.model) if args.model else default_model_path()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    prog, update = _progress(f"{len(seeds)} novices x {len(arms)} arms")
+    protocol = Protocol(train=args.train, duration_s=args.duration, probe_every=args.probe_every)
+    prog, update = _progress(f"{len(seeds)} novices x {len(arms)} arms x {args.train + 2} attempts")
     t0 = time.perf_counter()
     with prog:
-        result = run_study(seeds, arms, model, args.duration, args.workers, progress=update)
+        result = run_study(seeds, arms, model, protocol, args.operator, args.workers, progress=update)
     table = result.markdown()
     header = (
-        f"{len(seeds)} virtual novices (seeds {seeds[0]}..{seeds[-1]}), one attempt per arm of at most "
-        f"{args.duration:g} s, model {model.name}. Each guided cell: mean (paired difference with 'none' "
-        "[95 % interval]).\n\n"
+        f"{len(seeds)} virtual novices (seeds {seeds[0]}..{seeds[-1]}), {args.operator} operator, model "
+        f"{model.name}; per arm a guidance-free pre-test, {args.train} training attempts in the arm's guidance and a "
+        f"guidance-free post-test, each of at most {args.duration:g} s. Each guided cell: mean (paired difference "
+        "with 'none' [95 % interval]).\n\n"
     )
     (out / "results.md").write_text(header + table)
     (out / "results.json").write_text(json.dumps(result.to_json(), indent=1))

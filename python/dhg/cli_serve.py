@@ -8,6 +8,7 @@ server answered).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import signal
@@ -207,6 +208,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             raise ModelFileError(f"{model_file}: no such model file (train one with 'dhg train', or omit --model)")
         model = load_model(model_file, device=args.device)
         described.append(f"model {model.meta.get('preset', '?')} from {model_file} on {model.device}")
+        profiles = model.profiles
+        if profiles is not None and args.role == "all":
+            # The corridor follows the experts' spread along the path (dhg.profiles).
+            profile = (profiles.bin_m, tuple(profiles.corridor_n_per_m))
+            options = dataclasses.replace(options, settings=dataclasses.replace(settings, corridor_profile=profile))
+            described.append(f"corridor from {profiles.episodes} expert demonstrations")
     if args.role in ("all", "sim"):
         from dhg.cli import _load_volume
 

@@ -204,7 +204,7 @@ class TraineeClient:
         return json.loads(body)
 
     def control(self, op: str, timeout_s: float = 2.0, **fields: Any) -> dict[str, Any]:
-        """Sends a control request (``op``: create, reset, set_path, set_guidance, set_drill, close,
+        """Sends a control request (``op``: create, reset, set_path, set_guidance, set_fading, set_drill, close,
         info) and returns the session info. A refusal raises with the server's reason: a bad value
         as :class:`InvalidInputError`, an unknown session or a full server as :class:`EngineError`."""
         return self._json(self.keys["control"], {"op": op, **fields}, timeout_s)
@@ -239,6 +239,13 @@ class TraineeClient:
         if mode is not None:
             fields["mode"] = str(mode)
         return self.control("set_guidance", **fields)
+
+    def set_fading(self, params: dict[str, Any] | None = None, *, enabled: bool = True) -> dict[str, Any]:
+        """Fades this session's guidance gain over its attempts (each ``reset`` after a drilled
+        attempt sets the next gain from its plunge and deviation; every ``probe_every``-th
+        attempt is guidance-free); ``params`` overrides the server's defaults, ``enabled=False``
+        stops fading. The reply's ``fading`` holds the schedule (``docs/protocol.md``)."""
+        return self.control("set_fading", fading=(params or {}) if enabled else None)
 
     def set_drill(self, burr_radius_m: float) -> dict[str, Any]:
         """Swaps this session's burr for one of ``burr_radius_m`` (m, at most 0.02), as a surgeon

@@ -53,9 +53,14 @@ def _quiet_jit() -> Iterator[None]:
 
 
 def export_model(
-    predictor: ForcePredictor, cfg: ModelConfig, metrics: dict[str, Any], path: str | os.PathLike[str]
+    predictor: ForcePredictor,
+    cfg: ModelConfig,
+    metrics: dict[str, Any],
+    path: str | os.PathLike[str],
+    profiles: dict[str, Any] | None = None,
 ) -> Path:
-    """Scripts ``predictor`` and writes it with its metadata to ``path`` (atomically)."""
+    """Scripts ``predictor`` and writes it with its metadata to ``path`` (atomically);
+    ``profiles`` (:meth:`dhg.profiles.DemoProfiles.to_dict`) go into the metadata too."""
     meta = {
         "format": MODEL_FORMAT,
         "version": MODEL_VERSION,
@@ -73,6 +78,8 @@ def export_model(
         "data": metrics.get("data", {}),
         "metrics": {k: metrics[k] for k in ("train", "val", "test", "samples", "epochs") if k in metrics},
     }
+    if profiles is not None:
+        meta["profiles"] = profiles
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
     with _quiet_jit():
@@ -126,6 +133,15 @@ class GuidanceModel:
         """Records ahead of the window's last that the prediction is for (1: the next record,
         0.1 s; models from before this setting predict the next record)."""
         return int(self.meta.get("horizon_records", 1))
+
+    @property
+    def profiles(self) -> Any:
+        """The demonstration profiles stored with the model (:class:`dhg.profiles.DemoProfiles`),
+        or None for a model trained before they were stored, or on data without a planned path."""
+        from dhg.profiles import DemoProfiles
+
+        d = self.meta.get("profiles")
+        return None if d is None else DemoProfiles.from_dict(d)
 
     def predict(self, windows: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Expert force (B, 3) in N for windows (B, window, 9) or one window (window, 9), in the

@@ -297,9 +297,11 @@ class SessionRecorder(_FlushLoop):
                 )
                 if ep.jerk_count:  # the device force at 1 kHz, as a virtual surgeon's raw stream gives it
                     metrics["force_jerk_n_per_s"] = math.sqrt(ep.jerk_sum / ep.jerk_count)
+            # The gain the attempt was drilled at (a fading schedule sets it per attempt; 0 on a probe).
+            metrics["guidance_gain"] = float(last.get("guidance_gain", 0.0))
             inputs.append(EpisodeInput(self.subject_id, self.skill, attempt, records, metrics))
         if inputs:  # the paper trains on each subject's best attempt
-            scored = [i for i, ep in enumerate(inputs) if ep.metrics]
+            scored = [i for i, ep in enumerate(inputs) if "completed" in ep.metrics]
             best = min(scored, key=lambda i: attempt_score(inputs[i].metrics)) if scored else len(inputs) - 1
             inputs[best].best_of_subject = True
         card: dict[str, Any] = {

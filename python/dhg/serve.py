@@ -72,6 +72,9 @@ class ServerSettings:
     """Fastest change of the guidance share (N/s): a lost model fades out over ~0.1 s."""
     guidance_timeout_s: float = 0.35
     """A model answer older than this is dropped and guidance fades out (s)."""
+    corridor_profile: tuple[float, tuple[float, ...]] | None = None
+    """The corridor's stiffness along A→B: (bin width (m), stiffness per bin (N/m)), from a model's
+    demonstration profiles (:mod:`dhg.profiles`); None: the fixed 400 N/m."""
     wait: str = "sleep"
     """How the 1 kHz tick thread and the force publisher wait: ``"sleep"`` (idle cores stay idle),
     or ``"spin"`` (while a session is open each keeps a core at 100 %, so no wake-up latency is added
@@ -312,6 +315,9 @@ def start_engine(
         session=flat,
         wait=s.wait,
         guidance_mode=s.guidance_mode,
+        corridor_profile=None
+        if s.corridor_profile is None
+        else (float(s.corridor_profile[0]), [float(k) for k in s.corridor_profile[1]]),
     )
 
 

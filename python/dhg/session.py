@@ -10,6 +10,7 @@ for one.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Literal
 
@@ -317,6 +318,32 @@ class DrillingSession:
     def guidance(self) -> tuple[str, float]:
         """The guidance (mode, gain)."""
         return self._s.guidance()
+
+    def set_corridor_profile(self, bin_m: float, stiffness_n_per_m: Sequence[float]) -> None:
+        """The corridor's stiffness per depth bin of ``bin_m`` (m) along A→B (N/m; the last bin
+        holds beyond B), as :mod:`dhg.profiles` derives it from the experts' lateral spread; an
+        empty sequence restores the fixed 400 N/m."""
+        self._s.set_corridor_profile(float(bin_m), [float(k) for k in stiffness_n_per_m])
+
+    def set_fading(self, params: dict[str, Any] | None = None, *, enabled: bool = True) -> None:
+        """Fades the guidance gain over attempts, assisting as needed
+        (``crates/bone_sim/src/guidance.rs``, ``Fading``): each :meth:`reset` after a drilled
+        attempt sets the next attempt's gain from its largest plunge and lateral deviation, and
+        every ``probe_every``-th attempt is guidance-free. ``params`` overrides the core's
+        defaults (``start_gain``, ``max_gain``, ``forget``, ``learn``, ``plunge_tolerance_m``,
+        ``deviation_tolerance_m`` (m), ``probe_every``); ``enabled=False`` stops fading."""
+        import json
+
+        self._s.set_fading(json.dumps(params or {}) if enabled else None)
+
+    @property
+    def fading(self) -> dict[str, Any] | None:
+        """The fading schedule (params, attempts, assistance, this attempt's gain, probe,
+        last_error), or None when the gain does not fade."""
+        import json
+
+        text = self._s.fading()
+        return None if text is None else json.loads(text)
 
     def set_prediction(self, predicted_n: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """A model reply: the predicted expert force (N, world frame). Returns the paper's guidance

@@ -1,16 +1,23 @@
-"""Guidance studies: do virtual novices drill better with guidance? (``dhg study``)
+"""Guidance studies: do virtual novices drill better with guidance, and do they learn? (``dhg study``)
 
-Each novice (a seed: one hand, :func:`dhg.surgeons.sample_style`) drills the planned path once per
-arm, offline through the core (the same 1 kHz session code ``dhg-serve`` runs, faster than real
-time) with the model in-process, queried at every 10 Hz record. An arm is a guidance mode at a
-gain, or none. Because every arm sees the same hands with the same noise, arms are compared with
-paired differences against the unguided arm: per metric, the mean difference and its 95 %
-interval (Student's t over the novices).
+Each novice (a seed: one hand, :func:`dhg.surgeons.sample_style`, as one operator model of
+:mod:`dhg.operators`) follows a protocol per arm, offline through the core (the same 1 kHz
+session code ``dhg-serve`` runs, faster than real time) with the model in-process, queried at
+every 10 Hz record:
 
-The operator is :class:`dhg.surgeons.SurgeonController`: it feels the rendered force, guidance
-included, and is told what the cue means (it leans into the paper's cue, yields to the others).
-It does not learn across attempts yet, so each arm is one attempt and there is no pre/post-test
-protocol: the study measures the guidance's immediate effect, not retention.
+1. a guidance-free **pre-test** (one attempt; the same for every arm, so it is run once);
+2. ``train`` **training** attempts in the arm's guidance; the ``shaped-fading`` arm's gain follows
+   the core's assist-as-needed schedule (:meth:`dhg.DrillingSession.set_fading`), its probes
+   guidance-free;
+3. a guidance-free **post-test**.
+
+An arm is a guidance mode at a gain, or none. The trainee learns across the attempts
+(:class:`dhg.operators.Learner`, after Emken et al. 2007) from the errors it experiences, so
+guidance that hides the errors can also hide what there is to learn. Because every arm sees the
+same hands with the same noise, arms are compared with paired differences against the unguided
+arm, per metric the mean difference and its 95 % interval (Student's t over the novices): in the
+first training attempt (guidance's immediate effect, from the same learned state in every arm)
+and in the post-test (what the training left); and within each arm, post-test − pre-test.
 """
 
 from __future__ import annotations
@@ -26,22 +33,52 @@ from typing import Any
 import numpy as np
 
 from dhg.errors import InvalidInputError
+from dhg.operators import OPERATORS, Operator
 from dhg.session import GUIDANCE_MODES
 
-__all__ = ["ARMS", "METRICS", "Arm", "StudyResult", "parse_arms", "run_study"]
+__all__ = ["ARMS", "METRICS", "PHASES", "Arm", "Protocol", "StudyResult", "parse_arms", "run_study"]
 
 
 @dataclass(frozen=True)
 class Arm:
-    """One way of drilling: a guidance mode at a gain, or ``mode=None`` for no guidance."""
+    """One way of training: a guidance mode at a gain, or ``mode=None`` for no guidance;
+    ``fading``: the gain follows the core's assist-as-needed schedule from ``gain``."""
 
     name: str
     mode: str | None
     gain: float = 1.0
+    fading: bool = False
 
 
-ARMS: dict[str, Arm] = {"none": Arm("none", None, 0.0)} | {m: Arm(m, m) for m in GUIDANCE_MODES}
-"""The arms ``dhg study`` knows: ``none`` and one per guidance mode at gain 1."""
+ARMS: dict[str, Arm] = (
+    {"none": Arm("none", None, 0.0)}
+    | {m: Arm(m, m) for m in GUIDANCE_MODES}
+    | {"shaped-fading": Arm("shaped-fading", "shaped", 1.0, fading=True)}
+)
+"""The arms ``dhg study`` knows: ``none``, one per guidance mode at gain 1, and ``shaped-fading``."""
+
+PHASES = ("pre", "train", "post")
+"""The protocol's phases."""
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """Attempts per novice and arm: one guidance-free pre-test, ``train`` guided attempts, one
+    guidance-free post-test; at most ``duration_s`` (s) each."""
+
+    train: int = 3
+    duration_s: float = 150.0
+    probe_every: int = 4
+    """For fading arms: every this many training attempts one is a guidance-free probe."""
+
+    def validate(self) -> None:
+        if self.train < 1:
+            raise InvalidInputError(f"a protocol needs at least one training attempt, got {self.train}")
+        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
+            raise InvalidInputError(f"duration must be positive, got {self.duration_s}")
+        if self.probe_every < 0:
+            raise InvalidInputError(f"probe_every must be 0 (none) or more, got {self.probe_every}")
+
 
 METRICS: tuple[tuple[str, str, float, bool], ...] = (
     ("plunge_depth_m", "plunge (mm)", 1e3, True),
@@ -80,75 +117,105 @@ def parse_arms(text: str) -> list[Arm]:
     return arms
 
 
+Attempt = dict[str, Any]
+"""One attempt: ``phase`` (pre, train, post), ``index`` (0.. in the protocol), ``gain`` (the gain
+it was drilled at), ``probe`` (a fading probe), and the skill metrics (SI units)."""
+
+
 @dataclass
 class StudyResult:
-    """Per arm and novice, the skill metrics; and the paired statistics against the first arm."""
+    """Per arm and novice, every attempt of the protocol; paired statistics against the first arm."""
 
     arms: list[Arm]
     seeds: list[int]
-    metrics: dict[str, list[dict[str, float]]]
-    """Arm name → one metrics dict per seed, in ``seeds`` order."""
+    attempts: dict[str, list[list[Attempt]]]
+    """Arm name → per seed (in ``seeds`` order) its attempts in protocol order (the shared
+    pre-test first)."""
+    operator: str = "impedance"
+    protocol: Protocol = dataclasses.field(default_factory=Protocol)
 
-    def values(self, arm: str, key: str) -> np.ndarray:
-        return np.array([float(m[key]) for m in self.metrics[arm]])
+    def values(self, arm: str, key: str, phase: str = "train", which: int = 0) -> np.ndarray:
+        """Per seed, ``key`` of the ``which``-th attempt of ``phase`` (-1: the last)."""
+        return np.array([float([a for a in atts if a["phase"] == phase][which][key]) for atts in self.attempts[arm]])
 
-    def paired(self, arm: str, key: str) -> tuple[float, float, float]:
-        """Mean of (arm − baseline) over the novices and its 95 % interval (Student's t)."""
-        from scipy import stats
+    def paired(self, arm: str, key: str, phase: str = "train") -> tuple[float, float, float]:
+        """Mean over the novices of (arm − baseline) in the first attempt of ``phase``, and its 95 %
+        interval (Student's t)."""
+        return _t_interval(self.values(arm, key, phase) - self.values(self.arms[0].name, key, phase))
 
-        d = self.values(arm, key) - self.values(self.arms[0].name, key)
-        if len(d) < 2:
-            return float(d.mean()), float("nan"), float("nan")
-        half = stats.t.ppf(0.975, len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d))
-        return float(d.mean()), float(d.mean() - half), float(d.mean() + half)
+    def learning(self, arm: str, key: str) -> tuple[float, float, float]:
+        """Mean of post-test − pre-test within ``arm``, and its 95 % interval."""
+        return _t_interval(self.values(arm, key, "post") - self.values(arm, key, "pre"))
 
     def markdown(self) -> str:
-        """A table: per arm, each metric's mean and, for guided arms, the paired difference with
-        its 95 % interval."""
-        head = "| arm | " + " | ".join(label for _, label, _, _ in METRICS) + " |"
-        lines = [head, "|---|" + "---:|" * len(METRICS)]
+        """Three tables: the first training attempt (guidance's immediate effect) and the
+        post-test, each per arm the mean and, for guided arms, the paired difference with 'none'
+        [95 % interval]; then post − pre within each arm."""
         base = self.arms[0].name
+        out = []
+        for title, phase in (
+            ("First training attempt (guidance on; the same learned state in every arm)", "train"),
+            ("Post-test (guidance off, after training)", "post"),
+        ):
+            out += [f"**{title}**", "", _head(), _rule()]
+            for arm in self.arms:
+                cells = []
+                for key, _, scale, _ in METRICS:
+                    mean = self.values(arm.name, key, phase).mean() * scale
+                    if arm.name == base:
+                        cells.append(f"{mean:.2f}")
+                    else:
+                        d, lo, hi = (v * scale for v in self.paired(arm.name, key, phase))
+                        cells.append(f"{mean:.2f} ({d:+.2f} [{lo:+.2f}, {hi:+.2f}])")
+                out.append(f"| {arm.name} | " + " | ".join(cells) + " |")
+            out.append("")
+        out += ["**Learning: post-test − pre-test within each arm**", "", _head(), _rule()]
         for arm in self.arms:
             cells = []
             for key, _, scale, _ in METRICS:
-                mean = self.values(arm.name, key).mean() * scale
-                if arm.name == base:
-                    cells.append(f"{mean:.2f}")
-                else:
-                    d, lo, hi = (v * scale for v in self.paired(arm.name, key))
-                    cells.append(f"{mean:.2f} ({d:+.2f} [{lo:+.2f}, {hi:+.2f}])")
-            lines.append(f"| {arm.name} | " + " | ".join(cells) + " |")
-        return "\n".join(lines) + "\n"
+                d, lo, hi = (v * scale for v in self.learning(arm.name, key))
+                cells.append(f"{d:+.2f} [{lo:+.2f}, {hi:+.2f}]")
+            out.append(f"| {arm.name} | " + " | ".join(cells) + " |")
+        return "\n".join(out) + "\n"
 
     def to_json(self) -> dict[str, Any]:
+        keys = [k for k, _, _, _ in METRICS]
         return {
+            "operator": self.operator,
+            "protocol": dataclasses.asdict(self.protocol),
             "arms": [dataclasses.asdict(a) for a in self.arms],
             "seeds": self.seeds,
-            "metrics": self.metrics,
-            "paired": {
-                a.name: {k: self.paired(a.name, k) for k, _, _, _ in METRICS} for a in self.arms[1:]
-            },
+            "attempts": self.attempts,
+            "paired_first_training": {a.name: {k: self.paired(a.name, k) for k in keys} for a in self.arms[1:]},
+            "paired_post": {a.name: {k: self.paired(a.name, k, "post") for k in keys} for a in self.arms[1:]},
+            "learning": {a.name: {k: self.learning(a.name, k) for k in keys} for a in self.arms},
         }
 
     def plot(self, path: str | Path) -> Path:
-        """Paired differences (arm − none) with 95 % intervals, one panel per metric."""
+        """Paired differences (arm − none) with 95 % intervals, per metric: the first training
+        attempt (filled) and the post-test (hatched)."""
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
         shown = [m for m in METRICS if m[0] != "reached_target"]
-        fig, axes = plt.subplots(1, len(shown), figsize=(3.0 * len(shown), 3.6))
+        fig, axes = plt.subplots(1, len(shown), figsize=(3.0 * len(shown), 3.8))
         names = [a.name for a in self.arms[1:]]
-        for ax, (key, label, scale, _) in zip(axes, shown, strict=True):
-            stats = [self.paired(n, key) for n in names]
-            d = np.array([s[0] for s in stats]) * scale
-            err = np.array([[s[0] - s[1], s[2] - s[0]] for s in stats]).T * scale
-            ax.bar(range(len(names)), d, yerr=err, capsize=4, color="#4c72b0")
+        x = np.arange(len(names))
+        for ax, (key, label, scale, _) in zip(np.atleast_1d(axes), shown, strict=True):
+            for phase, dx, style in (("train", -0.2, {"color": "#4c72b0"}), ("post", 0.2, {"color": "#dd8452"})):
+                stats = [self.paired(n, key, phase) for n in names]
+                d = np.array([s[0] for s in stats]) * scale
+                err = np.nan_to_num(np.array([[s[0] - s[1], s[2] - s[0]] for s in stats]).T * scale)
+                ax.bar(x + dx, d, 0.4, yerr=err, capsize=3, label=phase, **style)
             ax.axhline(0.0, color="black", lw=0.8)
-            ax.set_xticks(range(len(names)), names, rotation=45, ha="right")
+            ax.set_xticks(x, names, rotation=45, ha="right")
             ax.set_title(f"Δ {label}", fontsize=9)
-        fig.suptitle(f"Guided − unguided, {len(self.seeds)} virtual novices (mean, 95 % interval)")
+        np.atleast_1d(axes)[0].legend(["guided (1st training)", "post-test"], fontsize=7)
+        fig.suptitle(
+            f"Arm − unguided, {len(self.seeds)} virtual novices ({self.operator} operator; mean, 95 % interval)"
+        )
         fig.tight_layout()
         out = Path(path)
         fig.savefig(out, dpi=110)
@@ -156,74 +223,143 @@ class StudyResult:
         return out
 
 
+def _head() -> str:
+    return "| arm | " + " | ".join(label for _, label, _, _ in METRICS) + " |"
+
+
+def _rule() -> str:
+    return "|---|" + "---:|" * len(METRICS)
+
+
+def _t_interval(d: np.ndarray) -> tuple[float, float, float]:
+    from scipy import stats
+
+    if len(d) < 2:
+        return float(d.mean()), float("nan"), float("nan")
+    half = stats.t.ppf(0.975, len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d))
+    return float(d.mean()), float(d.mean() - half), float(d.mean() + half)
+
+
 # -- the work, in worker processes --------------------------------------------------------------
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(model_path: str, voxel_m: float, duration_s: float) -> None:
+def _init_worker(model_path: str, voxel_m: float) -> None:
     import torch
 
     from dhg import default_phantom
     from dhg.export import load_model
 
     torch.set_num_threads(1)
-    phantom = default_phantom(voxel_m=voxel_m)
-    _WORKER.update(phantom=phantom, model=load_model(model_path), duration_s=duration_s)
+    _WORKER.update(phantom=default_phantom(voxel_m=voxel_m), model=load_model(model_path))
 
 
-def _attempt(job: tuple[int, Arm]) -> tuple[int, str, dict[str, float]]:
+def _attempts(
+    job: tuple[int, Arm | None, Operator, Protocol, dict[str, float] | None],
+) -> tuple[int, str, list[Attempt]]:
+    """One novice's attempts: the pre-test alone (``arm`` None), or an arm's training and post-test
+    after the pre-test whose learned state (``learned``) it starts from."""
+    from dhg.operators import Learner, cue_meaning, operator_style
     from dhg.session import DrillingSession
     from dhg.surgeons import run_episode, sample_style
     from dhg.task import TaskRules
 
-    seed, arm = job
+    seed, arm, operator, protocol, learned = job
     phantom, model = _WORKER["phantom"], _WORKER["model"]
     session = DrillingSession(phantom.volume, phantom.path)
-    session.set_guidance(arm.mode or "paper", arm.gain if arm.mode else 0.0)
-    style = sample_style("novice", np.random.default_rng([seed, 1]))
-    rng = np.random.default_rng([seed, 1, 1])
-    rules = TaskRules(max_duration_s=_WORKER["duration_s"])
-    predictor = (lambda w: model.predict(w)[0]) if arm.mode else None
-    cue = "match" if arm.mode == "paper" else "yield"
-    ep = run_episode(session, style, rng, f"n{seed}", 0, rules, predictor=predictor, cue_meaning=cue)
-    metrics = {k: float(v) for k, v in ep.metrics.items()} | {k: float(v) for k, v in ep.extra.items()}
-    return seed, arm.name, metrics
+    profiles = model.profiles
+    if profiles is not None:  # the corridor follows the experts' spread, as dhg-serve --model does
+        session.set_corridor_profile(profiles.bin_m, profiles.corridor_n_per_m)
+    base = operator_style(
+        sample_style("novice", np.random.default_rng([seed, 1])), operator, np.random.default_rng([seed, 2])
+    )
+    learner = Learner(**(learned or {}))
+    rules = TaskRules(max_duration_s=protocol.duration_s)
+
+    def attempt(index: int, phase: str, mode: str | None, gain: float) -> Attempt:
+        probe = False
+        if phase == "train" and arm is not None and arm.fading:
+            session.reset()  # ends the last attempt in the schedule (run_episode's reset then counts none)
+            fading = session.fading
+            assert fading is not None
+            gain, probe = fading["gain"], fading["probe"]
+        else:
+            session.set_guidance(mode or "paper", gain if mode else 0.0)
+        guided = mode is not None
+        predictor = (lambda w: model.predict(w)[0]) if guided else None
+        rng = np.random.default_rng([seed, 1, 1, index])
+        cue = cue_meaning(operator, mode if guided else None)
+        ep = run_episode(
+            session, learner.style(base), rng, f"n{seed}", index, rules, predictor=predictor, cue_meaning=cue
+        )
+        m = {k: float(v) for k, v in ep.metrics.items()} | {k: float(v) for k, v in ep.extra.items()}
+        learner.update(m["plunge_depth_m"], m["max_deviation_m"])
+        return {"phase": phase, "index": index, "gain": float(gain) if guided else 0.0, "probe": probe} | m
+
+    if arm is None:
+        pre = attempt(0, "pre", None, 0.0)
+        pre["learned"] = dataclasses.asdict(learner)
+        return seed, "pre", [pre]
+    out = []
+    if arm.mode is not None:
+        session.set_guidance(arm.mode, arm.gain)
+        if arm.fading:
+            session.set_fading(
+                {"start_gain": arm.gain, "max_gain": max(arm.gain, 1.0), "probe_every": protocol.probe_every}
+            )
+    for k in range(protocol.train):
+        out.append(attempt(1 + k, "train", arm.mode, arm.gain))
+    session.set_fading(enabled=False)
+    out.append(attempt(1 + protocol.train, "post", None, 0.0))
+    return seed, arm.name, out
 
 
 def run_study(
     seeds: Sequence[int],
     arms: Sequence[Arm],
     model_path: str | Path,
-    duration_s: float = 150.0,
+    protocol: Protocol | None = None,
+    operator: Operator = "impedance",
     workers: int = 2,
     voxel_m: float = 0.5e-3,
     progress: Callable[[int, int], None] | None = None,
 ) -> StudyResult:
-    """Runs every novice in every arm (see the module docs) and returns the metrics."""
+    """Runs the protocol for every novice in every arm (see the module docs)."""
+    protocol = protocol or Protocol()
+    protocol.validate()
     if not seeds:
         raise InvalidInputError("a study needs at least one novice seed")
-    if not (math.isfinite(duration_s) and duration_s > 0):
-        raise InvalidInputError(f"duration must be positive, got {duration_s}")
+    if operator not in OPERATORS:
+        raise InvalidInputError(f"operator must be one of {', '.join(OPERATORS)}, got {operator!r}")
     if workers < 1:
         raise InvalidInputError(f"workers must be at least 1, got {workers}")
-    jobs = [(int(s), a) for s in seeds for a in arms]
-    out: dict[str, dict[int, dict[str, float]]] = {a.name: {} for a in arms}
-    init = (str(model_path), voxel_m, duration_s)
+    seeds = [int(s) for s in seeds]
+    total = len(seeds) * (1 + len(arms) * (protocol.train + 1))
     done = 0
+    init = (str(model_path), voxel_m)
+
+    def run(pool_map: Callable[..., Any], jobs: list[Any]) -> list[Any]:
+        nonlocal done
+        results = []
+        for seed, name, atts in pool_map(_attempts, jobs):
+            results.append((seed, name, atts))
+            done += len(atts)
+            if progress:
+                progress(done, total)
+        return results
+
+    def both(pool_map: Callable[..., Any]) -> list[Any]:
+        pre = {seed: atts[0] for seed, _, atts in run(pool_map, [(s, None, operator, protocol, None) for s in seeds])}
+        jobs = [(s, a, operator, protocol, pre[s]["learned"]) for s in seeds for a in arms]
+        return [(seed, name, [pre[seed], *atts]) for seed, name, atts in run(pool_map, jobs)]
+
     if workers == 1:
         _init_worker(*init)
-        results = map(_attempt, jobs)
-        for seed, name, m in results:
-            out[name][seed] = m
-            done += 1
-            if progress:
-                progress(done, len(jobs))
+        results = both(map)
     else:
         with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init) as pool:
-            for seed, name, m in pool.map(_attempt, jobs):
-                out[name][seed] = m
-                done += 1
-                if progress:
-                    progress(done, len(jobs))
-    seeds = [int(s) for s in seeds]
-    return StudyResult(list(arms), seeds, {a: [out[a][s] for s in seeds] for a in out})
+            results = both(pool.map)
+    by: dict[str, dict[int, list[Attempt]]] = {a.name: {} for a in arms}
+    for seed, name, atts in results:
+        by[name][seed] = atts
+    return StudyResult(list(arms), seeds, {a: [by[a][s] for s in seeds] for a in by}, operator, protocol)

@@ -277,7 +277,7 @@ def train(
         with torch.no_grad():
             predicted = predictor(test_x).numpy()
         plot_forces(y[split.test][:1000, 0:3].numpy(), predicted, run / "forces.png", title=f"{mcfg.preset}: test set")
-        export_model(predictor, mcfg, metrics, run / "model.ts")
+        export_model(predictor, mcfg, metrics, run / "model.ts", profiles=_profiles(ds))
         # Last: a run with metrics.json is finished (dhg ablate reuses it), so it must have the rest.
         tmp = run / "metrics.json.tmp"
         tmp.write_text(json.dumps(metrics, indent=1))
@@ -312,3 +312,14 @@ def _evaluate(
         out["rmse_n"] = float(torch.sqrt((err_n**2).mean()))
         out["rmse_n_per_axis"] = [float(v) for v in per_axis]
     return out
+
+
+def _profiles(ds: Any) -> dict[str, Any] | None:
+    """The dataset's expert demonstration profiles (:mod:`dhg.profiles`), or None where it has no
+    planned path or no experts (the model then guides with the fixed corridor)."""
+    from dhg.profiles import build_profiles
+
+    try:
+        return build_profiles(ds).to_dict()
+    except InvalidInputError:
+        return None

@@ -81,9 +81,7 @@ class Cut:
     """Peak drill-tip temperature (°C)."""
 
 
-def feed_controlled(
-    layer: Layer, hu: float, thickness_m: float, diameter_m: float, feed_m_s: float, rpm: float
-) -> Cut:
+def feed_controlled(layer: Layer, hu: float, thickness_m: float, diameter_m: float, feed_m_s: float, rpm: float) -> Cut:
     """Drills through ``thickness_m`` of one layer at a constant feed on the test rig."""
     volume, path, surface = slab([(layer, hu, thickness_m)], width_m=diameter_m + 8e-3)
     session = DrillingSession(volume, path, rig_config(diameter_m))
@@ -220,8 +218,8 @@ def temperature_tables() -> list[str]:
             ("drill (mm)", "24 mm/min", "56 mm/min", "84 mm/min", "196 mm/min"),
             rows,
         )
-        + "\nAugustin et al. (2008): \"the higher the feed-rate the lower the increase of bone "
-        "temperature\". The 2.5 mm drill at 2 mm/s (120 mm/min) stays below 47 °C.\n"
+        + '\nAugustin et al. (2008): "the higher the feed-rate the lower the increase of bone '
+        'temperature". The 2.5 mm drill at 2 mm/s (120 mm/min) stays below 47 °C.\n'
     )
     return out
 

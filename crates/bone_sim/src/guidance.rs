@@ -111,6 +111,12 @@ pub struct GuidanceParams {
     pub corridor_stiffness_n_per_m: f64,
     /// Corridor damping of lateral motion beyond the deadband (N·s/m).
     pub corridor_damping_n_s_per_m: f64,
+    /// Corridor stiffness per depth bin along A→B (N/m), from the experts' lateral spread
+    /// (`dhg.profiles`: stiff where they agree, compliant where they vary); the last bin holds
+    /// beyond the path, the first before A. Empty: `corridor_stiffness_n_per_m` everywhere.
+    pub corridor_profile_n_per_m: Vec<f64>,
+    /// Width of a corridor profile bin (m).
+    pub corridor_profile_bin_m: f64,
     /// Most the brake holds at the moment the cortex gives (N).
     pub brake_hold_n: f64,
     /// Time constant with which the brake's hold decays (s).
@@ -138,6 +144,8 @@ impl Default for GuidanceParams {
             // 0.88 N at 2.7 mm off the line: at most the Touch's 400 N/m, so it is rendered stably.
             corridor_stiffness_n_per_m: 400.0,
             corridor_damping_n_s_per_m: 2.0,
+            corridor_profile_n_per_m: Vec::new(),
+            corridor_profile_bin_m: 1e-3,
             // About the push of a hand drilling cortex on the Touch (1.6–2.7 N), so a surge is
             // met at once; within the 3.3 N peak; decaying with 0.4 s, so it outlasts a novice's
             // 0.25–0.40 s reaction and is down to a tenth within a second.
@@ -164,6 +172,10 @@ impl GuidanceParams {
         non_negative("guidance corridor_deadband_m", self.corridor_deadband_m)?;
         non_negative("guidance corridor_stiffness_n_per_m", self.corridor_stiffness_n_per_m)?;
         non_negative("guidance corridor_damping_n_s_per_m", self.corridor_damping_n_s_per_m)?;
+        positive("guidance corridor_profile_bin_m", self.corridor_profile_bin_m)?;
+        for &k in &self.corridor_profile_n_per_m {
+            non_negative("guidance corridor_profile_n_per_m", k)?;
+        }
         non_negative("guidance brake_hold_n", self.brake_hold_n)?;
         positive("guidance brake_decay_s", self.brake_decay_s)?;
         non_negative("guidance brake_stiffness_n_per_m", self.brake_stiffness_n_per_m)?;
@@ -246,7 +258,15 @@ impl Guide {
 
     /// Back to no target and no share, keeping params, mode and gain.
     pub fn reset(&mut self) {
-        *self = Self::new(self.params.clone(), self.mode, self.gain);
+        // Field by field: the params (a profile is a Vec) stay where they are, so a reset on the
+        // tick thread allocates nothing.
+        self.target_n = Vector3::zeros();
+        self.target_age_s = f64::INFINITY;
+        self.paper_n = Vector3::zeros();
+        self.fade = 0.0;
+        self.hold = None;
+        self.was_giving = false;
+        self.share_n = Vector3::zeros();
     }
 
     /// The limits and laws.
@@ -387,8 +407,14 @@ impl Guide {
         }
         let out = off / dist;
         let v_out = input.tip_velocity_m_s.dot(&out);
-        let mut f = -out
-            * (p.corridor_stiffness_n_per_m * (dist - p.corridor_deadband_m) + p.corridor_damping_n_s_per_m * v_out);
+        let profile = &p.corridor_profile_n_per_m;
+        let k = if profile.is_empty() {
+            p.corridor_stiffness_n_per_m
+        } else {
+            let bin = (rel.dot(&d) / p.corridor_profile_bin_m).floor().max(0.0) as usize;
+            profile[bin.min(profile.len() - 1)]
+        };
+        let mut f = -out * (k * (dist - p.corridor_deadband_m) + p.corridor_damping_n_s_per_m * v_out);
         f -= input.axis * f.dot(&input.axis);
         self.clamped(f * self.gain)
     }
@@ -427,6 +453,176 @@ impl Guide {
         let depth = input.path.depth_m(&input.tip_m);
         let ramp = ((depth - (at - p.warning_span_m)) / p.warning_span_m).clamp(0.0, 1.0);
         -input.axis * (p.warning_n * ramp * self.gain)
+    }
+}
+
+/// How the guidance gain fades over a trainee's attempts: assistance as needed, with
+/// guidance-free probe attempts.
+///
+/// After each attempt the assistance follows the trainee's error with forgetting,
+/// `a ← clamp(forget · a + learn · e, 0, max_gain)`, the error-based update with a forgetting
+/// factor of Emken et al. 2007 (motor adaptation as error and effort) that Emken et al. 2008
+/// used to let a robot's assistance fall as stepping improved. The error `e` is the worse of
+/// the attempt's plunge and maximum lateral deviation, each over its tolerance. Assistance
+/// therefore decays while the guided trainee drills within tolerance and rises when they do not;
+/// at equilibrium `a = learn · e / (1 − forget)`. Every `probe_every`-th attempt renders no
+/// guidance (a probe, after the guidance hypothesis: Schmidt & Bjork 1992; Marchal-Crespo &
+/// Reinkensmeyer 2008), so the trainee's own skill is measured and they do not come to rely on it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FadingParams {
+    /// Gain of the first attempt (0..=`MAX_GAIN`).
+    pub start_gain: f64,
+    /// Most assistance the schedule gives (0..=`MAX_GAIN`).
+    pub max_gain: f64,
+    /// Fraction of the assistance kept from one attempt to the next (0..1).
+    pub forget: f64,
+    /// Assistance added per unit of error (≥ 0).
+    pub learn: f64,
+    /// Plunge within tolerance (m): about the 1 mm that force-drop auto-stop drills leave
+    /// (Ong & Bouazza-Marouf 1999) and controlled advancement reached (0.9 mm, Wallace et al. 2019).
+    pub plunge_tolerance_m: f64,
+    /// Maximum lateral deviation within tolerance (m): the task's 3 mm.
+    pub deviation_tolerance_m: f64,
+    /// Every this many attempts one is a guidance-free probe (0: none).
+    pub probe_every: u32,
+}
+
+impl Default for FadingParams {
+    fn default() -> Self {
+        // forget 0.7 and learn 0.2: a trainee at 1.5 times the tolerance keeps gain 1 (0.2·1.5/0.3);
+        // one at the tolerance sees it fall towards 0.67, one at half of it towards 0.33.
+        Self {
+            start_gain: 1.0,
+            max_gain: 1.0,
+            forget: 0.7,
+            learn: 0.2,
+            plunge_tolerance_m: 1.0e-3,
+            deviation_tolerance_m: 3.0e-3,
+            probe_every: 4,
+        }
+    }
+}
+
+impl FadingParams {
+    /// Checks every field.
+    ///
+    /// # Errors
+    /// A value out of its range.
+    pub fn validate(&self) -> SimResult<()> {
+        check_gain(self.start_gain)?;
+        check_gain(self.max_gain)?;
+        if !(self.forget.is_finite() && (0.0..1.0).contains(&self.forget)) {
+            return Err(SimError::InvalidParameter {
+                name: "fading forget",
+                value: self.forget,
+                reason: "must be within 0..1",
+            });
+        }
+        non_negative("fading learn", self.learn)?;
+        positive("fading plunge_tolerance_m", self.plunge_tolerance_m)?;
+        positive("fading deviation_tolerance_m", self.deviation_tolerance_m).map(|_| ())
+    }
+}
+
+impl FadingParams {
+    /// Params from a JSON object; missing fields take their defaults.
+    ///
+    /// # Errors
+    /// `Payload` for an unknown field or a wrong type; `InvalidParameter` for a value out of range.
+    pub fn from_json(v: &serde_json::Value) -> SimResult<Self> {
+        let p: Self = serde_json::from_value(v.clone())
+            .map_err(|e| SimError::Payload { message: "fading", reason: e.to_string() })?;
+        p.validate()?;
+        Ok(p)
+    }
+}
+
+/// One trainee's fading schedule: the attempt count, the assistance and this attempt's gain.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Fading {
+    params: FadingParams,
+    attempts: u32,
+    assistance: f64,
+    last_error: f64,
+}
+
+impl Fading {
+    /// A schedule at its first attempt.
+    ///
+    /// # Errors
+    /// Invalid params.
+    pub fn new(params: FadingParams) -> SimResult<Self> {
+        params.validate()?;
+        let assistance = params.start_gain.min(params.max_gain);
+        Ok(Self { params, attempts: 0, assistance, last_error: f64::NAN })
+    }
+
+    /// The params.
+    #[must_use]
+    pub fn params(&self) -> &FadingParams {
+        &self.params
+    }
+
+    /// Attempts finished so far.
+    #[must_use]
+    pub fn attempts(&self) -> u32 {
+        self.attempts
+    }
+
+    /// The assistance the next guided attempt gets.
+    #[must_use]
+    pub fn assistance(&self) -> f64 {
+        self.assistance
+    }
+
+    /// The last finished attempt's normalised error (NaN before the first).
+    #[must_use]
+    pub fn last_error(&self) -> f64 {
+        self.last_error
+    }
+
+    /// Whether the current attempt is a guidance-free probe.
+    #[must_use]
+    pub fn is_probe(&self) -> bool {
+        let n = self.params.probe_every;
+        n > 0 && (self.attempts + 1) % n == 0
+    }
+
+    /// The gain of the current attempt: 0 on a probe, else the assistance.
+    #[must_use]
+    pub fn gain(&self) -> f64 {
+        if self.is_probe() {
+            0.0
+        } else {
+            self.assistance
+        }
+    }
+
+    /// The schedule as JSON: params, attempts, assistance, this attempt's gain, whether it is a
+    /// probe, and the last attempt's error (null before the first).
+    #[must_use]
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "params": self.params,
+            "attempts": self.attempts,
+            "assistance": self.assistance,
+            "gain": self.gain(),
+            "probe": self.is_probe(),
+            "last_error": if self.last_error.is_finite() { Some(self.last_error) } else { None },
+        })
+    }
+
+    /// Ends an attempt with its largest plunge and lateral deviation (m); returns the next
+    /// attempt's gain. Non-finite errors count as the tolerance (no change of evidence).
+    pub fn finish_attempt(&mut self, plunge_m: f64, max_deviation_m: f64) -> f64 {
+        let p = &self.params;
+        let ratio = |v: f64, tol: f64| if v.is_finite() { v.max(0.0) / tol } else { 1.0 };
+        let e = ratio(plunge_m, p.plunge_tolerance_m).max(ratio(max_deviation_m, p.deviation_tolerance_m));
+        self.last_error = e;
+        self.assistance = (p.forget * self.assistance + p.learn * e).clamp(0.0, p.max_gain);
+        self.attempts += 1;
+        self.gain()
     }
 }
 
@@ -529,6 +725,25 @@ mod tests {
     }
 
     #[test]
+    fn a_corridor_profile_sets_the_stiffness_per_depth() {
+        let path = path();
+        let mut g = live(GuidanceMode::Corridor);
+        let mut p = g.params().clone();
+        p.corridor_damping_n_s_per_m = 0.0;
+        p.corridor_profile_n_per_m = vec![400.0, 100.0];
+        p.corridor_profile_bin_m = 5e-3;
+        g.set_params(p.clone()).unwrap();
+        // 1.5 mm off the line (1 mm past the deadband): 0.4 N in the first 5 mm, 0.1 N after, and
+        // the last bin's stiffness beyond the path's end.
+        for (z, want) in [(-0.002, 0.4), (0.002, 0.4), (0.007, 0.1), (0.5, 0.1)] {
+            let f = g.step(&input(&path, Point3::new(1.5e-3, 0.0, z), Vector3::zeros()), 1e-3);
+            assert!((f.x + want).abs() < 1e-9 && f.z.abs() < 1e-12, "z {z}: {f}");
+        }
+        p.corridor_profile_n_per_m = vec![f64::NAN];
+        assert!(g.set_params(p).is_err(), "a NaN stiffness was accepted");
+    }
+
+    #[test]
     fn the_brake_holds_at_once_never_pushes_forward_and_lets_go() {
         let path = path();
         let mut g = live(GuidanceMode::Brake);
@@ -609,6 +824,50 @@ mod tests {
                 f = g.step(&i, 1e-3);
             }
             assert!(!g.is_live() && f == Vector3::zeros(), "{mode:?}: {f}");
+        }
+    }
+
+    #[test]
+    fn fading_assists_as_needed_and_probes_without_guidance() {
+        let mut f = Fading::new(FadingParams::default()).unwrap();
+        assert_eq!((f.attempts(), f.gain()), (0, 1.0));
+        // Within tolerance (0.5 mm plunge, 1.5 mm off the line): the gain falls, attempt after attempt.
+        let mut gains = vec![];
+        for _ in 0..6 {
+            f.finish_attempt(0.5e-3, 1.5e-3);
+            gains.push(f.assistance());
+        }
+        assert!(gains.windows(2).all(|w| w[1] < w[0]), "{gains:?}");
+        let p = FadingParams::default();
+        let eq = p.learn * 0.5 / (1.0 - p.forget);
+        assert!((gains[5] - eq).abs() < 0.1, "{gains:?} against the equilibrium {eq}");
+        // Every 4th attempt is a probe: gain 0, whatever the assistance.
+        let mut f = Fading::new(FadingParams::default()).unwrap();
+        let probes: Vec<bool> = (0..8)
+            .map(|_| {
+                let probe = f.is_probe();
+                assert_eq!(f.gain() == 0.0, probe);
+                f.finish_attempt(0.5e-3, 0.0);
+                probe
+            })
+            .collect();
+        assert_eq!(probes, [false, false, false, true, false, false, false, true]);
+        // A bad attempt (6 mm plunge) brings the assistance back up to the cap.
+        let mut f = Fading::new(FadingParams { start_gain: 0.2, ..FadingParams::default() }).unwrap();
+        f.finish_attempt(6e-3, 0.0);
+        assert_eq!(f.assistance(), 1.0);
+        assert!((f.last_error() - 6.0).abs() < 1e-12);
+        // Non-finite measurements change nothing but the count; bad params are refused.
+        let a = f.assistance();
+        f.finish_attempt(f64::NAN, f64::INFINITY);
+        assert!(f.assistance() <= a + 1e-12);
+        for bad in [
+            FadingParams { forget: 1.0, ..FadingParams::default() },
+            FadingParams { learn: -1.0, ..FadingParams::default() },
+            FadingParams { max_gain: 5.0, ..FadingParams::default() },
+            FadingParams { plunge_tolerance_m: 0.0, ..FadingParams::default() },
+        ] {
+            assert!(matches!(Fading::new(bad), Err(SimError::InvalidParameter { .. })));
         }
     }
 }

@@ -42,7 +42,7 @@ use crate::contact::{BurrProbe, CuttingZone, CAP_COS};
 use crate::cutting::CuttingLaw;
 use crate::device::{DeviceProfile, ForceLimiter};
 use crate::error::{positive, SimError, SimResult};
-use crate::guidance::{GuidanceMode, GuidanceParams, Guide, GuideInput};
+use crate::guidance::{Fading, FadingParams, GuidanceMode, GuidanceParams, Guide, GuideInput};
 use crate::path::PlannedPath;
 use crate::record::{Record, RECORD_PERIOD_TICKS, TICK_S};
 use crate::removal::{Burr, Cut, MAX_BURR_RADIUS_M};
@@ -377,6 +377,10 @@ pub struct DrillingSession {
     guide: Guide,
     /// Tip depth (m) at which the planning CT shows the burr leaving the first cortex.
     planned_breakthrough_m: Option<f64>,
+    /// The trainee's gain schedule over attempts, if fading.
+    fading: Option<Fading>,
+    /// This attempt's largest plunge and lateral deviation inside the bone (m), for fading.
+    attempt_worst_m: (f64, f64),
     breakthrough: Breakthrough,
     state: SessionState,
 }
@@ -411,6 +415,8 @@ impl DrillingSession {
             giving: false,
             guide: Guide::new(GuidanceParams::default(), GuidanceMode::Paper, 0.0),
             planned_breakthrough_m: None,
+            fading: None,
+            attempt_worst_m: (0.0, 0.0),
             breakthrough: Breakthrough::default(),
             state,
         }
@@ -557,9 +563,34 @@ impl DrillingSession {
         self.guide.set_target(predicted_n - self.state.feedback_n)
     }
 
+    /// Fades the guidance gain over attempts ([`Fading`]), or with `None` stops fading (the gain
+    /// then stays as it is). Starts the schedule: this attempt's gain is its first.
+    ///
+    /// # Errors
+    /// Invalid params (nothing changes then).
+    pub fn set_fading(&mut self, params: Option<FadingParams>) -> SimResult<()> {
+        self.fading = params.map(Fading::new).transpose()?;
+        if let Some(f) = &self.fading {
+            self.guide.set_gain(f.gain());
+        }
+        Ok(())
+    }
+
+    /// The fading schedule, if any.
+    #[must_use]
+    pub fn fading(&self) -> Option<&Fading> {
+        self.fading.as_ref()
+    }
+
     /// Restores the undrilled bone and a fresh state (as after [`new`](Self::new)); O(drilled
-    /// bricks).
+    /// bricks). With fading, an attempt that drilled (the stylus was felt) ends here and sets the
+    /// next attempt's gain.
     pub fn reset(&mut self) {
+        if let (Some(f), Some(_)) = (self.fading.as_mut(), self.pose) {
+            let (plunge_m, deviation_m) = self.attempt_worst_m;
+            self.guide.set_gain(f.finish_attempt(plunge_m, deviation_m));
+        }
+        self.attempt_worst_m = (0.0, 0.0);
         self.bone.reset();
         self.limiter.reset();
         self.thermal.reset();
@@ -628,6 +659,11 @@ impl DrillingSession {
         s.removed_mass_kg = self.bone.removed_mass_kg();
         s.registration_offset_m = self.offset_m;
         s.device_thermal_load = self.limiter.thermal_load();
+        let worst = &mut self.attempt_worst_m;
+        worst.0 = worst.0.max(s.plunge_depth_m);
+        if s.depth_m > 0.0 {
+            worst.1 = worst.1.max(s.deviation_m);
+        }
         let feedback_n = s.feedback_n;
         let record = (s.ticks % RECORD_PERIOD_TICKS == 0).then(|| Record {
             time_s: s.time_s,

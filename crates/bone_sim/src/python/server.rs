@@ -56,9 +56,10 @@ impl PyServer {
     /// its Zenoh session from `zenoh_json5`. `server` is a flat dict of the keys of
     /// `dhg.serve.ServerSettings`; `session` a flat `dhg.SessionConfig` dict. `wait` is how the
     /// tick and publisher threads wait: `"sleep"`, or `"spin"` (two cores busy, no wake-up latency).
-    /// `guidance_mode` is a new session's guidance mode (`paper`, `corridor`, `brake`, `shaped`).
+    /// `guidance_mode` is a new session's guidance mode (`paper`, `corridor`, `brake`, `shaped`);
+    /// `corridor_profile` (bin width (m), stiffness per bin (N/m)) its corridor's stiffness along A→B.
     #[new]
-    #[pyo3(signature = (volume, entry_m, target_m, zenoh_json5, prefix="dhg", max_sessions=16, server=None, session=None, wait="sleep", guidance_mode="shaped"))]
+    #[pyo3(signature = (volume, entry_m, target_m, zenoh_json5, prefix="dhg", max_sessions=16, server=None, session=None, wait="sleep", guidance_mode="shaped", corridor_profile=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -72,12 +73,18 @@ impl PyServer {
         session: Option<&Bound<'_, PyDict>>,
         wait: &str,
         guidance_mode: &str,
+        corridor_profile: Option<(f64, Vec<f64>)>,
     ) -> PyResult<Self> {
         let path = PlannedPath::new(entry_m.into(), target_m.into()).py()?;
         let mut engine = EngineConfig::new(path);
         engine.max_sessions = max_sessions;
         engine.wait = WaitMode::from_name(wait).py()?;
         engine.default_mode = GuidanceMode::from_name(guidance_mode).py()?;
+        if let Some((bin_m, stiffness)) = corridor_profile {
+            engine.guidance.corridor_profile_bin_m = bin_m;
+            engine.guidance.corridor_profile_n_per_m = stiffness;
+            engine.guidance.validate().py()?;
+        }
         engine.session = config_from_dict(session)?;
         let mut cfg =
             ServerConfig { prefix: prefix.to_owned(), idle_timeout_s: 5.0, model_timeout_s: 0.25, zenoh_json5 };

@@ -273,6 +273,36 @@ impl PySession {
         self.inner.set_guidance(mode, gain).py()
     }
 
+    /// Sets the corridor's stiffness per depth bin of `bin_m` (m) along A→B (N/m, from the
+    /// experts' lateral spread); an empty list restores the fixed stiffness.
+    fn set_corridor_profile(&mut self, bin_m: f64, stiffness_n_per_m: Vec<f64>) -> PyResult<()> {
+        let mut params = self.inner.guide().params().clone();
+        params.corridor_profile_bin_m = bin_m;
+        params.corridor_profile_n_per_m = stiffness_n_per_m;
+        self.inner.set_guidance_params(params).py()
+    }
+
+    /// Fades the gain over attempts: the schedule's params as a JSON object (missing fields
+    /// take the core's defaults), or None to stop fading.
+    #[pyo3(signature = (params_json=None))]
+    fn set_fading(&mut self, params_json: Option<&str>) -> PyResult<()> {
+        let params = params_json
+            .map(|text| {
+                let v: serde_json::Value = serde_json::from_str(text)
+                    .map_err(|e| SimError::Payload { message: "fading", reason: e.to_string() })?;
+                crate::guidance::FadingParams::from_json(&v)
+            })
+            .transpose()
+            .py()?;
+        self.inner.set_fading(params).py()
+    }
+
+    /// The fading schedule as JSON text (`params`, `attempts`, `assistance`, `gain`, `probe`,
+    /// `last_error`), or None.
+    fn fading(&self) -> Option<String> {
+        self.inner.fading().map(|f| f.to_json().to_string())
+    }
+
     /// The guidance (mode, gain).
     fn guidance(&self) -> (&'static str, f64) {
         (self.inner.guide().mode().name(), self.inner.guide().gain())

@@ -13,7 +13,7 @@ use zenoh::Wait;
 use super::{lock, Shared};
 use crate::engine::handoff::Command;
 use crate::error::{SimError, SimResult};
-use crate::guidance::{check_gain, GuidanceMode};
+use crate::guidance::{check_gain, Fading, FadingParams, GuidanceMode};
 use crate::path::PlannedPath;
 use crate::protocol::{self, Refusal};
 use crate::session::{check_burr_radius, DrillingSession};
@@ -133,6 +133,7 @@ fn session_info(shared: &Shared, id: &str) -> SimResult<Value> {
             "slot": slot,
             "guidance_mode": info.mode.name(),
             "guidance_gain": info.gain,
+            "fading": info.fading.as_ref().map(Fading::to_json),
             "burr_radius_m": info.burr_radius_m,
             "entry_m": [a.x, a.y, a.z],
             "target_m": [b.x, b.y, b.z],
@@ -179,6 +180,48 @@ fn set_guidance(
     Ok(())
 }
 
+/// Resets `slot` for a new attempt; with fading, an attempt that drilled (poses arrived and were
+/// recorded) ends here and sets the next one's gain.
+fn reset(reg: &mut super::registry::Registry, slot: u16) -> SimResult<()> {
+    reg.send(Command::Reset { slot })?;
+    let info = &mut reg.slots[slot as usize];
+    let drilled = info.poses_received > info.attempt_first_pose && info.metrics.records() > 0;
+    info.attempt_first_pose = info.poses_received;
+    let next_gain = match info.fading.as_mut() {
+        Some(f) if drilled => {
+            let (plunge_m, deviation_m) = info.metrics.worst_m();
+            Some(f.finish_attempt(plunge_m, deviation_m))
+        }
+        _ => None,
+    };
+    info.metrics = super::metrics::SessionMetrics::default();
+    match next_gain {
+        Some(gain) => set_guidance(reg, slot, None, Some(gain)),
+        None => Ok(()),
+    }
+}
+
+/// Starts (an object of params) or stops (null) the fading schedule of `slot`.
+fn set_fading(reg: &mut super::registry::Registry, slot: u16, fading: Option<&Value>) -> SimResult<()> {
+    let fading = match fading {
+        None => {
+            return Err(SimError::Payload {
+                message: "control",
+                reason: "set_fading needs \"fading\": an object of schedule params ({} for the defaults) \
+                         or null to stop fading"
+                    .into(),
+            })
+        }
+        Some(Value::Null) => None,
+        Some(v) => Some(Fading::new(FadingParams::from_json(v)?)?),
+    };
+    if let Some(f) = &fading {
+        set_guidance(reg, slot, None, Some(f.gain()))?;
+    }
+    reg.slots[slot as usize].fading = fading;
+    Ok(())
+}
+
 /// Applies one control request to session `id`.
 pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> {
     let op = req.get("op").and_then(Value::as_str).unwrap_or("info");
@@ -210,8 +253,11 @@ pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> 
             }
             "reset" => {
                 let s = slot(&reg)?;
-                reg.send(Command::Reset { slot: s })?;
-                reg.slots[s as usize].metrics = super::metrics::SessionMetrics::default();
+                reset(&mut reg, s)?;
+            }
+            "set_fading" => {
+                let s = slot(&reg)?;
+                set_fading(&mut reg, s, req.get("fading"))?;
             }
             "set_path" => {
                 let s = slot(&reg)?;
@@ -246,7 +292,7 @@ pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> 
                 return Err(SimError::InvalidOption {
                     name: "op",
                     value: other.to_owned(),
-                    allowed: "create, reset, set_path, set_guidance, set_drill, close, info",
+                    allowed: "create, reset, set_path, set_guidance, set_fading, set_drill, close, info",
                 })
             }
         }

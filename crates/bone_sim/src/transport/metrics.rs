@@ -18,6 +18,7 @@ pub struct SessionMetrics {
     peak_temperature_c: f64,
     time_above_47_s: f64,
     plunge_depth_m: f64,
+    max_plunge_m: f64,
     breakthroughs: u16,
     removed_mass_kg: f64,
     removed_volume_m3: f64,
@@ -44,10 +45,23 @@ impl SessionMetrics {
         self.peak_temperature_c = s.peak_temperature_c;
         self.time_above_47_s = s.time_above_47_s;
         self.plunge_depth_m = s.plunge_depth_m;
+        self.max_plunge_m = self.max_plunge_m.max(s.plunge_depth_m);
         self.breakthroughs = s.breakthroughs;
         self.removed_mass_kg = s.removed_mass_kg;
         self.removed_volume_m3 = s.removed_volume_m3;
         self.rejected_poses = s.rejected_poses;
+    }
+
+    /// 10 Hz records folded in.
+    #[must_use]
+    pub fn records(&self) -> u64 {
+        self.records
+    }
+
+    /// The attempt's largest plunge and largest lateral deviation inside the bone (m).
+    #[must_use]
+    pub fn worst_m(&self) -> (f64, f64) {
+        (self.max_plunge_m, self.max_deviation_m)
     }
 
     /// Folds in one guidance message.

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use crate::engine::handoff::{Command, PoseSample};
 use crate::error::{SimError, SimResult};
-use crate::guidance::GuidanceMode;
+use crate::guidance::{Fading, GuidanceMode};
 use crate::path::PlannedPath;
 use crate::protocol::PoseMsg;
 
@@ -58,6 +58,10 @@ pub struct SlotInfo {
     pub burr_radius_m: f64,
     /// Metrics so far.
     pub metrics: SessionMetrics,
+    /// The gain schedule over attempts, if fading.
+    pub fading: Option<Fading>,
+    /// `poses_received` when the current attempt began (a reset or the session's start).
+    pub attempt_first_pose: u64,
 }
 
 /// The slot table plus the command producer.
@@ -99,6 +103,8 @@ impl Registry {
                 gain: default_gain,
                 burr_radius_m: default_burr_m,
                 metrics: SessionMetrics::default(),
+                fading: None,
+                attempt_first_pose: 0,
             })
             .collect();
         Self { commands, by_id: HashMap::new(), slots, default_path, default_mode, default_gain, default_burr_m }
@@ -147,6 +153,8 @@ impl Registry {
         info.gain = gain;
         info.burr_radius_m = self.default_burr_m;
         info.metrics = SessionMetrics::default();
+        info.fading = None;
+        info.attempt_first_pose = 0;
         self.by_id.insert(id.to_owned(), slot as u16);
         Ok((slot as u16, true))
     }
