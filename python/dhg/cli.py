@@ -539,13 +539,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="impedance",
         help="operator model (default impedance)",
     )
-    p.add_argument("--train", type=int, default=3, metavar="N", help="guided training attempts per arm (default 3)")
+    p.add_argument("--train", type=int, default=6, metavar="N", help="guided training attempts per arm (default 6)")
     p.add_argument(
         "--probe-every",
         type=int,
-        default=4,
+        default=3,
         metavar="N",
-        help="fading arms: every Nth training attempt is a guidance-free probe (default 4; 0: none)",
+        help="fading arms: every Nth training attempt is a guidance-free probe (default 3; 0: none)",
     )
     p.add_argument("--model", metavar="FILE.ts", help="TorchScript model (default: the bundled one)")
     p.add_argument("--duration", type=float, default=150.0, metavar="S", help="most seconds per attempt (default 150)")

@@ -66,9 +66,9 @@ class Protocol:
     """Attempts per novice and arm: one guidance-free pre-test, ``train`` guided attempts, one
     guidance-free post-test; at most ``duration_s`` (s) each."""
 
-    train: int = 3
+    train: int = 6
     duration_s: float = 150.0
-    probe_every: int = 4
+    probe_every: int = 3
     """For fading arms: every this many training attempts one is a guidance-free probe."""
 
     def validate(self) -> None:
@@ -200,19 +200,26 @@ class StudyResult:
         import matplotlib.pyplot as plt
 
         shown = [m for m in METRICS if m[0] != "reached_target"]
-        fig, axes = plt.subplots(1, len(shown), figsize=(3.0 * len(shown), 3.8))
+        cols = 4
+        rows = -(-len(shown) // cols)
+        fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.4 * rows), squeeze=False)
         names = [a.name for a in self.arms[1:]]
         x = np.arange(len(names))
-        for ax, (key, label, scale, _) in zip(np.atleast_1d(axes), shown, strict=True):
-            for phase, dx, style in (("train", -0.2, {"color": "#4c72b0"}), ("post", 0.2, {"color": "#dd8452"})):
+        for ax, (key, label, scale, _) in zip(axes.flat, shown, strict=False):
+            for phase, dx, color, legend in (
+                ("train", -0.2, "#4c72b0", "guided (1st training attempt)"),
+                ("post", 0.2, "#dd8452", "post-test (unguided)"),
+            ):
                 stats = [self.paired(n, key, phase) for n in names]
                 d = np.array([s[0] for s in stats]) * scale
                 err = np.nan_to_num(np.array([[s[0] - s[1], s[2] - s[0]] for s in stats]).T * scale)
-                ax.bar(x + dx, d, 0.4, yerr=err, capsize=3, label=phase, **style)
+                ax.bar(x + dx, d, 0.4, yerr=err, capsize=3, color=color, label=legend)
             ax.axhline(0.0, color="black", lw=0.8)
             ax.set_xticks(x, names, rotation=45, ha="right")
             ax.set_title(f"Δ {label}", fontsize=9)
-        np.atleast_1d(axes)[0].legend(["guided (1st training)", "post-test"], fontsize=7)
+        for ax in list(axes.flat)[len(shown) :]:
+            ax.axis("off")
+        axes.flat[0].legend(fontsize=7)
         fig.suptitle(
             f"Arm − unguided, {len(self.seeds)} virtual novices ({self.operator} operator; mean, 95 % interval)"
         )
