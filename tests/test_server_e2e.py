@@ -120,6 +120,12 @@ def test_a_1khz_client_gets_its_forces_and_10hz_guidance(server):
     print(f"pose->put p50 {server_p50 * 1e6:.0f} us of a {summary['pose_to_force_p50_s'] * 1e6:.0f} us round trip")
     assert 0 < server_p50 <= summary["pose_to_force_p50_s"] + 10e-6  # 10 µs buckets
     assert 0 < health["pose_to_tick_p50_s"] <= server_p50, "arrival → tick is the first part of arrival → put"
+    # Every guidance message: fresh model (model_available), felt at gain 1 (guidance_active; not
+    # the drill bit), and the mixed guidance within the 0.88 N cap (issue 21, item 10).
+    for m in guidance:
+        assert m["flags"] & protocol.FLAGS["model_available"], m
+        assert bool(m["flags"] & protocol.FLAGS["guidance_active"]) == bool(np.any(m["guidance_n"])), m
+        assert np.linalg.norm(m["guidance_n"]) <= 0.88 + 1e-6, m
     # Guidance is what the paper defines: predicted expert force minus the trainee's feedback.
     g = guidance[-1]
     assert np.linalg.norm(g["predicted_force_n"]) > 0.0
@@ -217,6 +223,13 @@ def test_control_refusals_say_what_was_wrong(server):
             c.set_drill(0.05)
         with pytest.raises(InvalidInputError, match="burr_radius_m"):
             c.control("set_drill")
+        with pytest.raises(InvalidInputError, match="at least"):
+            c.set_drill(1e-300)  # a burr no volume can resolve
+        # A body that is not an object, or an op that is not a string, is refused, not served as info.
+        with pytest.raises(InvalidInputError, match="JSON object"):
+            c._json(c.keys["control"], [1, 2])  # type: ignore[arg-type]
+        with pytest.raises(InvalidInputError, match="must be a string"):
+            c._json(c.keys["control"], {"op": 7})
         assert c.control("info")["burr_radius_m"] == pytest.approx(1.25e-3), "a refusal changed the burr"
         assert c.set_drill(2e-3)["burr_radius_m"] == 2e-3
         assert c.metrics()["burr_radius_m"] == 2e-3

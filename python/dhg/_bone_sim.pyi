@@ -20,6 +20,7 @@ __all__ = [
     "HU_MAX",
     "BRICK_EDGE",
     "MAX_BURR_RADIUS_M",
+    "MIN_BURR_RADIUS_M",
     "MAX_POSITION_M",
     "MAX_SPINDLE_RPM",
     "GUIDANCE_MODES",
@@ -42,6 +43,7 @@ HU_MIN: Final[int]
 HU_MAX: Final[int]
 BRICK_EDGE: Final[int]
 MAX_BURR_RADIUS_M: Final[float]
+MIN_BURR_RADIUS_M: Final[float]
 MAX_SPINDLE_RPM: Final[float]
 GUIDANCE_MODES: Final[list[str]]
 MAX_POSITION_M: Final[float]

@@ -143,9 +143,12 @@ class GuidanceModel:
         d = self.meta.get("profiles")
         return None if d is None else DemoProfiles.from_dict(d)
 
-    def predict(self, windows: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    def predict(self, windows: npt.ArrayLike, check_output: bool = True) -> npt.NDArray[np.float64]:
         """Expert force (B, 3) in N for windows (B, window, 9) or one window (window, 9), in the
-        documented feature order and SI units. Wrong shapes and NaN/inf are refused."""
+        documented feature order and SI units. Wrong shapes and NaN/inf are refused; so is a
+        window whose prediction is not finite (values far outside what the model was trained on
+        overflow its scaling), unless ``check_output`` is False (the model service checks each
+        row of a batch itself)."""
         try:
             w = np.asarray(windows, dtype=np.float32)
         except (TypeError, ValueError) as exc:
@@ -159,7 +162,14 @@ class GuidanceModel:
             raise InvalidInputError("windows contain NaN or infinite values")
         with torch.no_grad():
             x = torch.from_numpy(np.ascontiguousarray(w)).to(self.device)
-            return self.module(x).double().cpu().numpy()
+            out = self.module(x).double().cpu().numpy()
+        if check_output and not np.all(np.isfinite(out)):
+            rows = np.flatnonzero(~np.all(np.isfinite(out), axis=1))
+            raise InvalidInputError(
+                f"the prediction for window(s) {rows.tolist()} is not finite: their values lie far outside "
+                "the ranges the model was trained on"
+            )
+        return out
 
 
 def load_model(path: str | os.PathLike[str], device: str = "cpu") -> GuidanceModel:

@@ -208,7 +208,7 @@ class ModelService:
             return
         t0 = time.perf_counter()
         try:
-            forces = self.model.predict(np.stack(windows))
+            forces = self.model.predict(np.stack(windows), check_output=False)
         except Exception as exc:  # a model failure must not kill the worker
             log.exception("model forward failed")
             for q, _ in good:
@@ -219,6 +219,11 @@ class ModelService:
         self.inference_s.append(dt)
         del self.inference_s[:-1000]
         for (q, seq), f in zip(good, forces, strict=True):
+            if not np.all(np.isfinite(f)):  # a window far outside the training ranges overflows the model
+                self._reply_error(
+                    q, "the prediction is not finite: the window's values lie far outside the model's ranges"
+                )
+                continue
             try:
                 q.reply(self.key, protocol.encode_prediction(seq, f, dt, self.model_id))
                 self.answered += 1

@@ -15,6 +15,10 @@ use crate::volume::FULL_MATERIAL;
 
 /// Largest burr radius accepted (m); surgical burrs and drills are a few millimetres.
 pub const MAX_BURR_RADIUS_M: f64 = 0.02;
+/// Smallest drill radius a session accepts (m): a 0.5 mm bit, below the thinnest Kirschner
+/// wires (0.6 mm) used in orthopaedics, and a voxel's width at the phantom's 0.5 mm. A smaller
+/// burr cuts nothing the volume can resolve.
+pub const MIN_BURR_RADIUS_M: f64 = 0.25e-3;
 
 /// A spherical burr in the world frame.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -45,7 +45,7 @@ use crate::error::{positive, SimError, SimResult};
 use crate::guidance::{Fading, FadingParams, GuidanceMode, GuidanceParams, Guide, GuideInput};
 use crate::path::PlannedPath;
 use crate::record::{Record, RECORD_PERIOD_TICKS, TICK_S};
-use crate::removal::{Burr, Cut, MAX_BURR_RADIUS_M};
+use crate::removal::{Burr, Cut, MAX_BURR_RADIUS_M, MIN_BURR_RADIUS_M};
 use crate::thermal::{Thermal, ThermalParams};
 use crate::volume::drilled::DrilledVolume;
 use crate::volume::layer::Layer;
@@ -137,12 +137,19 @@ impl Default for SessionConfig {
     }
 }
 
-/// Checks a burr radius (m): finite and in (0, [`MAX_BURR_RADIUS_M`]].
+/// Checks a burr radius (m): finite and in [[`MIN_BURR_RADIUS_M`], [`MAX_BURR_RADIUS_M`]].
 ///
 /// # Errors
 /// `InvalidParameter` naming `burr_radius_m`.
 pub fn check_burr_radius(radius_m: f64) -> SimResult<f64> {
     positive("burr_radius_m", radius_m)?;
+    if radius_m < MIN_BURR_RADIUS_M {
+        return Err(SimError::InvalidParameter {
+            name: "burr_radius_m",
+            value: radius_m,
+            reason: "must be at least 0.00025 m (a 0.5 mm drill)",
+        });
+    }
     if radius_m > MAX_BURR_RADIUS_M {
         return Err(SimError::InvalidParameter {
             name: "burr_radius_m",

@@ -122,7 +122,10 @@ impl Slot {
             slot: idx,
             generation: self.generation,
             msg: GuidanceMsg {
-                flags: u16::from(gain > 0.0),
+                // The reply is fresh (the model is available); the guidance is felt when the gain
+                // and the mixed guidance are not zero.
+                flags: flags::MODEL_AVAILABLE
+                    | if gain > 0.0 && guidance_n != Vector3::zeros() { flags::GUIDANCE_ACTIVE } else { 0 },
                 window_seq,
                 pose_client_time_ns: pose_time_ns,
                 tick: self.session.state().ticks,

@@ -13,7 +13,7 @@ mod volume;
 use pyo3::prelude::*;
 
 use crate::record::{FEATURES, RECORD_PERIOD_TICKS, TICK_S};
-use crate::removal::MAX_BURR_RADIUS_M;
+use crate::removal::{MAX_BURR_RADIUS_M, MIN_BURR_RADIUS_M};
 use crate::volume::bricks::BRICK_EDGE;
 use crate::volume::layer::Layer;
 use crate::volume::material::{HU_MAX, HU_MIN};
@@ -43,6 +43,7 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("HU_MAX", HU_MAX)?;
     m.add("BRICK_EDGE", BRICK_EDGE)?;
     m.add("MAX_BURR_RADIUS_M", MAX_BURR_RADIUS_M)?;
+    m.add("MIN_BURR_RADIUS_M", MIN_BURR_RADIUS_M)?;
     m.add("MAX_SPINDLE_RPM", crate::session::MAX_SPINDLE_RPM)?;
     let modes: Vec<&str> = crate::guidance::GuidanceMode::ALL.iter().map(|m| m.name()).collect();
     m.add("GUIDANCE_MODES", modes)?;

@@ -224,7 +224,18 @@ fn set_fading(reg: &mut super::registry::Registry, slot: u16, fading: Option<&Va
 
 /// Applies one control request to session `id`.
 pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> {
-    let op = req.get("op").and_then(Value::as_str).unwrap_or("info");
+    let bad = |reason: &str| SimError::Payload { message: "control", reason: reason.into() };
+    if !req.is_object() {
+        return Err(bad("the body must be a JSON object, {\"op\": ...}"));
+    }
+    let op =
+        match req.get("op") {
+            None => "info",
+            Some(Value::String(op)) => op.as_str(),
+            Some(_) => return Err(bad(
+                "\"op\" must be a string: create, reset, set_path, set_guidance, set_fading, set_drill, close or info",
+            )),
+        };
     {
         let mut reg = lock(&shared.registry);
         let slot = |reg: &super::registry::Registry| {

@@ -1,0 +1,50 @@
+"""The model service over a real Zenoh session: answers good windows, refuses bad ones, counts."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dhg import protocol
+from dhg.errors import InvalidInputError
+from dhg.export import load_model
+from dhg.models import default_model_path
+from dhg.serve import ModelService, open_zenoh, zenoh_config_json5
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model(default_model_path())
+
+
+def _query(z, key: str, window: np.ndarray, seq: int) -> tuple[bool, bytes]:
+    payload = protocol.encode(
+        "predict", window_seq=seq, rows=window.shape[0], cols=window.shape[1], window=window.ravel()
+    )
+    replies = list(z.get(key, payload=payload, timeout=10.0))
+    assert len(replies) == 1, f"{len(replies)} replies"
+    r = replies[0]
+    return (True, r.ok.payload.to_bytes()) if r.ok is not None else (False, r.err.payload.to_bytes())
+
+
+def test_a_window_the_model_overflows_on_is_refused_not_answered_with_nan(model):
+    """Issue 21, item 10: a window of 3e38 values (finite in float32) made the model answer NaN."""
+    huge = np.full((model.window, 9), 3e38, dtype=np.float32)
+    with pytest.raises(InvalidInputError, match="not finite"):
+        model.predict(huge)
+    assert not np.all(np.isfinite(model.predict(huge, check_output=False))), "the model no longer overflows"
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    service = ModelService(z, model, prefix="svc-test")
+    try:
+        key = protocol.keys("svc-test", "x")["predict"]
+        ok, body = _query(z, key, np.zeros((model.window, 9), dtype=np.float32), 1)
+        assert ok and protocol.decode("prediction", body[:32])["window_seq"] == 1
+        ok, body = _query(z, key, huge, 2)
+        assert not ok and "not finite" in json.loads(body)["error"]
+        stats = service.stats()
+        assert (stats["answered"], stats["refused"]) == (1, 1)
+    finally:
+        service.close()
+        z.close()
