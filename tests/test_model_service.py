@@ -48,3 +48,56 @@ def test_a_window_the_model_overflows_on_is_refused_not_answered_with_nan(model)
     finally:
         service.close()
         z.close()
+
+
+class _SlowModel:
+    """A model whose forward pass takes 0.3 s: queries queued behind it grow old."""
+
+    window = 20
+    meta = {"preset": "slow"}
+    path = None
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def predict(self, windows, check_output: bool = True):
+        import time
+
+        self.calls += 1
+        if self.calls > 3:  # after the service's warm-up calls
+            time.sleep(0.3)
+        return np.zeros((len(np.atleast_3d(windows)), 3))
+
+
+def test_queries_whose_asker_gave_up_are_refused_as_stale_not_computed():
+    """Issue 21, item 10: the service computed queries the engine had long given up on."""
+    import threading
+
+    model = _SlowModel()
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    service = ModelService(z, model, prefix="svc-stale", max_age_s=0.1)
+    key = protocol.keys("svc-stale", "x")["predict"]
+    results: list[tuple[bool, bytes]] = []
+    try:
+        window = np.zeros((20, 9), dtype=np.float32)
+        first = threading.Thread(target=lambda: results.append(_query(z, key, window, 1)))
+        first.start()
+        import time
+
+        deadline = time.monotonic() + 10.0
+        while model.calls <= 3:  # until the first forward pass has begun
+            assert time.monotonic() < deadline, "the first query never reached the model"
+            time.sleep(0.001)
+        later = [threading.Thread(target=lambda s=s: results.append(_query(z, key, window, s))) for s in (2, 3)]
+        for t in later:
+            t.start()
+        for t in [first, *later]:
+            t.join(timeout=20)
+        stats = service.stats()
+        # The first is answered; the two queued behind its 0.3 s pass are older than 0.1 s by then.
+        assert stats["answered"] == 1 and stats["stale"] == 2 and stats["refused"] == 2, stats
+        assert sum(ok for ok, _ in results) == 1
+        assert all("stale" in json.loads(body)["error"] for ok, body in results if not ok)
+    finally:
+        service.close()
+        z.close()

@@ -142,20 +142,35 @@ class ModelService:
     within ``max_wait_s`` of the first query (up to ``max_batch`` windows), runs one forward pass,
     and replies to each query. With the default ``max_wait_s = 0`` it waits for nothing: queries
     that arrive during a forward pass form the next batch, so batches grow with the load and a
-    lone query pays no waiting. Bad queries get an error reply and are counted.
+    lone query pays no waiting. Bad queries get an error reply and are counted. The queue holds at
+    most ``max_queue`` queries (more are refused at once, as ``busy``), and a query that waited
+    longer than ``max_age_s`` (the engine's 0.25 s query timeout by default: its asker has given up)
+    is refused as ``stale`` instead of computed.
     """
 
-    def __init__(self, session: Any, model: Any, prefix: str = "dhg", max_batch: int = 64, max_wait_s: float = 0.0):
+    def __init__(
+        self,
+        session: Any,
+        model: Any,
+        prefix: str = "dhg",
+        max_batch: int = 64,
+        max_wait_s: float = 0.0,
+        max_queue: int = 256,
+        max_age_s: float = 0.25,
+    ):
         self.model = model
         self.model_id = str(model.meta.get("id") or model.meta.get("preset") or model.path.name)
         self.key = f"{prefix}/model/predict"
         self.max_batch = max_batch
         self.max_wait_s = max_wait_s
+        self.max_age_s = max_age_s
         self.answered = 0
         self.refused = 0
+        self.busy = 0
+        self.stale = 0
         self.batches = 0
         self.inference_s: list[float] = []
-        self._queue: queue.Queue[Any] = queue.Queue()
+        self._queue: queue.Queue[tuple[float, Any]] = queue.Queue(maxsize=max_queue)
         self._stop = threading.Event()
         # TorchScript's profiling executor optimises on the first calls (100s of ms): do them now,
         # not on a trainee's first windows.
@@ -166,7 +181,11 @@ class ModelService:
         self._queryable = session.declare_queryable(self.key, self._on_query, complete=True)
 
     def _on_query(self, query: Any) -> None:
-        self._queue.put(query)
+        try:
+            self._queue.put_nowait((time.perf_counter(), query))
+        except queue.Full:
+            self.busy += 1
+            self._reply_error(query, "busy: the model service's queue is full")
 
     def _reply_error(self, query: Any, message: str) -> None:
         self.refused += 1
@@ -189,7 +208,16 @@ class ModelService:
                     batch.append(self._queue.get(timeout=left) if left > 0 else self._queue.get_nowait())
                 except queue.Empty:
                     break
-            self._answer(batch)
+            now = time.perf_counter()
+            fresh = []
+            for arrived, q in batch:
+                if now - arrived > self.max_age_s:
+                    self.stale += 1
+                    self._reply_error(q, f"stale: queued {now - arrived:.3f} s, longer than {self.max_age_s} s")
+                else:
+                    fresh.append(q)
+            if fresh:
+                self._answer(fresh)
 
     def _answer(self, batch: list[Any]) -> None:
         good, windows = [], []
@@ -231,11 +259,13 @@ class ModelService:
                 q.drop()
 
     def stats(self) -> dict[str, float]:
-        """Answered and refused queries, batches, and inference time p50/p99 (s)."""
+        """Answered and refused queries (of them: busy, stale), batches, and inference time p50/p99 (s)."""
         t = np.array(self.inference_s) if self.inference_s else np.zeros(1)
         return {
             "answered": self.answered,
             "refused": self.refused,
+            "busy": self.busy,
+            "stale": self.stale,
             "batches": self.batches,
             "inference_p50_s": float(np.percentile(t, 50)),
             "inference_p99_s": float(np.percentile(t, 99)),
@@ -504,7 +534,9 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
         if options.role in ("all", "model"):
             if model is None:
                 raise InvalidInputError("the model service needs a model")
-            run.model_service = ModelService(run.zenoh, model, options.prefix)
+            run.model_service = ModelService(
+                run.zenoh, model, options.prefix, max_age_s=options.settings.model_timeout_s
+            )
         if engine_role:
             run.xray_service = XRayService(run.zenoh, run.engine, volume, options.prefix)
     except BaseException:
