@@ -168,15 +168,21 @@ def test_bad_payloads_and_unknown_keys_are_counted_and_ignored(server):
         c.put_raw("pose", bytes(protocol.MAX_PAYLOAD_BYTES + 1))  # oversized
         c._z.put("dhg/no/such/thing", b"x")  # an unknown key under the prefix
         c.put_raw("elbow", b"x")  # an unknown leaf of a session
-        deadline = time.monotonic() + 3.0
+        # Puts a client has no business making (issue 21, item 10): below pose, in the model's and
+        # the server's namespaces, and on an output key.
+        c.put_raw("pose/extra", good)
+        c._z.put("dhg/model/x", b"x")
+        c._z.put("dhg/server/x", b"x")
+        c.put_raw("force", b"x")
+        deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline:
             after = c.health()["refused"]
-            if after["unknown_key"] - before["unknown_key"] >= 2 and after["oversized"] > before["oversized"]:
+            if after["unknown_key"] - before["unknown_key"] >= 6 and after["oversized"] > before["oversized"]:
                 break
             time.sleep(0.05)
         for key in ("wrong_size", "wrong_version", "non_finite", "oversized"):
             assert after[key] == before[key] + 1, (key, before, after)
-        assert after["unknown_key"] == before["unknown_key"] + 2
+        assert after["unknown_key"] == before["unknown_key"] + 6
         # The server kept running: a good pose still gets forces.
         seq = c.send_pose(a, q)
         _wait(lambda: c.force is not None and c.force["pose_seq"] == seq, 2.0)

@@ -18,10 +18,8 @@ use crate::path::PlannedPath;
 use crate::protocol::{self, Refusal};
 use crate::session::{check_burr_radius, DrillingSession};
 
-/// Leaves under `<prefix>/session/<id>/` that clients may put or query.
-const CLIENT_LEAVES: [&str; 3] = ["pose", "control", "metrics"];
-/// Leaves the server publishes (and the model service) — not "unknown" when seen.
-const SERVER_LEAVES: [&str; 4] = ["force", "guidance", "state", "xray"];
+/// The one leaf under `<prefix>/session/<id>/` that clients put on (the rest they query or hear).
+const CLIENT_PUT_LEAF: &str = "pose";
 
 /// `(id, leaf)` of `<prefix>/session/<id>/<leaf>[/...]`.
 fn session_key<'a>(prefix: &str, key: &'a str) -> Option<(&'a str, &'a str)> {
@@ -68,16 +66,17 @@ fn on_pose(shared: &Shared, sample: &Sample) {
     }
 }
 
+/// Every put from another Zenoh session under the prefix. The only key a client may put on is
+/// a session's `pose`; a put anywhere else (an output key such as `force`, a leaf below `pose`,
+/// the model's or the server's namespace, an unknown leaf) is counted as `unknown_key`.
 fn on_any(shared: &Shared, sample: &Sample) {
     let key = sample.key_expr().as_str();
-    let known = match session_key(&shared.prefix, key) {
-        Some((_, leaf)) => CLIENT_LEAVES.contains(&leaf) || SERVER_LEAVES.contains(&leaf),
-        None => {
-            key.starts_with(&format!("{}/model/", shared.prefix))
-                || key.starts_with(&format!("{}/server/", shared.prefix))
-        }
-    };
-    if !known {
+    let is_pose = key
+        .strip_prefix(shared.prefix.as_str())
+        .and_then(|rest| rest.strip_prefix("/session/"))
+        .and_then(|rest| rest.split_once('/'))
+        .is_some_and(|(_, leaf)| leaf == CLIENT_PUT_LEAF);
+    if !is_pose {
         shared.counters.unknown_key.fetch_add(1, Ordering::Relaxed);
     }
 }
