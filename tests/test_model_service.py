@@ -51,7 +51,7 @@ def test_a_window_the_model_overflows_on_is_refused_not_answered_with_nan(model)
 
 
 class _SlowModel:
-    """A model whose forward pass takes 0.3 s: queries queued behind it grow old."""
+    """A model whose forward pass takes 1 s: queries queued behind it grow old."""
 
     window = 20
     meta = {"preset": "slow"}
@@ -65,7 +65,7 @@ class _SlowModel:
 
         self.calls += 1
         if self.calls > 3:  # after the service's warm-up calls
-            time.sleep(0.3)
+            time.sleep(1.0)
         return np.zeros((len(np.atleast_3d(windows)), 3))
 
 
@@ -94,7 +94,7 @@ def test_queries_whose_asker_gave_up_are_refused_as_stale_not_computed():
         for t in [first, *later]:
             t.join(timeout=20)
         stats = service.stats()
-        # The first is answered; the two queued behind its 0.3 s pass are older than 0.1 s by then.
+        # The first is answered; the two queued behind its 1 s pass are older than 0.1 s by then.
         assert stats["answered"] == 1 and stats["stale"] == 2 and stats["refused"] == 2, stats
         assert sum(ok for ok, _ in results) == 1
         assert all("stale" in json.loads(body)["error"] for ok, body in results if not ok)
