@@ -50,54 +50,62 @@ def test_a_window_the_model_overflows_on_is_refused_not_answered_with_nan(model)
         z.close()
 
 
-class _SlowModel:
-    """A model whose forward pass takes 1 s: queries queued behind it grow old."""
+class _BlockingModel:
+    """A model whose forward passes (after the service's warm-up) wait until the test releases them."""
 
     window = 20
-    meta = {"preset": "slow"}
+    meta = {"preset": "blocking"}
     path = None
 
     def __init__(self) -> None:
+        import threading
+
         self.calls = 0
+        self.started = threading.Event()
+        self.release = threading.Event()
 
     def predict(self, windows, check_output: bool = True):
-        import time
-
         self.calls += 1
         if self.calls > 3:  # after the service's warm-up calls
-            time.sleep(1.0)
+            self.started.set()
+            assert self.release.wait(timeout=30), "the test never released the forward pass"
         return np.zeros((len(np.atleast_3d(windows)), 3))
 
 
 def test_queries_whose_asker_gave_up_are_refused_as_stale_not_computed():
-    """Issue 21, item 10: the service computed queries the engine had long given up on."""
+    """Issue 21, item 10: the service computed queries the engine had long given up on. The
+    service's clock is the test's, so the queries age by exactly what the test says."""
     import threading
+    import time
 
-    model = _SlowModel()
+    model = _BlockingModel()
+    now = [0.0]
     z = open_zenoh(zenoh_config_json5(mode="peer"))
-    service = ModelService(z, model, prefix="svc-stale", max_age_s=0.1)
+    service = ModelService(z, model, prefix="svc-stale", max_age_s=0.1, clock=lambda: now[0])
     key = protocol.keys("svc-stale", "x")["predict"]
     results: list[tuple[bool, bytes]] = []
     try:
         window = np.zeros((20, 9), dtype=np.float32)
         first = threading.Thread(target=lambda: results.append(_query(z, key, window, 1)))
         first.start()
-        import time
-
-        deadline = time.monotonic() + 10.0
-        while model.calls <= 3:  # until the first forward pass has begun
-            assert time.monotonic() < deadline, "the first query never reached the model"
-            time.sleep(0.001)
+        assert model.started.wait(timeout=10), "the first query never reached the model"
         later = [threading.Thread(target=lambda s=s: results.append(_query(z, key, window, s))) for s in (2, 3)]
         for t in later:
             t.start()
+        deadline = time.monotonic() + 10.0
+        while service._queue.qsize() < 2:  # both wait behind the first forward pass
+            assert time.monotonic() < deadline, "the later queries never reached the service"
+            time.sleep(0.001)
+        now[0] = 1.0  # a second passes on the service's clock: the two queued queries are stale
+        model.release.set()
         for t in [first, *later]:
             t.join(timeout=20)
         stats = service.stats()
-        # The first is answered; the two queued behind its 1 s pass are older than 0.1 s by then.
+        # The first is answered; the two queued behind it are older than 0.1 s by then.
         assert stats["answered"] == 1 and stats["stale"] == 2 and stats["refused"] == 2, stats
         assert sum(ok for ok, _ in results) == 1
         assert all("stale" in json.loads(body)["error"] for ok, body in results if not ok)
     finally:
+        model.release.set()
         service.close()
         z.close()

@@ -21,7 +21,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -157,6 +157,7 @@ class ModelService:
         max_wait_s: float = 0.0,
         max_queue: int = 256,
         max_age_s: float = 0.25,
+        clock: Callable[[], float] = time.perf_counter,
     ):
         self.model = model
         self.model_id = str(model.meta.get("id") or model.meta.get("preset") or model.path.name)
@@ -164,6 +165,7 @@ class ModelService:
         self.max_batch = max_batch
         self.max_wait_s = max_wait_s
         self.max_age_s = max_age_s
+        self._clock = clock  # what a query's age is measured with (s)
         self.answered = 0
         self.refused = 0
         self.busy = 0
@@ -182,7 +184,7 @@ class ModelService:
 
     def _on_query(self, query: Any) -> None:
         try:
-            self._queue.put_nowait((time.perf_counter(), query))
+            self._queue.put_nowait((self._clock(), query))
         except queue.Full:
             self.busy += 1
             self._reply_error(query, "busy: the model service's queue is full")
@@ -208,7 +210,7 @@ class ModelService:
                     batch.append(self._queue.get(timeout=left) if left > 0 else self._queue.get_nowait())
                 except queue.Empty:
                     break
-            now = time.perf_counter()
+            now = self._clock()
             fresh = []
             for arrived, q in batch:
                 if now - arrived > self.max_age_s:
