@@ -125,3 +125,48 @@ def test_study_refuses_bad_arguments_with_exit_code_3(tmp_path):
         timeout=120,
     )
     assert done.returncode == 3 and "first arm" in done.stderr
+
+
+def test_a_novices_result_does_not_depend_on_who_shares_its_model_batches():
+    """Offline, the model answers many attempts' queries in one batch; a novice run with others
+    must drill exactly as when run alone (batched float32 passes of different sizes differ in
+    the last bits, and a drilling hand amplifies that)."""
+    from dhg.models import default_model_path
+
+    arms, protocol = parse_arms("none,shaped"), Protocol(train=1, duration_s=12)
+    together = run_study([3, 4], arms, default_model_path(), protocol, workers=1)
+    alone = run_study([4], arms, default_model_path(), protocol, workers=1)
+    for arm in ("none", "shaped"):
+        assert together.attempts[arm][1] == alone.attempts[arm][0]
+    assert together.attempts["shaped"][1][1]["gain"] == 1.0
+
+
+def test_a_live_study_drills_through_a_running_server(tmp_path):
+    """``dhg study --live``: every attempt is drilled in real time through dhg-serve, which guides
+    with its own model; the fading arm's schedule (gain, probe) is the server's, read over control."""
+    from dhg.client import TraineeClient
+    from dhg.live_demo import ServerProcess, free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    server = ServerProcess(["--listen", endpoint, "--voxel-mm", "1.0"], echo=False)
+    try:
+        out = tmp_path / "live"
+        cmd = [sys.executable, "-m", "dhg.cli", "study", "--out", str(out), "--live", endpoint, "--seeds", "3"]
+        cmd += ["--arms", "none,shaped-fading", "--train", "2", "--probe-every", "2", "--duration", "9"]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        with TraineeClient(endpoint) as probe:
+            left = probe.health()["sessions"]
+    finally:
+        assert server.stop() == 0
+    assert done.returncode == 0, done.stderr
+    assert f"live through the server at {endpoint}" in (out / "results.md").read_text()
+    data = json.loads((out / "results.json").read_text())
+    (none,), (faded,) = data["attempts"]["none"], data["attempts"]["shaped-fading"]
+    assert [a["phase"] for a in faded] == ["pre", "train", "train", "post"]
+    assert (faded[1]["gain"], faded[1]["probe"], faded[2]["gain"], faded[2]["probe"]) == (1.0, False, 0.0, True)
+    assert none[0] == faded[0] and all(a["gain"] == 0.0 for a in none)
+    # Each attempt ran: the drill was switched on for seconds, and the tip came from 25 mm before A
+    # to the bone at A (A→B is 85.8 mm; this hand then feeds slowly through the soft tissue).
+    for a in none + faded[1:]:
+        assert a["completion_time_s"] > 1.0 and a["target_distance_m"] < 0.0858 + 0.004
+    assert left == 0  # the study closed its sessions: none is left holding a slot

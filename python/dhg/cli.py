@@ -519,9 +519,12 @@ def build_parser() -> argparse.ArgumentParser:
         "left); and post-test - pre-test within each arm. Operators (--operator): 'impedance', an arm that answers "
         "every force through the mass, damping and stiffness measured at a haptic handle (van Beek et al. 2015) with "
         "a 150-250 ms reaction, told nothing of the cue; 'instructed', the dhg synth novice who was told what the cue "
-        "means. Writes DIR/results.md (tables), DIR/results.json (every attempt) and DIR/study.png.\n\n"
+        "means. Writes DIR/results.md (tables), DIR/results.json (every attempt) and DIR/study.png. With --live, the "
+        "attempts are drilled in real time through a running dhg-serve instead (its model, its guidance; one session "
+        "per novice and arm, --workers at once): the check that the server guides as the offline core does.\n\n"
         "  dhg study --out out/study --novices 20                      # seeds 1000..1019, every arm\n"
-        "  dhg study --out out/s --seeds 3,4 --arms none,brake,shaped@0.5 --train 1 --operator instructed",
+        "  dhg study --out out/s --seeds 3,4 --arms none,brake,shaped@0.5 --train 1 --operator instructed\n"
+        "  dhg study --out out/live --seeds 3 --arms none,shaped --train 1 --duration 60 --live tcp/127.0.0.1:7447",
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -549,7 +552,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--model", metavar="FILE.ts", help="TorchScript model (default: the bundled one)")
     p.add_argument("--duration", type=float, default=150.0, metavar="S", help="most seconds per attempt (default 150)")
-    p.add_argument("--workers", type=int, default=2, metavar="N", help="processes (default 2)")
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="processes offline (default 2); sessions at once with --live (default: one per arm)",
+    )
+    p.add_argument(
+        "--live",
+        metavar="ENDPOINT",
+        help="drill through the dhg-serve at this Zenoh endpoint, in real time (its --model guides; --model unused)",
+    )
+    p.add_argument("--zenoh-config", metavar="FILE", help="with --live: a Zenoh JSON5 config (TLS, credentials, ...)")
     p.set_defaults(func=cmd_study)
 
     from dhg.cli_serve import add_commands
@@ -581,11 +595,23 @@ def cmd_study(args: argparse.Namespace) -> int:
     prog, update = _progress(f"{len(seeds)} novices x {len(arms)} arms x {args.train + 2} attempts")
     t0 = time.perf_counter()
     with prog:
-        result = run_study(seeds, arms, model, protocol, args.operator, args.workers, progress=update)
+        workers = args.workers if args.workers is not None else (len(arms) if args.live else 2)
+        result = run_study(
+            seeds,
+            arms,
+            model,
+            protocol,
+            args.operator,
+            workers,
+            progress=update,
+            live=args.live,
+            zenoh_config_file=args.zenoh_config,
+        )
     table = result.markdown()
     header = (
-        f"{len(seeds)} virtual novices (seeds {seeds[0]}..{seeds[-1]}), {args.operator} operator, model "
-        f"{model.name}; per arm a guidance-free pre-test, {args.train} training attempts in the arm's guidance and a "
+        f"{len(seeds)} virtual novices (seeds {seeds[0]}..{seeds[-1]}), {args.operator} operator, "
+        + (f"live through the server at {args.live}" if args.live else f"offline, model {model.name}")
+        + f"; per arm a guidance-free pre-test, {args.train} training attempts in the arm's guidance and a "
         f"guidance-free post-test, each of at most {args.duration:g} s. Each guided cell: mean (paired difference "
         "with 'none' [95 % interval]).\n\n"
     )

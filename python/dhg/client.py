@@ -174,6 +174,11 @@ class TraineeClient:
         )
         return self._seq
 
+    @property
+    def sent_seq(self) -> int:
+        """The sequence number of the last pose sent (0: none yet)."""
+        return self._seq
+
     def send_row(self, row: Sequence[float]) -> int:
         """Publishes a pose row (x, y, z, qw, qx, qy, qz, drill_on, spindle_rpm), as the virtual
         surgeons produce them."""

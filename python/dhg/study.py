@@ -24,16 +24,18 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Generator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from typing import Protocol as Protocol_
 
 import numpy as np
 
 from dhg.errors import InvalidInputError
 from dhg.operators import OPERATORS, Operator
+from dhg.protocol import WINDOW_RECORDS
 from dhg.session import GUIDANCE_MODES
 
 __all__ = ["ARMS", "METRICS", "PHASES", "Arm", "Protocol", "StudyResult", "parse_arms", "run_study"]
@@ -247,78 +249,325 @@ def _t_interval(d: np.ndarray) -> tuple[float, float, float]:
     return float(d.mean()), float(d.mean() - half), float(d.mean() + half)
 
 
-# -- the work, in worker processes --------------------------------------------------------------
-_WORKER: dict[str, Any] = {}
+# -- the attempts: one job per novice and arm -----------------------------------------------------
+Window = np.ndarray
+"""A model query: the last 20 records' nine features, (20, 9)."""
 
 
-def _init_worker(model_path: str, voxel_m: float) -> None:
-    import torch
+class _Station(Protocol_):
+    """Where a job's attempts are drilled: an in-process session, or a session on a server."""
 
-    from dhg import default_phantom
-    from dhg.export import load_model
+    def guide(self, mode: str | None, gain: float) -> None: ...
 
-    torch.set_num_threads(1)
-    _WORKER.update(phantom=default_phantom(voxel_m=voxel_m), model=load_model(model_path))
+    def set_fading(self, params: dict[str, Any] | None) -> None: ...
+
+    def end_attempt(self) -> dict[str, Any] | None:
+        """Ends the last attempt (the fading schedule counts it) and returns the schedule."""
+        ...
+
+    def attempt(
+        self, style: Any, rng: np.random.Generator, cue: Any, guided: bool, rules: Any
+    ) -> Generator[Window, np.ndarray, dict[str, float]]: ...
 
 
-def _attempts(
-    job: tuple[int, Arm | None, Operator, Protocol, dict[str, float] | None],
-) -> tuple[int, str, list[Attempt]]:
-    """One novice's attempts: the pre-test alone (``arm`` None), or an arm's training and post-test
-    after the pre-test whose learned state (``learned``) it starts from."""
+class _LocalStation:
+    """A :class:`dhg.DrillingSession` in this process; its model queries are yielded to the
+    caller, which answers many stations' at once (:func:`_lockstep`)."""
+
+    def __init__(self, phantom: Any, profiles: Any) -> None:
+        from dhg.session import DrillingSession
+
+        self.session = DrillingSession(phantom.volume, phantom.path)
+        if profiles is not None:  # the corridor follows the experts' spread, as dhg-serve --model does
+            self.session.set_corridor_profile(profiles.bin_m, profiles.corridor_n_per_m)
+
+    def guide(self, mode: str | None, gain: float) -> None:
+        self.session.set_guidance(mode or "paper", gain if mode else 0.0)
+
+    def set_fading(self, params: dict[str, Any] | None) -> None:
+        if params is None:
+            self.session.set_fading(enabled=False)
+        else:
+            self.session.set_fading(params)
+
+    def end_attempt(self) -> dict[str, Any] | None:
+        self.session.reset()  # drill_episode's own reset then counts none
+        return self.session.fading
+
+    def attempt(
+        self, style: Any, rng: np.random.Generator, cue: Any, guided: bool, rules: Any
+    ) -> Generator[Window, np.ndarray, dict[str, float]]:
+        from dhg.surgeons import drill_episode
+
+        ep = yield from drill_episode(self.session, style, rng, rules=rules, guided=guided, cue_meaning=cue)
+        return {k: float(v) for k, v in ep.metrics.items()} | {k: float(v) for k, v in ep.extra.items()}
+
+
+class _LiveStation:
+    """A session on a running ``dhg-serve`` (``--live``): drilled in real time through the
+    network, guided by the server's own model service."""
+
+    def __init__(self, connect: str, session_id: str, zenoh_config_file: str | None) -> None:
+        from dhg.client import TraineeClient
+
+        self.client = TraineeClient(connect, session_id, zenoh_config_file=zenoh_config_file)
+        self.info = self.client.create()
+
+    def guide(self, mode: str | None, gain: float) -> None:
+        if mode is None:
+            self.client.set_guidance(gain=0.0)
+        else:
+            self.client.set_guidance(gain=gain, mode=mode)
+
+    def set_fading(self, params: dict[str, Any] | None) -> None:
+        self.client.set_fading(params, enabled=params is not None)
+
+    def end_attempt(self) -> dict[str, Any] | None:
+        self.info = self.client.control("reset")
+        return self.info.get("fading")
+
+    def attempt(
+        self, style: Any, rng: np.random.Generator, cue: Any, guided: bool, rules: Any
+    ) -> Generator[Window, np.ndarray, dict[str, float]]:
+        import time
+
+        from dhg.surgeons import SurgeonController
+        from dhg.task import PlannedPath
+        from dhg.trainee import drive_surgeon, live_metrics, planned_depth_from_info
+
+        self.end_attempt()
+        self.client.states.clear()
+        path = PlannedPath(np.array(self.info["entry_m"]), np.array(self.info["target_m"]))
+        surgeon = SurgeonController(
+            path, style, rng, rules, breakthrough_depth_m=planned_depth_from_info(self.info), cue_meaning=cue
+        )
+        drive_surgeon(self.client, surgeon, rules.max_duration_s)
+        time.sleep(0.25)  # the last state messages
+        states = list(self.client.states)
+        # A state published before the reset can arrive after it: keep the run since the clock restarted.
+        times = [st["time_s"] for st in states]
+        cut = max((i for i in range(1, len(times)) if times[i] < times[i - 1]), default=0)
+        m = live_metrics(self.client, surgeon, states[cut:])
+        return {k: float(v) for k, v in m.items()}
+        yield  # a generator that never queries: the server's model guides it
+
+    def close(self) -> None:
+        try:
+            self.client.control("close")
+        except Exception:  # the server frees it after its idle timeout anyway
+            pass
+        self.client.close()
+
+
+def _job(
+    station: _Station,
+    seed: int,
+    arm: Arm | None,
+    operator: Operator,
+    protocol: Protocol,
+    learned: dict[str, float] | None,
+    on_attempt: Callable[[], None],
+) -> Generator[Window, np.ndarray, tuple[int, str, list[Attempt]]]:
+    """One novice's attempts at ``station``: the pre-test alone (``arm`` None), or an arm's
+    training and post-test after the pre-test whose learned state (``learned``) it starts from.
+    Yields the model's queries of guided attempts (answered by ``send``)."""
     from dhg.operators import Learner, cue_meaning, operator_style
-    from dhg.session import DrillingSession
-    from dhg.surgeons import run_episode, sample_style
+    from dhg.surgeons import sample_style
     from dhg.task import TaskRules
 
-    seed, arm, operator, protocol, learned = job
-    phantom, model = _WORKER["phantom"], _WORKER["model"]
-    session = DrillingSession(phantom.volume, phantom.path)
-    profiles = model.profiles
-    if profiles is not None:  # the corridor follows the experts' spread, as dhg-serve --model does
-        session.set_corridor_profile(profiles.bin_m, profiles.corridor_n_per_m)
     base = operator_style(
         sample_style("novice", np.random.default_rng([seed, 1])), operator, np.random.default_rng([seed, 2])
     )
     learner = Learner(**(learned or {}))
     rules = TaskRules(max_duration_s=protocol.duration_s)
 
-    def attempt(index: int, phase: str, mode: str | None, gain: float) -> Attempt:
+    def attempt(index: int, phase: str, mode: str | None, gain: float) -> Generator[Window, np.ndarray, Attempt]:
         probe = False
         if phase == "train" and arm is not None and arm.fading:
-            session.reset()  # ends the last attempt in the schedule (run_episode's reset then counts none)
-            fading = session.fading
+            fading = station.end_attempt()  # ends the last attempt in the schedule
             assert fading is not None
             gain, probe = fading["gain"], fading["probe"]
         else:
-            session.set_guidance(mode or "paper", gain if mode else 0.0)
+            station.guide(mode, gain)
         guided = mode is not None
-        predictor = (lambda w: model.predict(w)[0]) if guided else None
         rng = np.random.default_rng([seed, 1, 1, index])
         cue = cue_meaning(operator, mode if guided else None)
-        ep = run_episode(
-            session, learner.style(base), rng, f"n{seed}", index, rules, predictor=predictor, cue_meaning=cue
-        )
-        m = {k: float(v) for k, v in ep.metrics.items()} | {k: float(v) for k, v in ep.extra.items()}
+        m = yield from station.attempt(learner.style(base), rng, cue, guided, rules)
         learner.update(m["plunge_depth_m"], m["max_deviation_m"])
+        on_attempt()
         return {"phase": phase, "index": index, "gain": float(gain) if guided else 0.0, "probe": probe} | m
 
     if arm is None:
-        pre = attempt(0, "pre", None, 0.0)
+        pre = yield from attempt(0, "pre", None, 0.0)
         pre["learned"] = dataclasses.asdict(learner)
         return seed, "pre", [pre]
     out = []
     if arm.mode is not None:
-        session.set_guidance(arm.mode, arm.gain)
+        station.guide(arm.mode, arm.gain)
         if arm.fading:
-            session.set_fading(
+            station.set_fading(
                 {"start_gain": arm.gain, "max_gain": max(arm.gain, 1.0), "probe_every": protocol.probe_every}
             )
     for k in range(protocol.train):
-        out.append(attempt(1 + k, "train", arm.mode, arm.gain))
-    session.set_fading(enabled=False)
-    out.append(attempt(1 + protocol.train, "post", None, 0.0))
+        out.append((yield from attempt(1 + k, "train", arm.mode, arm.gain)))
+    station.set_fading(None)
+    out.append((yield from attempt(1 + protocol.train, "post", None, 0.0)))
     return seed, arm.name, out
+
+
+MODEL_BATCH = 16
+"""The offline study answers model queries in batches of exactly this many windows (padded).
+Batched forward passes differ from one another in the last float32 bits with the batch's size
+(about 1e-6 N), and a drilling hand amplifies such differences: at one fixed size, a window's
+answer does not depend on which others share its batch or where it sits in it (checked by
+``tests/test_study.py``), so a novice's result does not depend on the group it was run in."""
+
+
+def _lockstep(jobs: list[Generator[Window, np.ndarray, Any]], predict: Callable[[np.ndarray], np.ndarray]) -> list[Any]:
+    """Runs the jobs side by side, answering all their pending model queries with batched
+    forward passes of :data:`MODEL_BATCH` windows (16 cost about twice one, not 16 times);
+    returns their results in order."""
+    results: list[Any] = [None] * len(jobs)
+    pending: dict[int, Window] = {}
+    batch = np.zeros((MODEL_BATCH, WINDOW_RECORDS, 9))
+
+    def advance(i: int, reply: np.ndarray | None) -> None:
+        try:
+            pending[i] = next(jobs[i]) if reply is None else jobs[i].send(reply)
+        except StopIteration as done:
+            results[i] = done.value
+            pending.pop(i, None)
+
+    for i in range(len(jobs)):
+        advance(i, None)
+    while pending:
+        ids = list(pending)[:MODEL_BATCH]
+        for k, i in enumerate(ids):
+            batch[k] = pending[i]
+        batch[len(ids) :] = batch[0]  # padding: its answers are not used
+        predicted = predict(batch)
+        for k, i in enumerate(ids):
+            advance(i, predicted[k])
+    return results
+
+
+# -- offline: worker processes, each drilling a group of novices in lockstep ------------------------
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(model_path: str, voxel_m: float, events: Any = None) -> None:
+    import torch
+
+    from dhg import default_phantom
+    from dhg.export import load_model
+
+    torch.set_num_threads(1)
+    _WORKER.update(phantom=default_phantom(voxel_m=voxel_m), model=load_model(model_path), events=events)
+
+
+def _group(work: tuple[list[int], list[Arm], Operator, Protocol]) -> list[tuple[int, str, list[Attempt]]]:
+    """Every attempt of a group of novices: their pre-tests, then every arm's protocol, all side
+    by side (:func:`_lockstep`). Returns (seed, arm name or "pre", attempts) per job."""
+    seeds, arms, operator, protocol = work
+    phantom, model, events = _WORKER["phantom"], _WORKER["model"], _WORKER["events"]
+    on_attempt = (lambda: events.put(1)) if events is not None else _WORKER["on_attempt"]
+    profiles = model.profiles
+    predict = model.predict
+    pre = _lockstep(
+        [_job(_LocalStation(phantom, profiles), s, None, operator, protocol, None, on_attempt) for s in seeds], predict
+    )
+    learned = {seed: atts[0]["learned"] for seed, _, atts in pre}
+    jobs = [
+        _job(_LocalStation(phantom, profiles), s, a, operator, protocol, learned[s], on_attempt)
+        for s in seeds
+        for a in arms
+    ]
+    return pre + _lockstep(jobs, predict)
+
+
+def _run_offline(
+    seeds: list[int],
+    arms: list[Arm],
+    model_path: str,
+    protocol: Protocol,
+    operator: Operator,
+    workers: int,
+    voxel_m: float,
+    on_attempt: Callable[[], None],
+) -> list[tuple[int, str, list[Attempt]]]:
+    size = max(1, -(-len(seeds) // (3 * workers)))  # about three groups per worker, for balance
+    groups = [(seeds[i : i + size], arms, operator, protocol) for i in range(0, len(seeds), size)]
+    if workers == 1:
+        _init_worker(model_path, voxel_m)
+        _WORKER["on_attempt"] = on_attempt
+        return [r for g in groups for r in _group(g)]
+    import multiprocessing
+    import queue
+
+    ctx = multiprocessing.get_context("fork")
+    events = ctx.Queue()
+    out: list[tuple[int, str, list[Attempt]]] = []
+    with ProcessPoolExecutor(
+        workers, mp_context=ctx, initializer=_init_worker, initargs=(model_path, voxel_m, events)
+    ) as pool:
+        futures = [pool.submit(_group, g) for g in groups]
+        while not all(f.done() for f in futures):
+            try:
+                events.get(timeout=0.2)
+                on_attempt()
+            except queue.Empty:
+                pass
+        for f in futures:
+            out += f.result()  # re-raises a worker's error
+    while True:  # attempts counted after the last check
+        try:
+            events.get_nowait()
+            on_attempt()
+        except queue.Empty:
+            break
+    return out
+
+
+# -- live: sessions on a running server, drilled in real time, side by side -----------------------
+def _run_live(
+    seeds: list[int],
+    arms: list[Arm],
+    protocol: Protocol,
+    operator: Operator,
+    connect: str,
+    zenoh_config_file: str | None,
+    parallel: int,
+    on_attempt: Callable[[], None],
+) -> list[tuple[int, str, list[Attempt]]]:
+    import threading
+    import uuid
+    from concurrent.futures import ThreadPoolExecutor
+
+    tag = uuid.uuid4().hex[:6]
+    lock = threading.Lock()
+
+    def counted() -> None:
+        with lock:
+            on_attempt()
+
+    def run(seed: int, arm: Arm | None, learned: dict[str, float] | None) -> tuple[int, str, list[Attempt]]:
+        sid = f"study-{tag}-{seed}-{'pre' if arm is None else ''.join(c if c.isalnum() else '_' for c in arm.name)}"
+        station = _LiveStation(connect, sid, zenoh_config_file)
+        try:
+            (result,) = _lockstep([_job(station, seed, arm, operator, protocol, learned, counted)], _no_model)
+            return result
+        finally:
+            station.close()
+
+    with ThreadPoolExecutor(parallel) as pool:
+        pre = list(pool.map(lambda s: run(s, None, None), seeds))
+        learned = {seed: atts[0]["learned"] for seed, _, atts in pre}
+        jobs = [(s, a) for s in seeds for a in arms]
+        return pre + list(pool.map(lambda j: run(j[0], j[1], learned[j[0]]), jobs))
+
+
+def _no_model(windows: np.ndarray) -> np.ndarray:
+    raise AssertionError("a live station's model is the server's")
 
 
 def run_study(
@@ -330,8 +579,14 @@ def run_study(
     workers: int = 2,
     voxel_m: float = 0.5e-3,
     progress: Callable[[int, int], None] | None = None,
+    live: str | None = None,
+    zenoh_config_file: str | None = None,
 ) -> StudyResult:
-    """Runs the protocol for every novice in every arm (see the module docs)."""
+    """Runs the protocol for every novice in every arm (see the module docs). Offline by
+    default: ``workers`` processes, each drilling its novices side by side, the model in-process.
+    With ``live`` (a Zenoh endpoint of a running ``dhg-serve``), the attempts are drilled in real
+    time through that server, its own model guiding them, up to ``workers`` sessions at once;
+    ``model_path`` and ``voxel_m`` are then the server's business and unused."""
     protocol = protocol or Protocol()
     protocol.validate()
     if not seeds:
@@ -341,32 +596,25 @@ def run_study(
     if workers < 1:
         raise InvalidInputError(f"workers must be at least 1, got {workers}")
     seeds = [int(s) for s in seeds]
+    if len(set(seeds)) != len(seeds):
+        raise InvalidInputError("novice seeds repeat")
+    arms = list(arms)
     total = len(seeds) * (1 + len(arms) * (protocol.train + 1))
     done = 0
-    init = (str(model_path), voxel_m)
 
-    def run(pool_map: Callable[..., Any], jobs: list[Any]) -> list[Any]:
+    def on_attempt() -> None:
         nonlocal done
-        results = []
-        for seed, name, atts in pool_map(_attempts, jobs):
-            results.append((seed, name, atts))
-            done += len(atts)
-            if progress:
-                progress(done, total)
-        return results
+        done += 1
+        if progress:
+            progress(done, total)
 
-    def both(pool_map: Callable[..., Any]) -> list[Any]:
-        pre = {seed: atts[0] for seed, _, atts in run(pool_map, [(s, None, operator, protocol, None) for s in seeds])}
-        jobs = [(s, a, operator, protocol, pre[s]["learned"]) for s in seeds for a in arms]
-        return [(seed, name, [pre[seed], *atts]) for seed, name, atts in run(pool_map, jobs)]
-
-    if workers == 1:
-        _init_worker(*init)
-        results = both(map)
+    if live is None:
+        results = _run_offline(seeds, arms, str(model_path), protocol, operator, workers, voxel_m, on_attempt)
     else:
-        with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init) as pool:
-            results = both(pool.map)
+        results = _run_live(seeds, arms, protocol, operator, live, zenoh_config_file, workers, on_attempt)
+    pre = {seed: atts[0] for seed, name, atts in results if name == "pre"}
     by: dict[str, dict[int, list[Attempt]]] = {a.name: {} for a in arms}
     for seed, name, atts in results:
-        by[name][seed] = atts
-    return StudyResult(list(arms), seeds, {a: [by[a][s] for s in seeds] for a in by}, operator, protocol)
+        if name != "pre":
+            by[name][seed] = [pre[seed], *atts]
+    return StudyResult(arms, seeds, {a: [by[a][s] for s in seeds] for a in by}, operator, protocol)

@@ -35,7 +35,7 @@ the path without force feedback, and :func:`scripted_stylus` pushes a stylus alo
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Generator, Iterable
 from dataclasses import asdict, dataclass, field
 from typing import Literal
 
@@ -231,6 +231,10 @@ def _min_jerk(t: float, duration: float) -> float:
     return x**3 * (10.0 - 15.0 * x + 6.0 * x * x)
 
 
+def _floats(v: npt.ArrayLike) -> tuple[float, ...]:
+    return tuple(float(x) for x in np.asarray(v, dtype=float).ravel())
+
+
 def _basis(d: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = np.cross(d, helper)
@@ -287,9 +291,13 @@ class SurgeonController:
             GENERIC_BREAKTHROUGH_DEPTH_M if breakthrough_depth_m is None else float(breakthrough_depth_m)
         )
         self.rules = rules or TaskRules()
-        self.a, self.d = path.entry_m, path.direction
-        self.e1, self.e2 = _basis(self.d)
-        self.q = _axis_quaternion(self.d)
+        # Plain float tuples, not arrays: step() reads them every tick, and indexing a float
+        # tuple is several times cheaper than indexing an ndarray (same values, same results).
+        self.a = _floats(path.entry_m)
+        self.d = _floats(path.direction)
+        e1, e2 = _basis(np.asarray(path.direction, dtype=float))
+        self.e1, self.e2 = _floats(e1), _floats(e2)
+        self.q = _axis_quaternion(np.asarray(path.direction, dtype=float))
         self.length = path.length_m
         self.dt = 1e-3
         self.max_ticks = int(self.rules.max_duration_s / self.dt)
@@ -302,10 +310,12 @@ class SurgeonController:
         self.vs = self.vu = self.vv = 0.0
         self.approach_s = float(rng.uniform(1.2, 2.0))
         self.align_s = float(rng.uniform(0.3, 0.7))
-        self.tremor_phase = rng.uniform(0.0, 2 * math.pi, size=3)
+        self.tremor_phase = _floats(rng.uniform(0.0, 2 * math.pi, size=3))
         self.w_tremor = 2 * math.pi * style.tremor_hz
         self.drift_u = self.drift_v = 0.0
         self.drift_tau = 1.5  # s: how slowly the aim wanders
+        self._k_ou = self.dt / self.drift_tau
+        self._ou_kick = style.drift_m * math.sqrt(2 * self._k_ou)
         self.noise_state = 0.0
         self.push = 0.0
         self.stop_s = 0.0
@@ -361,9 +371,9 @@ class SurgeonController:
         _, _, _, p_depth, _, p_temp, p_layer, _, p_bt, _, _ = seen
         self.max_plunge = max(self.max_plunge, feedback[10])
         # Aim wander (Ornstein-Uhlenbeck) and signal-dependent push noise (low-passed ~5 Hz).
-        k_ou = dt / self.drift_tau
-        self.drift_u += -k_ou * self.drift_u + style.drift_m * math.sqrt(2 * k_ou) * rng.standard_normal()
-        self.drift_v += -k_ou * self.drift_v + style.drift_m * math.sqrt(2 * k_ou) * rng.standard_normal()
+        k_ou, kick = self._k_ou, self._ou_kick
+        self.drift_u += -k_ou * self.drift_u + kick * rng.standard_normal()
+        self.drift_v += -k_ou * self.drift_v + kick * rng.standard_normal()
         self.noise_state += 0.03 * (rng.standard_normal() - self.noise_state)
 
         intent_s: float | None = None  # a position the arm tracks, or None: push with `push`
@@ -499,7 +509,35 @@ def run_episode(
     in whatever mode and gain it was given (:meth:`DrillingSession.set_guidance`); the window is
     padded at the front with the first record until 20 exist, as the server pads it. Offline, the
     reply is applied at once (the server's takes the model's latency, about 5–10 ms). The surgeon
-    feels the guidance and reads it as ``cue_meaning`` says (:class:`SurgeonController`)."""
+    feels the guidance and reads it as ``cue_meaning`` says (:class:`SurgeonController`).
+
+    :func:`drill_episode` is the same attempt as a generator, for callers that answer the model's
+    queries of many attempts at once."""
+    steps = drill_episode(session, style, rng, subject, attempt, rules, keep_raw, predictor is not None, cue_meaning)
+    try:
+        window = next(steps)
+        while True:
+            assert predictor is not None
+            window = steps.send(np.asarray(predictor(window), dtype=float).reshape(3))
+    except StopIteration as done:
+        return done.value
+
+
+def drill_episode(
+    session: DrillingSession,
+    style: SurgeonStyle,
+    rng: np.random.Generator,
+    subject: str = "s0",
+    attempt: int = 0,
+    rules: TaskRules | None = None,
+    keep_raw: bool = False,
+    guided: bool = False,
+    cue_meaning: CueMeaning = "match",
+) -> Generator[npt.NDArray[np.float64], npt.NDArray[np.float64], Episode]:
+    """:func:`run_episode` as a generator: when ``guided``, it yields the model's window (20, 9)
+    at every 10 Hz record and takes the predicted expert force (3,) in N by ``send``; its return
+    value (``StopIteration.value``) is the :class:`Episode`. The yielded array is reused: copy it
+    to keep it past the next ``send``."""
     rules = rules or TaskRules()
     session.reset()
     native = session._s
@@ -521,20 +559,21 @@ def run_episode(
             break
         f, record = native.tick(row)
         force = (float(f[0]), float(f[1]), float(f[2]))
-        if predictor is not None:
+        if guided:
             cue = native.guidance_share()
         if keep_raw:
             raw_poses[tick] = row
             raw_forces[tick] = force
         if record is not None:
             records.append(record)
-            if predictor is not None:
+            if guided:
                 recent = records[-WINDOW_RECORDS:]
                 pad = WINDOW_RECORDS - len(recent)
                 window[:pad] = recent[0][1:10]
                 for i, r in enumerate(recent):
                     window[pad + i] = r[1:10]
-                native.set_prediction(tuple(float(v) for v in np.asarray(predictor(window)).reshape(3)))
+                predicted = yield window
+                native.set_prediction((float(predicted[0]), float(predicted[1]), float(predicted[2])))
     rec = np.array(records) if records else np.empty((0, 11))
     st = session.state
     metrics = skill_metrics(

@@ -22,7 +22,7 @@ from dhg.errors import InvalidInputError
 from dhg.surgeons import SurgeonController, breakthrough_depth_from_runs, sample_style, skill_metrics
 from dhg.task import PlannedPath, TaskRules
 
-__all__ = ["TraineeRun", "planned_depth_from_info", "run_trainee", "state_records"]
+__all__ = ["TraineeRun", "drive_surgeon", "live_metrics", "planned_depth_from_info", "run_trainee", "state_records"]
 
 
 @dataclass
@@ -81,6 +81,64 @@ def planned_depth_from_info(info: dict[str, Any]) -> float | None:
     )
 
 
+def drive_surgeon(client: TraineeClient, surgeon: SurgeonController, duration_s: float) -> tuple[int, float]:
+    """Runs ``surgeon`` against the client's session at 1 kHz on absolute deadlines until it
+    stops or ``duration_s`` (s) have passed; returns (poses sent, wall time in s). Forces that
+    answer poses sent before this call (a reset's stragglers) are not felt: until the first
+    force for one of its own poses arrives, the surgeon feels a resting drill at A."""
+    a = surgeon.path.entry_m
+    resting = (a[0], a[1], a[2], -0.025, 0.0, 37.0, 0, False, 0, False, 0.0)
+    first_seq = (client.sent_seq + 1) & 0xFFFFFFFF
+    period_ns = 1_000_000
+    t0 = time.monotonic_ns()
+    end_ns = t0 + int(duration_s * 1e9)
+    sent = 0
+    fresh = False
+    while True:
+        now = time.monotonic_ns()
+        if now >= end_ns:
+            break
+        latest = client.force
+        if latest is not None and not fresh:
+            # Sequence numbers wrap at 2^32: "ours" is within the span this call has sent.
+            fresh = ((latest["pose_seq"] - first_seq) & 0xFFFFFFFF) < max(sent, 1)
+        if not fresh:
+            latest = None
+        fb = feedback_tuple(latest) if latest is not None else resting
+        force = latest["force_n"] if latest is not None else (0.0, 0.0, 0.0)
+        cue = latest["guidance_n"] if latest is not None else (0.0, 0.0, 0.0)
+        row = surgeon.step(fb, force, cue)
+        if row is None:
+            break
+        client.send_row(row)
+        sent += 1
+        deadline = t0 + sent * period_ns
+        pause = deadline - time.monotonic_ns()
+        if pause > 0:
+            time.sleep(pause * 1e-9)
+    return sent, (time.monotonic_ns() - t0) * 1e-9
+
+
+def live_metrics(client: TraineeClient, surgeon: SurgeonController, states: list[dict[str, Any]]) -> dict[str, Any]:
+    """Skill metrics (:func:`dhg.surgeons.skill_metrics`, plus ``reached_target``) of the attempt
+    ``surgeon`` drilled through the client's session, from the server's ``states`` of it."""
+    records = state_records(states)
+    last = states[-1] if states else None
+    feedback = client.force
+    metrics = skill_metrics(
+        records,
+        surgeon.path,
+        surgeon.rules,
+        final_tip_m=np.array(feedback["tip_m"]) if feedback else surgeon.path.entry_m,
+        drilling_s=surgeon.drilling_s,
+        plunge_depth_m=surgeon.max_plunge,
+        peak_temperature_c=last["peak_temperature_c"] if last else 37.0,
+        time_above_47_s=last["time_above_47_s"] if last else 0.0,
+    )
+    metrics["reached_target"] = bool(surgeon.phase == "done")
+    return metrics
+
+
 def run_trainee(
     client: TraineeClient,
     skill: Literal["expert", "novice"] = "novice",
@@ -121,46 +179,11 @@ def run_trainee(
     # Told what the cue means: match the expert's force (the paper's cue) or yield to it (the others).
     cue = "match" if mode == "paper" else "yield"
     surgeon = SurgeonController(path, style, rng, rules, breakthrough_depth_m=breakthrough_depth_m, cue_meaning=cue)
-    a = path.entry_m
-    resting = (a[0], a[1], a[2], -0.025, 0.0, 37.0, 0, False, 0, False, 0.0)
-    period_ns = 1_000_000
-    t0 = time.monotonic_ns()
-    end_ns = t0 + int(duration_s * 1e9)
-    sent = 0
-    while True:
-        now = time.monotonic_ns()
-        if now >= end_ns:
-            break
-        latest = client.force
-        fb = feedback_tuple(latest) if latest is not None else resting
-        force = latest["force_n"] if latest is not None else (0.0, 0.0, 0.0)
-        cue = latest["guidance_n"] if latest is not None else (0.0, 0.0, 0.0)
-        row = surgeon.step(fb, force, cue)
-        if row is None:
-            break
-        client.send_row(row)
-        sent += 1
-        deadline = t0 + sent * period_ns
-        pause = deadline - time.monotonic_ns()
-        if pause > 0:
-            time.sleep(pause * 1e-9)
-    wall_s = (time.monotonic_ns() - t0) * 1e-9
+    sent, wall_s = drive_surgeon(client, surgeon, duration_s)
     time.sleep(0.25)  # let the last state and guidance messages arrive
     states = list(client.states)
     records = state_records(states)
-    last = states[-1] if states else None
-    feedback = client.force
-    metrics = skill_metrics(
-        records,
-        path,
-        rules,
-        final_tip_m=np.array(feedback["tip_m"]) if feedback else path.entry_m,
-        drilling_s=surgeon.drilling_s,
-        plunge_depth_m=surgeon.max_plunge,
-        peak_temperature_c=last["peak_temperature_c"] if last else 37.0,
-        time_above_47_s=last["time_above_47_s"] if last else 0.0,
-    )
-    metrics["reached_target"] = bool(surgeon.phase == "done")
+    metrics = live_metrics(client, surgeon, states)
     return TraineeRun(
         session_id=client.session_id,
         skill=skill,
