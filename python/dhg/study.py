@@ -495,7 +495,10 @@ def _run_offline(
     voxel_m: float,
     on_attempt: Callable[[], None],
 ) -> list[tuple[int, str, list[Attempt]]]:
-    size = max(1, -(-len(seeds) // (3 * workers)))  # about three groups per worker, for balance
+    # A whole number of groups per worker (for balance at the end), each of at most 6 novices (the
+    # arms of 5 novices fill about two model batches).
+    n_groups = workers * max(1, -(-len(seeds) // (6 * workers)))
+    size = -(-len(seeds) // n_groups)
     groups = [(seeds[i : i + size], arms, operator, protocol) for i in range(0, len(seeds), size)]
     if workers == 1:
         _init_worker(model_path, voxel_m)
