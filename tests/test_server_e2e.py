@@ -155,6 +155,36 @@ def test_every_force_is_finite_and_within_the_device_limit(server):
     assert np.linalg.norm(f, axis=1).max() > 0.5, "the test never pressed on bone"
 
 
+def test_a_peer_cannot_get_a_nan_or_over_limit_force_to_the_device(server):
+    """Issue 21, item 1: in open mode any peer can put on a session's force key. The client's
+    guard refuses a NaN anywhere, a force above the peak, and slews a jolt, counting each."""
+    _, endpoint = server
+    handed: list[tuple[float, float, float]] = []
+    with (
+        TraineeClient(endpoint, "victim-1", on_force=lambda m: handed.append(m["force_n"])) as victim,
+        TraineeClient(endpoint, "rogue-1") as rogue,
+    ):
+        a, d, q = _entry(victim)
+        victim.send_pose(a - 5e-3 * d, q)
+        victim.wait_for_force()
+        key = victim.keys["force"]
+        forged = [
+            protocol.encode("force", force_n=(float("nan"), 0.0, 0.0)),
+            protocol.encode("force", force_n=(1e6, 0.0, 0.0)),
+            protocol.encode("force", tip_m=(0.0, float("inf"), 0.0)),
+            protocol.encode("force", force_n=(0.0, 0.0, 3.2)),  # within the peak, but a jolt from ~0 N
+        ]
+        for payload in forged * 5:
+            rogue._z.put(key, payload)
+        _wait(lambda: min(victim.guard.rejected.values()) >= 1, 10.0)
+        rejected = dict(victim.guard.rejected)
+    f = np.array(handed)
+    assert np.all(np.isfinite(f)) and np.linalg.norm(f, axis=1).max() <= PEAK_FORCE_N
+    assert rejected["non_finite"] >= 5 and rejected["over_limit"] >= 5 and rejected["rate_limited"] >= 1
+    steps = np.linalg.norm(np.diff(f, axis=0), axis=1)
+    assert steps.max() <= victim.guard.burst_n + 1e-6  # the jolt reached the hand as a slew, not a step
+
+
 def test_bad_payloads_and_unknown_keys_are_counted_and_ignored(server):
     _, endpoint = server
     with TraineeClient(endpoint, "bad-1") as c:

@@ -10,6 +10,7 @@ which the server echoes.
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 import uuid
@@ -23,7 +24,61 @@ import numpy.typing as npt
 from dhg import protocol
 from dhg.errors import ERROR_KINDS, DhgError, EngineError, TransportError
 
-__all__ = ["TraineeClient", "feedback_tuple"]
+__all__ = ["ForceGuard", "TraineeClient", "all_finite", "feedback_tuple"]
+
+_FORCE_FLOATS = ("force_n", "guidance_n", "tip_m", "depth_m", "deviation_m", "temperature_c", "plunge_depth_m")
+
+
+class ForceGuard:
+    """What a client hands on to a haptic device, checked: every force message must be finite in
+    every field and its force (and guidance share) within the device's peak, or it is rejected
+    and counted, and the last good message stands; an accepted force changes no faster than the
+    device's rate limit (a token bucket of ``max_force_rate_n_per_s``, holding at most
+    ``burst_s`` of it), the excess slewed away and counted. The server's own forces always pass
+    (its limiter is the same profile); a peer that puts a NaN, 1e6 N or a jolt on this session's
+    force key cannot get it to the device. Not thread-safe: one guard per stream."""
+
+    def __init__(self, device: Any = None, burst_s: float = 0.005) -> None:
+        from dhg.session import DeviceProfile
+
+        device = device or DeviceProfile()
+        self.peak_n = float(device.peak_force_n)
+        self.rate_n_per_s = float(device.max_force_rate_n_per_s)
+        self.burst_n = self.rate_n_per_s * burst_s
+        self.rejected = {"non_finite": 0, "over_limit": 0, "rate_limited": 0}
+        """Messages refused for a NaN or infinite field, for a force above the peak, and forces
+        slewed down to the rate limit."""
+        self._last: tuple[float, float, float] | None = None
+        self._budget = self.burst_n
+        self._t_ns = 0
+
+    def check(self, m: dict[str, Any], now_ns: int) -> dict[str, Any] | None:
+        """``m`` (a decoded force message) as it may reach the device, or ``None`` when refused."""
+        for key in _FORCE_FLOATS:
+            v = m[key]
+            if not all(math.isfinite(x) for x in v) if isinstance(v, tuple) else not math.isfinite(v):
+                self.rejected["non_finite"] += 1
+                return None
+        f, g = m["force_n"], m["guidance_n"]
+        if math.hypot(*f) > self.peak_n or math.hypot(*g) > self.peak_n:
+            self.rejected["over_limit"] += 1
+            return None
+        if self._last is None:
+            self._last, self._t_ns = f, now_ns
+            return m
+        self._budget = min(self.burst_n, self._budget + self.rate_n_per_s * max(now_ns - self._t_ns, 0) * 1e-9)
+        self._t_ns = now_ns
+        d = (f[0] - self._last[0], f[1] - self._last[1], f[2] - self._last[2])
+        step = math.hypot(*d)
+        if step > self._budget + 1e-6:  # the wire's float32 rounds a full-rate step up by ~1e-8 N
+            k = self._budget / step
+            f = (self._last[0] + d[0] * k, self._last[1] + d[1] * k, self._last[2] + d[2] * k)
+            m = dict(m, force_n=f)
+            self.rejected["rate_limited"] += 1
+            step = self._budget
+        self._budget = max(self._budget - step, 0.0)
+        self._last = f
+        return m
 
 
 def feedback_tuple(force_msg: dict[str, Any]) -> tuple:
@@ -44,6 +99,17 @@ def feedback_tuple(force_msg: dict[str, Any]) -> tuple:
         bool(fl & protocol.FLAGS["plunging"]),
         force_msg["plunge_depth_m"],
     )
+
+
+def all_finite(m: dict[str, Any]) -> bool:
+    """Whether every float (and every float of a vector) in a decoded message is finite."""
+    for v in m.values():
+        if isinstance(v, float):
+            if not math.isfinite(v):
+                return False
+        elif isinstance(v, tuple) and not all(math.isfinite(x) for x in v):
+            return False
+    return True
 
 
 def _refusal(key: str, body: str) -> DhgError:
@@ -68,6 +134,11 @@ class TraineeClient:
     into dicts (field names of ``docs/protocol.md``); the newest force is :attr:`force`, guidance
     and state messages are kept in :attr:`guidance` and :attr:`states` (up to ``keep`` each).
     ``on_force`` / ``on_state`` callbacks run on Zenoh's threads and must be quick.
+
+    Every force passes :class:`ForceGuard` (limits of ``device``, a
+    :class:`dhg.session.DeviceProfile`; the Touch's by default) before it becomes :attr:`force` or
+    reaches ``on_force``: in open mode any peer can put on this session's keys. Guidance and state
+    messages with a NaN or infinite value are dropped and counted in :attr:`decode_errors`.
     """
 
     def __init__(
@@ -79,6 +150,7 @@ class TraineeClient:
         on_force: Callable[[dict[str, Any]], None] | None = None,
         on_state: Callable[[dict[str, Any]], None] | None = None,
         zenoh_config_file: str | None = None,
+        device: Any = None,
     ) -> None:
         from dhg.serve import open_zenoh, zenoh_config_json5
 
@@ -97,6 +169,8 @@ class TraineeClient:
         self.guidance_latencies_s: deque[float] = deque(maxlen=keep)
         self.states: deque[dict[str, Any]] = deque(maxlen=keep)
         self.decode_errors = 0
+        self.guard = ForceGuard(device)
+        """Checks every force before it becomes :attr:`force`; its ``rejected`` counts refusals."""
         self._on_force, self._on_state = on_force, on_state
         self._seq = 0
         self._last_force_seq = -1
@@ -117,10 +191,14 @@ class TraineeClient:
     # -- receiving -------------------------------------------------------------------------
     def _decode(self, name: str, sample: Any) -> dict[str, Any] | None:
         try:
-            return protocol.decode(name, sample.payload.to_bytes())
+            m = protocol.decode(name, sample.payload.to_bytes())
         except ValueError:
             self.decode_errors += 1
             return None
+        if name != "force" and not all_finite(m):  # forces: the guard counts them
+            self.decode_errors += 1
+            return None
+        return m
 
     def _force_cb(self, sample: Any) -> None:
         m = self._decode("force", sample)
@@ -128,6 +206,9 @@ class TraineeClient:
             return
         now = time.monotonic_ns()
         with self._lock:
+            m = self.guard.check(m, now)
+            if m is None:
+                return
             self.force = m
             self.forces_received += 1
             # A pose's latency is that of the first force that used it: later forces (no newer

@@ -1,0 +1,93 @@
+"""The client's force check (:class:`dhg.client.ForceGuard`) and the Python decoders, under
+arbitrary input (hypothesis): nothing non-finite or above the device's limits is ever handed on."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dhg import protocol
+from dhg.client import ForceGuard, all_finite
+from dhg.errors import InvalidInputError
+from dhg.session import DeviceProfile
+
+PEAK = DeviceProfile().peak_force_n
+RATE = DeviceProfile().max_force_rate_n_per_s
+
+anything = st.floats(allow_nan=True, allow_infinity=True, width=32)  # the wire carries f32
+vec = st.tuples(anything, anything, anything)
+plausible = st.floats(-2.0, 2.0)
+
+
+def _force(force_n=(0.0, 0.0, 0.0), guidance_n=(0.0, 0.0, 0.0), **over) -> dict:
+    m = protocol.decode("force", protocol.encode("force", force_n=force_n, guidance_n=guidance_n))
+    return m | over
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.lists(st.tuples(vec, vec, anything, st.integers(0, 5_000_000)), min_size=1, max_size=40))
+def test_nothing_non_finite_or_over_the_limits_reaches_the_device(messages):
+    guard = ForceGuard()
+    now, last, first_t, travelled, n = 0, None, None, 0.0, 0
+    for force, guidance, depth, gap_ns in messages:
+        now += gap_ns
+        out = guard.check(_force(force, guidance, depth_m=depth), now)
+        if out is None:
+            continue
+        assert all_finite(out)
+        assert math.hypot(*out["force_n"]) <= PEAK + 1e-9 and math.hypot(*out["guidance_n"]) <= PEAK + 1e-9
+        if last is None:
+            first_t = now
+        else:  # a token bucket: the force travels at most a burst plus the rate limit times the time
+            travelled += math.dist(out["force_n"], last)
+            n += 1
+            assert travelled <= guard.burst_n + RATE * (now - first_t) * 1e-9 + 2e-6 * n
+        last = out["force_n"]
+
+
+def test_the_guard_refuses_counts_and_slews():
+    guard = ForceGuard()
+    assert guard.check(_force((0.1, 0.0, 0.0)), 0) is not None
+    assert guard.check(_force((math.nan, 0.0, 0.0)), 1_000_000) is None
+    assert guard.check(_force(tip_m=(0.0, math.inf, 0.0)), 2_000_000) is None
+    assert guard.check(_force((1e6, 0.0, 0.0)), 3_000_000) is None
+    assert guard.check(_force(guidance_n=(0.0, 3.4, 0.0)), 4_000_000) is None
+    # A 3 N jolt 1 ms after a message: slewed to what the bucket holds (at most 5 ms of 200 N/s).
+    out = guard.check(_force((3.1, 0.0, 0.0)), 5_000_000)
+    assert out is not None and out["force_n"][0] == pytest.approx(0.1 + guard.burst_n)
+    assert guard.rejected == {"non_finite": 2, "over_limit": 2, "rate_limited": 1}
+    # The server's own stream (at most 0.2 N per 1 ms tick) passes untouched, however it is batched.
+    guard = ForceGuard()
+    f = 0.0
+    for k in range(200):
+        f += 0.2 if k < 15 else -0.2 if k < 30 else 0.0
+        out = guard.check(_force((f, 0.0, 0.0)), 1_000_000 * k)
+        assert out is not None and out["force_n"][0] == pytest.approx(f, abs=1e-6)
+    assert guard.rejected["rate_limited"] == 0
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=200), st.sampled_from(sorted(protocol.LAYOUTS)))
+def test_decoders_refuse_garbage_with_a_clear_error(payload, name):
+    try:
+        m = protocol.decode(name, payload)
+    except InvalidInputError as exc:
+        assert name in str(exc)
+    else:
+        assert len(payload) >= protocol.LAYOUTS[name].size and set(m) == {f[0] for f in protocol.LAYOUTS[name].fields}
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 64), st.integers(0, 64), st.binary(max_size=64))
+def test_the_predict_decoder_refuses_a_window_its_payload_does_not_hold(rows, cols, tail):
+    head = protocol.encode("predict", window_seq=1, rows=rows, cols=cols)
+    payload = head + tail
+    try:
+        seq, window = protocol.decode_predict(payload)
+    except InvalidInputError as exc:
+        assert "predict payload" in str(exc)
+    else:
+        assert seq == 1 and window.shape == (rows, cols) and len(tail) == 4 * rows * cols
