@@ -360,7 +360,9 @@ class DrillingSession:
         return self._s.planned_breakthrough_depth_m
 
     def reset(self) -> None:
-        """Restores the undrilled bone and a fresh state (guidance mode and gain are kept)."""
+        """Restores the undrilled bone and a fresh state (guidance mode and gain are kept). The
+        device goes on as it was: its force ramps down to rest at the device's rate limit (no
+        step), and its motors keep their heat."""
         self._s.reset()
 
     @property

@@ -141,6 +141,13 @@ impl ForceLimiter {
         self.rejected_requests = 0;
     }
 
+    /// A new attempt on the same device: until the next pose the force ramps down from where it
+    /// is at the rate limit (a step to zero would be a jolt the limit exists to prevent), and the
+    /// motors keep the heat they have (a reset does not cool them).
+    pub fn release(&mut self) {
+        self.since_pose_s = f64::INFINITY;
+    }
+
     /// Marks that a fresh, valid pose arrived this tick.
     pub fn pose_received(&mut self) {
         self.since_pose_s = 0.0;
@@ -268,6 +275,31 @@ mod tests {
             prev = f;
         }
         assert!(l.rejected_requests() > 0);
+    }
+
+    #[test]
+    fn a_new_attempt_on_the_same_device_ramps_down_and_keeps_the_heat() {
+        // A session reset releases the device: no step from the force it rendered, and the
+        // motors stay as warm as they were (a reset must not restore the peak budget).
+        let mut l = live();
+        let max_step = l.profile().max_force_rate_n_per_s * DT;
+        for _ in 0..3000 {
+            l.pose_received();
+            l.step(Vector3::new(0.0, 0.0, -2.0), DT);
+        }
+        let (before, heat) = (l.output_n(), l.thermal_load());
+        assert!(before.norm() > 0.8 && heat > 0.1);
+        l.release();
+        let mut prev = before;
+        for _ in 0..100 {
+            let f = l.step(Vector3::new(0.0, 0.0, -2.0), DT); // no pose since the release: stale
+            assert!((f - prev).norm() <= max_step + 1e-12, "a step of {} N", (f - prev).norm());
+            prev = f;
+        }
+        assert!(prev.norm() < 1e-12, "ramped to rest");
+        assert!(l.thermal_load() > 0.9 * heat, "the motors did not cool by a reset");
+        l.reset();
+        assert!(l.output_n().norm() == 0.0 && l.thermal_load() == 0.0);
     }
 
     #[test]

@@ -590,8 +590,10 @@ impl DrillingSession {
     }
 
     /// Restores the undrilled bone and a fresh state (as after [`new`](Self::new)); O(drilled
-    /// bricks). With fading, an attempt that drilled (the stylus was felt) ends here and sets the
-    /// next attempt's gain.
+    /// bricks). The device goes on as it was: its force ramps down to rest at the rate limit and
+    /// its motors keep their heat ([`reset_device`](Self::reset_device) also rests the device).
+    /// With fading, an attempt that drilled (the stylus was felt) ends here and sets the next
+    /// attempt's gain.
     pub fn reset(&mut self) {
         if let (Some(f), Some(_)) = (self.fading.as_mut(), self.pose) {
             let (plunge_m, deviation_m) = self.attempt_worst_m;
@@ -599,7 +601,8 @@ impl DrillingSession {
         }
         self.attempt_worst_m = (0.0, 0.0);
         self.bone.reset();
-        self.limiter.reset();
+        // The same device goes on: its force ramps down at the rate limit, its motors stay warm.
+        self.limiter.release();
         self.thermal.reset();
         self.pose = None;
         let entry = self.path.entry_m();
@@ -611,6 +614,13 @@ impl DrillingSession {
         self.guide.reset();
         self.breakthrough = Breakthrough::default();
         self.state = Self::initial_state(&self.path, &self.thermal);
+    }
+
+    /// [`reset`](Self::reset), and the device at rest too (zero force, cold motors): for a
+    /// session that a different device (a new client) takes over.
+    pub fn reset_device(&mut self) {
+        self.reset();
+        self.limiter.reset();
     }
 
     /// Advances one 1 ms tick. `pose` is the newest stylus sample, or `None` if none arrived

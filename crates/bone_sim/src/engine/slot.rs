@@ -89,7 +89,7 @@ impl Slot {
         self.session.set_path(path);
         // Valid: it is the radius the session was built with.
         let _ = self.session.set_burr_radius(self.default_burr_m);
-        self.session.reset();
+        self.session.reset_device(); // a new client: its device starts at rest
         self.set_guidance(mode, gain);
         self.generation = generation;
         self.active = true;
