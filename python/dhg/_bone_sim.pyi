@@ -29,6 +29,7 @@ __all__ = [
     "MAX_PAYLOAD_BYTES",
     "Server",
     "protocol_layouts",
+    "check_session_id",
     "__version__",
 ]
 
@@ -166,6 +167,7 @@ class DrillingSession:
 _Field = tuple[str, str, int, int, str]
 
 def protocol_layouts() -> dict[str, dict[str, Any]]: ...
+def check_session_id(session_id: str) -> str: ...
 
 @final
 class Server:

@@ -77,15 +77,14 @@ _STRUCTS = {name: layout.struct for name, layout in LAYOUTS.items()}
 
 
 def check_session_id(session_id: str) -> str:
-    """Returns ``session_id`` if it is a valid session id (1–64 of ``A-Z a-z 0-9 _ . -``, the
-    engine's rule), else raises :class:`dhg.errors.InvalidInputError` saying why."""
-    import re
-
+    """Returns ``session_id`` if it is a valid session id (the engine's rule: 1–64 of
+    ``A-Z a-z 0-9 _ . -``, the first a letter or digit, so never ``.``, ``..`` or a hidden
+    name), else raises :class:`dhg.errors.InvalidInputError` saying why."""
     from dhg.errors import InvalidInputError
 
-    if not isinstance(session_id, str) or not re.fullmatch(r"[A-Za-z0-9_.\-]{1,64}", session_id):
-        raise InvalidInputError(f"session id {session_id!r}: use 1 to 64 characters of A-Z a-z 0-9 _ . -")
-    return session_id
+    if not isinstance(session_id, str):
+        raise InvalidInputError(f"session id {session_id!r}: must be a string")
+    return _bone_sim.check_session_id(session_id)
 
 
 def keys(prefix: str, session_id: str) -> dict[str, str]:

@@ -26,6 +26,7 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<session::PySession>()?;
     m.add_class::<server::PyServer>()?;
     m.add_function(wrap_pyfunction!(server::protocol_layouts, m)?)?;
+    m.add_function(wrap_pyfunction!(server::check_session_id, m)?)?;
     m.add("PROTOCOL_VERSION", crate::protocol::VERSION)?;
     m.add("WINDOW_RECORDS", crate::protocol::WINDOW_RECORDS)?;
     m.add("MAX_PAYLOAD_BYTES", crate::protocol::MAX_PAYLOAD_BYTES)?;

@@ -158,6 +158,13 @@ impl PyServer {
     }
 }
 
+/// Returns `session_id` if it is a valid session id (the engine's rule), else raises
+/// `InvalidInputError` saying the rule.
+#[pyfunction]
+pub(crate) fn check_session_id(session_id: &str) -> PyResult<String> {
+    crate::transport::registry::check_id(session_id).map(str::to_owned).py()
+}
+
 /// The payload layouts: {name: {"kind", "size", "fields": [(name, type, offset, count, unit)]}}.
 #[pyfunction]
 pub(crate) fn protocol_layouts(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {

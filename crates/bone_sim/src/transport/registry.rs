@@ -13,16 +13,23 @@ use crate::protocol::PoseMsg;
 
 use super::metrics::SessionMetrics;
 
+/// Poses keep their session alive only while they are a stream: each within this long (s) of
+/// the one before (4 Hz; a haptic device sends 1 kHz, and even a stalled client's poses come in
+/// bursts). A session whose poses stop being a stream is freed after the idle timeout.
+pub const STREAM_GAP_S: f64 = 0.25;
+
 /// Longest session id.
 pub const MAX_ID_LEN: usize = 64;
 
-/// Checks a session id: 1–64 characters of `A–Z a–z 0–9 _ - .` (it is one key segment).
+/// Checks a session id: 1–64 characters of `A–Z a–z 0–9 _ - .`, the first a letter or digit. It
+/// is one key segment, and recorders name a folder after it: so never `.`, `..`, a hidden name
+/// or one a command line would read as an option.
 ///
 /// # Errors
 /// Any other id.
 pub fn check_id(id: &str) -> SimResult<&str> {
-    let ok = !id.is_empty()
-        && id.len() <= MAX_ID_LEN
+    let ok = id.len() <= MAX_ID_LEN
+        && id.as_bytes().first().is_some_and(u8::is_ascii_alphanumeric)
         && id.bytes().all(|b| b.is_ascii_alphanumeric() || matches!(b, b'_' | b'-' | b'.'));
     if ok {
         Ok(id)
@@ -30,8 +37,26 @@ pub fn check_id(id: &str) -> SimResult<&str> {
         Err(SimError::InvalidOption {
             name: "session id",
             value: id.chars().take(80).collect(),
-            allowed: "1-64 characters of A-Z a-z 0-9 _ - .",
+            allowed: ID_RULE,
         })
+    }
+}
+
+/// The session-id rule in words (the refusal's `allowed`).
+pub const ID_RULE: &str = "1-64 characters of A-Z a-z 0-9 _ - ., the first a letter or digit";
+
+#[cfg(test)]
+mod id_tests {
+    use super::check_id;
+
+    #[test]
+    fn ids_that_a_file_system_or_shell_treats_specially_are_refused() {
+        for bad in ["", ".", "..", ".hidden", "-rf", "_x", "a/b", "a b", "é", &"x".repeat(65)] {
+            assert!(check_id(bad).is_err(), "{bad:?} was accepted");
+        }
+        for good in ["a", "trainee-01", "alice.02", "S_3", "9", &"x".repeat(64)] {
+            assert_eq!(check_id(good).ok(), Some(good));
+        }
     }
 }
 
@@ -62,6 +87,11 @@ pub struct SlotInfo {
     pub fading: Option<Fading>,
     /// `poses_received` when the current attempt began (a reset or the session's start).
     pub attempt_first_pose: u64,
+    /// When the last pose arrived (None: none yet in this assignment).
+    pub last_pose_at: Option<Instant>,
+    /// The window sequence number of the newest model reply applied in this assignment: a reply
+    /// to an older window (however late it comes) is ignored.
+    pub applied_window_seq: Option<u32>,
 }
 
 /// The slot table plus the command producer.
@@ -105,6 +135,8 @@ impl Registry {
                 metrics: SessionMetrics::default(),
                 fading: None,
                 attempt_first_pose: 0,
+                applied_window_seq: None,
+                last_pose_at: None,
             })
             .collect();
         Self { commands, by_id: HashMap::new(), slots, default_path, default_mode, default_gain, default_burr_m }
@@ -155,6 +187,8 @@ impl Registry {
         info.metrics = SessionMetrics::default();
         info.fading = None;
         info.attempt_first_pose = 0;
+        info.applied_window_seq = None;
+        info.last_pose_at = None;
         self.by_id.insert(id.to_owned(), slot as u16);
         Ok((slot as u16, true))
     }
@@ -169,7 +203,13 @@ impl Registry {
             generation: info.generation,
             received: Some(received),
         });
-        info.last_seen = Instant::now();
+        // Only a stream keeps a session: a pose within STREAM_GAP_S of the one before. Isolated
+        // poses (one every few seconds to many ids) would otherwise hold every slot.
+        let now = Instant::now();
+        if info.last_pose_at.is_some_and(|t| now.duration_since(t).as_secs_f64() <= STREAM_GAP_S) {
+            info.last_seen = now;
+        }
+        info.last_pose_at = Some(now);
         info.poses_received += 1;
     }
 
