@@ -12,6 +12,7 @@ use zenoh::bytes::Encoding;
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::Wait;
+use zenoh_ext::{AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
 
 use super::{lock, Shared, ZENOH_IO_THREADS};
 use crate::engine::handoff::{Command, Output};
@@ -79,12 +80,19 @@ pub(crate) fn sample(shared: &Shared) -> StatsSample {
 struct Outlet {
     generation: u32,
     force: zenoh::pubsub::Publisher<'static>,
-    guidance: zenoh::pubsub::Publisher<'static>,
-    state: zenoh::pubsub::Publisher<'static>,
+    guidance: AdvancedPublisher<'static>,
+    state: AdvancedPublisher<'static>,
     window: VecDeque<[f32; FEATURE_COUNT]>,
     window_seq: u32,
     pose_time_ns: u64,
 }
+
+/// Samples of each recorded stream (state, guidance) a session's publisher keeps for recorders
+/// to recover: 60 s of the 10 Hz streams.
+const RECORDED_HISTORY: usize = 600;
+/// How often a recorded stream's publisher announces its last sequence number, so that a
+/// recorder notices a lost last sample too.
+const RECORDED_HEARTBEAT: Duration = Duration::from_millis(500);
 
 fn encoding(name: &str) -> Encoding {
     Encoding::APPLICATION_OCTET_STREAM.with_schema(format!("dhg.{name}.v{}", protocol::VERSION))
@@ -112,23 +120,37 @@ impl Comm {
                 info.id.clone()?
             };
             let key = |leaf: &str| format!("{}/session/{id}/{leaf}", self.shared.prefix);
-            let declare = |leaf: &str, cc: CongestionControl, express: bool| {
+            let force = self
+                .session
+                .declare_publisher(key("force"))
+                .encoding(encoding("force"))
+                .congestion_control(CongestionControl::Drop)
+                .priority(Priority::RealTime)
+                .express(true)
+                .wait()
+                .ok()?;
+            // State and guidance are recorded for datasets, but a slow or frozen subscriber must
+            // never hold up the comm thread (and with it every session's forces): they drop
+            // rather than block, and keep the last RECORDED_HISTORY samples for recorders to
+            // recover what they missed (zenoh-ext advanced publisher: cache, sample-miss
+            // detection with a heartbeat, publisher detection).
+            let recorded = |leaf: &str| {
                 self.session
                     .declare_publisher(key(leaf))
                     .encoding(encoding(leaf))
-                    .congestion_control(cc)
-                    .priority(if express { Priority::RealTime } else { Priority::DataHigh })
-                    .express(express)
+                    .congestion_control(CongestionControl::Drop)
+                    .priority(Priority::DataHigh)
+                    .cache(CacheConfig::default().max_samples(RECORDED_HISTORY))
+                    .sample_miss_detection(MissDetectionConfig::default().heartbeat(RECORDED_HEARTBEAT))
+                    .publisher_detection()
                     .wait()
                     .ok()
             };
-            // Forces are real-time: a late one is useless, so drop rather than block. State and
-            // guidance are recorded for datasets: block (briefly) rather than lose them.
             self.outlets[i] = Some(Outlet {
                 generation,
-                force: declare("force", CongestionControl::Drop, true)?,
-                guidance: declare("guidance", CongestionControl::Block, false)?,
-                state: declare("state", CongestionControl::Block, false)?,
+                force,
+                guidance: recorded("guidance")?,
+                state: recorded("state")?,
                 window: VecDeque::with_capacity(WINDOW_RECORDS),
                 window_seq: 0,
                 pose_time_ns: 0,
@@ -192,6 +214,9 @@ impl Comm {
         let shared = self.shared.clone();
         let sent = Instant::now();
         shared.counters.model_queries.fetch_add(1, Ordering::Relaxed);
+        // At most one reply per query is applied: the first valid one. Zenoh delivers every
+        // queryable's reply, and a second worker (or a rogue one) must not override it.
+        let answered = Arc::new(std::sync::atomic::AtomicBool::new(false));
         let on_reply = move |reply: zenoh::query::Reply| {
             let latency_s = sent.elapsed().as_secs_f64();
             let decoded = match reply.result() {
@@ -210,7 +235,19 @@ impl Comm {
                 latency_s,
                 pose_client_time_ns: pose_time_ns,
             };
-            if lock(&shared.registry).send(cmd).is_ok() {
+            let mut reg = lock(&shared.registry);
+            let Some(info) = reg.slots.get_mut(usize::from(slot)).filter(|i| i.generation == generation) else {
+                return; // the session is gone
+            };
+            let older = info.applied_window_seq.is_some_and(|newest| !seq_after(window_seq, newest));
+            if older || answered.swap(true, Ordering::AcqRel) {
+                shared.counters.model_ignored.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+            info.applied_window_seq = Some(window_seq);
+            let sent_cmd = reg.send(cmd).is_ok();
+            drop(reg);
+            if sent_cmd {
                 shared.counters.model_replies.fetch_add(1, Ordering::Relaxed);
                 // The guidance message leaves as the prediction is applied: now, not at the
                 // session's next tick (up to 1 ms away, more for a paused client).
@@ -301,6 +338,11 @@ fn drain_forces_first(
     }
 }
 
+/// Whether window sequence number `a` comes after `b` (they wrap at 2³²).
+fn seq_after(a: u32, b: u32) -> bool {
+    (a.wrapping_sub(b) as i32) > 0
+}
+
 /// Starts the comm thread.
 pub(crate) fn spawn(
     session: zenoh::Session,
@@ -310,7 +352,10 @@ pub(crate) fn spawn(
 ) -> SimResult<JoinHandle<()>> {
     let querier = session
         .declare_querier(format!("{}/model/predict", shared.prefix))
-        .target(QueryTarget::BestMatching)
+        // Every model worker gets every query (the first valid reply is applied, the rest are
+        // counted as ignored): with BestMatching, Zenoh would pick one queryable per query, and a
+        // rogue or stalled one would get a share of the queries to itself.
+        .target(QueryTarget::All)
         .consolidation(ConsolidationMode::None)
         .timeout(Duration::from_secs_f64(shared.config.model_timeout_s))
         .wait()

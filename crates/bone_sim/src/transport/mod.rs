@@ -92,6 +92,9 @@ pub struct Counters {
     pub model_replies: AtomicU64,
     /// Model queries that failed (error reply or bad payload).
     pub model_errors: AtomicU64,
+    /// Model replies ignored: a second (or later) reply to a query already answered, or a reply
+    /// to a window older than the newest one applied (a late or rogue worker).
+    pub model_ignored: AtomicU64,
     /// Whether the comm thread got the short EEVDF slice (`engine::realtime`); 0 = no, 1 = yes.
     pub comm_short_slice: AtomicU64,
     /// Zenoh I/O threads on the short slice.
