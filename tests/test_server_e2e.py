@@ -17,6 +17,7 @@ import pytest
 
 from dhg import protocol
 from dhg.client import TraineeClient
+from dhg.errors import InvalidInputError
 from dhg.live_demo import ServerProcess, free_port
 
 PEAK_FORCE_N = 3.3  # the Touch profile's peak: nothing above it may reach a device
@@ -183,6 +184,165 @@ def test_a_peer_cannot_get_a_nan_or_over_limit_force_to_the_device(server):
     assert rejected["non_finite"] >= 5 and rejected["over_limit"] >= 5 and rejected["rate_limited"] >= 1
     steps = np.linalg.norm(np.diff(f, axis=0), axis=1)
     assert steps.max() <= victim.guard.burst_n + 1e-6  # the jolt reached the hand as a slew, not a step
+
+
+def test_a_rogue_model_worker_cannot_override_the_genuine_ones_replies(server):
+    """Issue 21, item 4: a peer serving ``<p>/model/predict`` that answers each query five times,
+    40 ms late, with a 3 N "prediction": the genuine worker's first reply is the one applied,
+    every other is ignored and counted."""
+    _, endpoint = server
+    rogue_n = (0.0, 0.0, 3.0)
+    late: list[tuple[float, object, int]] = []
+    lock = threading.Lock()
+    with TraineeClient(endpoint, "guided-r1") as c, TraineeClient(endpoint, "rogue-m1") as rogue:
+        before = c.health(1.0)["model"]
+
+        def on_query(q):
+            seq, _ = protocol.decode_predict(q.payload.to_bytes())
+            with lock:
+                late.append((time.monotonic() + 0.04, q, seq))
+
+        queryable = rogue._z.declare_queryable("dhg/model/predict", on_query, complete=True)
+        stop = threading.Event()
+
+        def answer_late():
+            while not stop.is_set():
+                with lock:
+                    due = [x for x in late if x[0] <= time.monotonic()]
+                    late[:] = [x for x in late if x[0] > time.monotonic()]
+                for _, q, seq in due:
+                    for _ in range(5):
+                        q.reply("dhg/model/predict", protocol.encode_prediction(seq, rogue_n, 0.001, "rogue"))
+                    q.drop()
+                time.sleep(0.002)
+
+        worker = threading.Thread(target=answer_late, daemon=True)
+        worker.start()
+        try:
+            a, d, q = _entry(c)
+            _stream(c, a + d * np.linspace(-3e-3, 2e-3, 2500)[:, None], q)
+            _wait(lambda: c.health(1.0)["model"]["ignored"] - before["ignored"] >= 50, 10.0)
+        finally:
+            stop.set()
+            worker.join()
+            queryable.undeclare()
+        after = c.health(1.0)["model"]
+        guidance = list(c.guidance)
+    assert len(guidance) >= 15
+    predicted = np.array([g["predicted_force_n"] for g in guidance])
+    assert not np.any(np.all(np.isclose(predicted, rogue_n, atol=1e-6), axis=1)), "a rogue reply was applied"
+    queries = after["queries"] - before["queries"]
+    assert after["replies"] - before["replies"] <= queries  # at most one reply applied per query
+
+
+def _peak_rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as fh:
+        return next(int(line.split()[1]) for line in fh if line.startswith("VmHWM")) / 1024
+
+
+def test_an_oversized_payload_is_dropped_by_the_transport_before_it_is_reassembled(server):
+    """Issue 21, item 9: a 40 MB put on a pose key used to be received whole before the 4 KB
+    check (a 100 MB one raised the server's memory by 1.35 GB). The transport's cap now drops it
+    as it arrives: the server's peak memory does not grow by the payload, and it still serves."""
+    proc, endpoint = server
+    with TraineeClient(endpoint, "big-1") as c:
+        c.create()
+        before = _peak_rss_mb(proc.proc.pid)
+        c.put_raw("pose", b"\0" * (40 * 1024 * 1024))
+        c.put_raw("pose", b"\0" * (40 * 1024 * 1024))
+        # The query follows the puts on the same link: its reply comes after the router has had them.
+        assert c.control("info")["session"] == "big-1"
+        grown = _peak_rss_mb(proc.proc.pid) - before
+    assert grown < 20.0, f"the server's peak memory grew by {grown:.0f} MB"
+
+
+def test_isolated_poses_cannot_squat_the_slots():
+    """Issue 21, item 8: one pose every 0.5 s to each of two ids held both slots of a two-slot
+    server for ever. Poses that are not a stream no longer keep a session: the squatter's are
+    freed after the idle timeout and a real trainee gets a slot."""
+    from dhg.errors import EngineError
+
+    proc, endpoint = _serve("--max-sessions", "2", "--idle-timeout", "1.0")
+    stop = threading.Event()
+    try:
+        squatters = [TraineeClient(endpoint, f"squat-{k}") for k in range(2)]
+
+        def squat():
+            while not stop.is_set():
+                for c in squatters:
+                    c.send_pose((0.0, 0.0, 0.0))
+                stop.wait(0.5)
+
+        thread = threading.Thread(target=squat, daemon=True)
+        thread.start()
+        with TraineeClient(endpoint) as probe:
+            _wait(lambda: probe.health(1.0)["sessions"] == 2, 10.0)
+            got = None
+            deadline = time.monotonic() + 15.0
+            with TraineeClient(endpoint, "real-trainee") as real:
+                while got is None and time.monotonic() < deadline:
+                    try:
+                        got = real.create()
+                    except EngineError:
+                        time.sleep(0.05)
+        assert got is not None and got["session"] == "real-trainee", "the squatters kept every slot"
+    finally:
+        stop.set()
+        for c in squatters:
+            c.close()
+        assert proc.stop() == 0
+
+
+_FROZEN_SUBSCRIBER = """
+import json, time, zenoh
+conf = {"mode": "client", "connect": {"endpoints": ["%s"]}, "scouting": {"multicast": {"enabled": False}}}
+z = zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
+sub = z.declare_subscriber("dhg/**", lambda sample: None)
+print("ready", flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_frozen_subscriber_does_not_stall_another_sessions_forces():
+    """Issue 21, item 3: a client subscribed to ``dhg/**`` and then frozen (SIGSTOP), its link
+    flooded full, used to halt every session's forces for 5 s (state and guidance blocked the
+    comm thread). The outputs now drop for that subscriber instead: a trainee's forces flow on."""
+    proc, endpoint = _serve("--idle-timeout", "2.0")
+    frozen = subprocess.Popen([sys.executable, "-c", _FROZEN_SUBSCRIBER % endpoint], stdout=subprocess.PIPE, text=True)
+    stop = threading.Event()
+    try:
+        assert frozen.stdout is not None and frozen.stdout.readline().strip() == "ready"
+        os.kill(frozen.pid, signal.SIGSTOP)
+        arrivals: list[float] = []
+        with (
+            TraineeClient(endpoint, "flow-1", on_force=lambda m: arrivals.append(time.monotonic())) as c,
+            TraineeClient(endpoint, "flooder-1") as flooder,
+        ):
+            blob = b"x" * 60_000
+
+            def flood():  # fills the frozen peer's link (its queue and socket buffers)
+                while not stop.is_set():
+                    flooder._z.put("dhg/flood/x", blob)
+
+            thread = threading.Thread(target=flood, daemon=True)
+            thread.start()
+            a, d, q = _entry(c)
+            t0 = time.monotonic()
+            _stream(c, a + d * np.linspace(-3e-3, 0.0, 4000)[:, None], q)  # 4 s of poses, states and guidance
+            stop.set()
+            thread.join()
+        during = np.array([t for t in arrivals if t >= t0])
+    finally:
+        stop.set()
+        os.kill(frozen.pid, signal.SIGCONT)
+        frozen.kill()
+        frozen.wait()
+        if frozen.stdout is not None:
+            frozen.stdout.close()
+        assert proc.stop() == 0
+    assert len(during) > 2000
+    gap = float(np.diff(during).max())
+    assert gap < 0.5, f"forces stalled for {gap:.2f} s behind a frozen subscriber"
 
 
 def test_bad_payloads_and_unknown_keys_are_counted_and_ignored(server):
@@ -524,6 +684,55 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
         assert ep.subject_id == session_id and len(ep.times_s) >= 11
         raw = load_raw(ds)
         assert raw.num_rows >= 0.95 * 1200 and ds.card["generator"]["session"] == session_id
+
+
+def test_record_all_writes_only_sessions_the_server_has_and_survives_impossible_states(server, tmp_path):
+    """Issue 21, items 2 and 6: ids named ``.`` or ``..`` are refused; fake ids put by a peer make
+    no folder; NaN, infinite and absurd-clock states are counted and left out, and the recording
+    of the class goes on (exit 0) with every real record."""
+    from dhg.dataset import load_dataset
+
+    _, endpoint = server
+    root = tmp_path / "class"
+    (root / "keep").mkdir(parents=True)
+    (root / "keep" / "data.txt").write_text("another class's recording")
+    rec = _record(endpoint, "--all", "--out", str(root), "--status-every", "0")
+    try:
+        assert rec.stdout is not None and "recording every session" in rec.stdout.readline()
+        with TraineeClient(endpoint, "real-1") as c, TraineeClient(endpoint, "rogue-2") as rogue:
+            for bad_id in (".", "..", ".hidden", "-rf"):
+                with pytest.raises(InvalidInputError, match="first a letter or digit"):  # the server refuses
+                    rogue._json(f"dhg/session/{bad_id}/control", {"op": "create"})
+                with pytest.raises(InvalidInputError, match="first a letter or digit"):  # so does the client
+                    TraineeClient(endpoint, bad_id)
+            state = protocol.encode("state", time_s=0.5)
+            for k in range(300):  # ids the server never had
+                rogue._z.put(f"dhg/session/fake-{k}/state", state)
+            for leaf in (".", ".."):
+                rogue._z.put(f"dhg/session/{leaf}/state", state)
+            a, d, q = _entry(c)
+            _stream(c, a + d * np.linspace(-2e-3, 1e-3, 1500)[:, None], q)
+            feats = [0.0] * 9
+            for impossible in (
+                protocol.encode("state", time_s=float("nan"), features=feats),
+                protocol.encode("state", time_s=0.7, features=[float("inf")] + feats[1:]),
+                protocol.encode("state", time_s=1e30, features=feats),
+            ):
+                rogue._z.put("dhg/session/real-1/state", impossible)
+            _stream(c, a + d * np.linspace(1e-3, 1.5e-3, 500)[:, None], q)
+        output = _ctrl_c(rec)
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+            rec.wait()
+    made = sorted(p.name for p in root.iterdir())
+    assert "real-1" in made and "keep" in made and not [m for m in made if m.startswith(("fake-", "."))]
+    assert (root / "keep" / "data.txt").read_text() == "another class's recording"
+    (ep,) = load_dataset(root / "real-1").episodes
+    assert len(ep.times_s) >= 18 and np.all(np.isfinite(ep.features)) and ep.times_s.max() < 10.0
+    assert "3 impossible messages left out" in output, output
+    refused = re.search(r"(\d+) ids the server does not have \((\d+) messages\)", output)
+    assert refused and int(refused.group(2)) >= 300, output  # every fake message counted, none written
 
 
 def test_a_recorded_session_trains_a_model_that_the_server_then_serves(server, tmp_path):

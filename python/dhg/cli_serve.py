@@ -298,6 +298,7 @@ def add_commands(sub: Any, epilog: str) -> None:
     p.add_argument("--seed", type=int, default=0, help="the surgeon's style and tremor (default 0)")
     p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
     p.add_argument("--json", metavar="FILE", help="also write metrics and latencies as JSON")
+    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (TLS, credentials, ...)")
     p.set_defaults(func=_cmd_trainee)
 
     p = sub.add_parser(
@@ -339,6 +340,7 @@ def add_commands(sub: Any, epilog: str) -> None:
         "--raw", action="store_true", help="also keep the 1 kHz pose/force stream (raw.parquet, about 4 MB a minute)"
     )
     p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
+    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (TLS, credentials, ...)")
     p.set_defaults(func=_cmd_record)
 
     p = sub.add_parser(
@@ -355,6 +357,7 @@ def add_commands(sub: Any, epilog: str) -> None:
     p.add_argument("--out", default="out/demo", metavar="DIR", help="folder for the PNGs (default out/demo)")
     p.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds per run (default 20)")
     p.add_argument("--seed", type=int, default=7, help="the novice's hand (default 7)")
+    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config for the server and both trainees")
     p.set_defaults(func=_cmd_live_demo)
 
 
@@ -368,7 +371,7 @@ def _cmd_trainee(args: argparse.Namespace) -> int:
         raise ValueError(f"--drill-mm must be a diameter in (0, 40] mm, got {args.drill_mm}")
     burr_radius_m = None if args.drill_mm is None else args.drill_mm / 2 * 1e-3
     gain = args.gain if args.guidance == "on" else 0.0
-    with TraineeClient(args.connect, args.session, prefix=args.prefix) as client:
+    with TraineeClient(args.connect, args.session, prefix=args.prefix, zenoh_config_file=args.zenoh_config) as client:
         client.health(1.0)  # fails fast, with a clear message, when no server answers
         run = run_trainee(
             client,
@@ -426,7 +429,15 @@ def _cmd_record(args: argparse.Namespace) -> int:
             raise ValueError("--subject names one subject; with --all each session's id is its subject")
         return _record_all(args)
     rec = SessionRecorder(
-        args.connect, args.session, args.out, args.prefix, args.subject, args.skill, args.flush_every, raw=args.raw
+        args.connect,
+        args.session,
+        args.out,
+        args.prefix,
+        args.subject,
+        args.skill,
+        args.flush_every,
+        zenoh_config_file=args.zenoh_config,
+        raw=args.raw,
     )
     print(f"recording session {args.session} into {args.out} (Ctrl-C to stop)", flush=True)
 
@@ -440,7 +451,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
             print(f"  {t:5.0f} s: {rec.records} records in {rec.attempts} attempt(s){ticks}", flush=True)
 
     _run_recorder(rec, args, status)
-    print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}")
+    bad = f"; {rec.invalid_messages} impossible messages left out" if rec.invalid_messages else ""
+    print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}{bad}")
     if args.raw:
         print(
             f"  1 kHz stream: {rec.raw_rows} ticks; {rec.raw_ticks_without_pose} without their pose (lost in "
@@ -456,15 +468,32 @@ def _record_all(args: argparse.Namespace) -> int:
         print(f"  recording session {session_id} into {folder}", flush=True)
 
     rec = AllSessionsRecorder(
-        args.connect, args.out, args.prefix, args.skill, args.flush_every, raw=args.raw, on_new_session=found
+        args.connect,
+        args.out,
+        args.prefix,
+        args.skill,
+        args.flush_every,
+        zenoh_config_file=args.zenoh_config,
+        raw=args.raw,
+        on_new_session=found,
     )
     print(f"recording every session into {args.out}/<session id> (Ctrl-C to stop)", flush=True)
 
+    def refusals() -> str:
+        parts = [
+            f"{rec.invalid_messages} impossible messages left out" if rec.invalid_messages else "",
+            f"{rec.refused_ids} ids the server does not have ({rec.unconfirmed_messages} messages)"
+            if rec.refused_ids
+            else "",
+            f"{rec.flush_errors} failed flushes (last: {rec.last_flush_error})" if rec.flush_errors else "",
+        ]
+        return "".join(f"; {p}" for p in parts if p)
+
     def status(t: float) -> None:
-        print(f"  {t:5.0f} s: {len(rec.sessions)} sessions, {rec.records} records", flush=True)
+        print(f"  {t:5.0f} s: {len(rec.sessions)} sessions, {rec.records} records{refusals()}", flush=True)
 
     _run_recorder(rec, args, status)
-    print(f"recorded {rec.records} records of {len(rec.sessions)} sessions to {args.out}")
+    print(f"recorded {rec.records} records of {len(rec.sessions)} sessions to {args.out}{refusals()}")
     return EXIT_OK
 
 
@@ -482,7 +511,7 @@ def _cmd_live_demo(args: argparse.Namespace) -> int:
 
     if args.duration <= 0:
         raise ValueError("--duration must be positive")
-    code = run_live_demo(args.out, args.duration, args.seed)
+    code = run_live_demo(args.out, args.duration, args.seed, zenoh_config_file=args.zenoh_config)
     return EXIT_OK if code == 0 else EXIT_INTERNAL
 
 

@@ -155,7 +155,7 @@ class TraineeClient:
         from dhg.serve import open_zenoh, zenoh_config_json5
 
         endpoints = [connect] if isinstance(connect, str) else list(connect)
-        self.session_id = session_id or f"trainee-{uuid.uuid4().hex[:8]}"
+        self.session_id = protocol.check_session_id(session_id or f"trainee-{uuid.uuid4().hex[:8]}")
         self.prefix = prefix
         self.keys = protocol.keys(prefix, self.session_id)
         self._z = open_zenoh(zenoh_config_json5(connect=endpoints, config_file=zenoh_config_file, mode="client"))

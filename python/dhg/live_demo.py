@@ -121,8 +121,15 @@ def _row(name: str, values: list[str]) -> list[str]:
     return [name, *values]
 
 
-def run_live_demo(out: str | Path, duration_s: float = 20.0, seed: int = 7, echo_server: bool = True) -> int:
-    """Runs the demo (see the module docstring); returns the server's exit code."""
+def run_live_demo(
+    out: str | Path,
+    duration_s: float = 20.0,
+    seed: int = 7,
+    echo_server: bool = True,
+    zenoh_config_file: str | None = None,
+) -> int:
+    """Runs the demo (see the module docstring); returns the server's exit code. A
+    ``zenoh_config_file`` goes to the server and both trainees (the endpoint stays loopback)."""
     from rich.console import Console
     from rich.table import Table
 
@@ -134,12 +141,13 @@ def run_live_demo(out: str | Path, duration_s: float = 20.0, seed: int = 7, echo
     console = Console()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     console.print(f"[bold]starting dhg-serve[/] on {endpoint} (phantom femur, bundled model)")
-    server = ServerProcess(["--listen", endpoint, "--status-every", "5"], echo=echo_server)
+    zcfg = ["--zenoh-config", str(zenoh_config_file)] if zenoh_config_file else []
+    server = ServerProcess(["--listen", endpoint, "--status-every", "5", *zcfg], echo=echo_server)
     runs = []
     try:
         for name, gain in (("guided", 1.0), ("unguided", 0.0)):
             console.print(f"[bold]{name} novice[/]: drilling for up to {duration_s:g} s (seed {seed}) …")
-            with TraineeClient(endpoint, f"demo-{name}") as client:
+            with TraineeClient(endpoint, f"demo-{name}", zenoh_config_file=zenoh_config_file) as client:
                 run = run_trainee(client, "novice", gain, duration_s, seed)
                 if name == "guided":
                     for view, png in client.xray().items():

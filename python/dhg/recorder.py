@@ -20,6 +20,7 @@ import json
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -37,6 +38,42 @@ from dhg.trainee import state_records
 __all__ = ["AllSessionsRecorder", "SessionRecorder"]
 
 _DRILL_ON = protocol.FLAGS["drill_on"]
+
+MAX_SESSION_TIME_S = 7 * 24 * 3600.0
+"""A session clock past a week (s) is not a session's: such a state is refused."""
+PENDING_IDS = 64
+""":class:`AllSessionsRecorder`: unconfirmed session ids held at once, awaiting the server's word."""
+PENDING_PER_ID = 600
+"""Messages held per unconfirmed id (a minute of 10 Hz states): older ones make way."""
+
+
+def recorded_subscriber(z: Any, key: str, callback: Callable[[Any], None], on_miss: Callable[[int], None]) -> Any:
+    """A subscriber to a recorded stream (state, guidance) that does not lose samples to a
+    congested link: the server's publishers drop rather than block (so no subscriber can stall
+    a session), keep the last 60 s, and announce their sequence numbers; this subscriber (a
+    zenoh-ext advanced subscriber) asks for what it missed, and for the history of a session
+    it joins late. ``on_miss(n)`` hears of samples it could not recover."""
+    import zenoh.ext as zx
+
+    sub = zx.declare_advanced_subscriber(
+        z,
+        key,
+        callback,
+        history=zx.HistoryConfig(detect_late_publishers=True),
+        recovery=zx.RecoveryConfig(heartbeat=True),
+    )
+    listener = sub.sample_miss_listener(lambda miss: on_miss(int(miss.nb)))
+    return sub, listener
+
+
+def valid_message(name: str, m: dict[str, Any]) -> bool:
+    """Whether a decoded ``state``, ``pose`` or ``force`` message can be true: every float
+    finite, a state's clock within 0..:data:`MAX_SESSION_TIME_S`."""
+    from dhg.client import all_finite
+
+    if not all_finite(m):
+        return False
+    return name != "state" or 0.0 <= m["time_s"] <= MAX_SESSION_TIME_S
 
 
 class _FlushLoop:
@@ -127,17 +164,25 @@ class SessionRecorder(_FlushLoop):
         self._finished = False
         self.flushes = 0
         self.decode_errors = 0
+        self.invalid_messages = 0
+        """Messages that decoded but cannot be true (a NaN or infinite value, a clock before 0 or
+        past :data:`MAX_SESSION_TIME_S`): counted and left out, never a reason to stop."""
         self.raw_ticks_without_pose = 0
         """Forces whose pose never reached the recorder (dropped in transport): no raw row."""
         self.raw_rows_without_records = 0
         """Raw rows of an attempt too short for a record (no 10 Hz state): left out."""
         self.path: PlannedPath | None = None
         self._subs = []
+        self.lost_states = 0
+        """States the server published that never reached the recorder, even after recovery."""
         if self._owns_zenoh:
-            self._subs.append(self._z.declare_subscriber(self.keys["state"], self._on_state))
+            self._subs.extend(recorded_subscriber(self._z, self.keys["state"], self._on_state, self._lost))
             if raw:
                 self._subs.append(self._z.declare_subscriber(self.keys["pose"], self._on_pose))
                 self._subs.append(self._z.declare_subscriber(self.keys["force"], self._on_force))
+
+    def _lost(self, n: int) -> None:
+        self.lost_states += n
 
     def on_sample(self, leaf: str, sample: Any) -> None:
         """Feeds one sample of this session's ``state``, ``pose`` or ``force`` key (for an owner
@@ -148,10 +193,14 @@ class SessionRecorder(_FlushLoop):
 
     def _decode(self, name: str, sample: Any) -> dict[str, Any] | None:
         try:
-            return protocol.decode(name, sample.payload.to_bytes())
+            m = protocol.decode(name, sample.payload.to_bytes())
         except ValueError:
             self.decode_errors += 1
             return None
+        if not valid_message(name, m):
+            self.invalid_messages += 1
+            return None
+        return m
 
     def _on_state(self, sample: Any) -> None:
         m = self._decode("state", sample)
@@ -350,9 +399,14 @@ class SessionRecorder(_FlushLoop):
 
 class AllSessionsRecorder(_FlushLoop):
     """Records every session on the server at ``connect``, each into ``out_root/<session id>`` as
-    its own dataset (:class:`SessionRecorder`), starting when its first message arrives: a class of
-    trainees needs one recorder, and nobody has to know the session ids beforehand.
-    ``on_new_session(session_id, folder)`` is called (from a Zenoh thread) for each new one."""
+    its own dataset (:class:`SessionRecorder`): a class of trainees needs one recorder, and nobody
+    has to know the session ids beforehand. A session is recorded once the server confirms it
+    (its health report lists the id): messages under ids the server does not have (any peer can
+    put on any key in open mode) make no folder. Until then its messages wait, at most
+    :data:`PENDING_PER_ID` for each of at most :data:`PENDING_IDS` ids; ids the server still
+    does not list at the second check after their first message are dropped and counted
+    (:attr:`refused_ids`, :attr:`unconfirmed_messages`). ``on_new_session(session_id, folder)``
+    is called for each session recorded."""
 
     def __init__(
         self,
@@ -364,6 +418,7 @@ class AllSessionsRecorder(_FlushLoop):
         zenoh_config_file: str | None = None,
         raw: bool = False,
         on_new_session: Callable[[str, Path], None] | None = None,
+        confirm_every_s: float = 0.25,
     ) -> None:
         from dhg.serve import open_zenoh, zenoh_config_json5
 
@@ -372,53 +427,144 @@ class AllSessionsRecorder(_FlushLoop):
         self.flush_every_s = flush_every_s
         self.on_new_session = on_new_session
         self.refused_ids = 0
-        """Messages under a session key whose id is not a valid session id."""
+        """Ids refused: not a valid session id, or never confirmed by the server."""
+        self.unconfirmed_messages = 0
+        """Messages under ids that were never confirmed (or that did not fit the waiting room)."""
+        self.flush_errors = 0
+        """Flushes of one session that failed (the others, and later flushes, go on)."""
+        self.last_flush_error = ""
+        self._health_key = protocol.keys(prefix, "x")["health"]
         endpoints = [connect] if isinstance(connect, str) else list(connect)
         self._z = open_zenoh(zenoh_config_json5(connect=endpoints, config_file=zenoh_config_file, mode="client"))
         self._lock = threading.Lock()
         self.sessions: dict[str, SessionRecorder] = {}
-        leaves = ("state", "pose", "force") if raw else ("state",)
-        self._subs = [self._z.declare_subscriber(f"{prefix}/session/*/{leaf}", self._on_sample) for leaf in leaves]
+        self._pending: dict[str, tuple[int, deque[tuple[str, Any]]]] = {}  # id -> (checks seen, samples)
+        self._refused: set[str] = set()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._confirmer = threading.Thread(target=self._confirm_loop, args=(confirm_every_s,), daemon=True)
+        self._confirmer.start()
+        self.lost_states = 0
+        """States the server published that never reached the recorder, even after recovery."""
+        self._subs: list[Any] = list(
+            recorded_subscriber(self._z, f"{prefix}/session/*/state", self._on_sample, self._lost)
+        )
+        for leaf in ("pose", "force") if raw else ():
+            self._subs.append(self._z.declare_subscriber(f"{prefix}/session/*/{leaf}", self._on_sample))
 
     def _on_sample(self, sample: Any) -> None:
         key = str(sample.key_expr)
         head = f"{self.prefix}/session/"
         session_id, _, leaf = key[len(head) :].partition("/") if key.startswith(head) else ("", "", "")
         rec = self.sessions.get(session_id)
-        if rec is None:
-            try:
-                protocol.check_session_id(session_id)
-            except ValueError:
-                self.refused_ids += 1
+        if rec is not None:
+            rec.on_sample(leaf, sample)
+            return
+        with self._lock:
+            rec = self.sessions.get(session_id)
+            if rec is None:
+                if session_id in self._refused:
+                    self.unconfirmed_messages += 1
+                    return
+                try:
+                    protocol.check_session_id(session_id)
+                except ValueError:
+                    self.refused_ids += 1
+                    self._remember_refused(session_id)
+                    return
+                waiting = self._pending.get(session_id)
+                if waiting is None:
+                    if len(self._pending) >= PENDING_IDS:
+                        self.unconfirmed_messages += 1
+                        return
+                    waiting = self._pending[session_id] = (0, deque(maxlen=PENDING_PER_ID))
+                    self._wake.set()
+                if len(waiting[1]) == PENDING_PER_ID:
+                    self.unconfirmed_messages += 1
+                waiting[1].append((leaf, sample))
                 return
-            with self._lock:
-                rec = self.sessions.get(session_id)
-                if rec is None:
+        rec.on_sample(leaf, sample)
+
+    def _lost(self, n: int) -> None:
+        self.lost_states += n
+
+    def _remember_refused(self, session_id: str) -> None:
+        if len(self._refused) >= 10_000:  # bounded: a flood of fresh ids only costs a lookup each
+            self._refused.clear()
+        self._refused.add(session_id)
+
+    def _confirm_loop(self, every_s: float) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(every_s)
+            self._wake.clear()
+            if self._pending and not self._stop.is_set():
+                self.confirm()
+
+    def confirm(self, timeout_s: float = 1.0) -> int:
+        """Asks the server which sessions it has; starts recording every waiting one it lists
+        (with the messages it sent meanwhile) and drops those it did not list twice. Returns how
+        many it started. Runs by itself every ``confirm_every_s`` while ids wait."""
+        listed = _server_sessions(self._z, self._health_key, timeout_s)
+        if listed is None:
+            return 0  # no answer: keep waiting (the server may be restarting)
+        started: list[SessionRecorder] = []
+        with self._lock:
+            for sid, (checks, samples) in list(self._pending.items()):
+                if sid in listed:
                     rec = SessionRecorder(
                         (),
-                        session_id,
-                        self.out_root / session_id,
+                        sid,
+                        self.out_root / sid,
                         self.prefix,
                         skill=self.skill,
                         raw=self.raw,
                         zenoh_session=self._z,
                     )
-                    self.sessions[session_id] = rec
-                    if self.on_new_session is not None:
-                        self.on_new_session(session_id, rec.out_dir)
-        rec.on_sample(leaf, sample)
+                    for leaf, sample in samples:
+                        rec.on_sample(leaf, sample)
+                    self.sessions[sid] = rec
+                    del self._pending[sid]
+                    started.append(rec)
+                elif checks >= 1:
+                    self.refused_ids += 1
+                    self.unconfirmed_messages += len(samples)
+                    self._remember_refused(sid)
+                    del self._pending[sid]
+                else:
+                    self._pending[sid] = (checks + 1, samples)
+        if self.on_new_session is not None:
+            for rec in started:
+                self.on_new_session(rec.session_id, rec.out_dir)
+        return len(started)
 
     @property
     def records(self) -> int:
         """Records received so far, over all sessions."""
         return sum(r.records for r in list(self.sessions.values()))
 
+    @property
+    def invalid_messages(self) -> int:
+        """Messages of recorded sessions that could not be true (see :class:`SessionRecorder`)."""
+        return sum(r.invalid_messages for r in list(self.sessions.values()))
+
     def flush(self, final: bool = False) -> int:
         """Flushes every session (see :meth:`SessionRecorder.flush`); returns how many wrote."""
-        return sum(rec.flush(final) for rec in list(self.sessions.values()))
+        if final and self._pending:
+            self.confirm()
+        wrote = 0
+        for rec in list(self.sessions.values()):
+            try:  # one session's trouble (a full disk for its folder, ...) must not stop the class's
+                wrote += bool(rec.flush(final))
+            except Exception as exc:
+                self.flush_errors += 1
+                self.last_flush_error = f"{rec.session_id}: {exc}"
+        return wrote
 
     def close(self) -> None:
         """Closes the Zenoh session (call :meth:`flush` first)."""
+        self._stop.set()
+        self._wake.set()
+        self._confirmer.join(timeout=5.0)
         try:
             self._z.close()
         except Exception:

@@ -92,18 +92,33 @@ class ServerSettings:
         }
 
 
+SERVER_MAX_MESSAGE_BYTES = 8 * 1024 * 1024
+"""What a server process (engine, model and X-ray services) accepts as one Zenoh message, at the
+transport, so that a 100 MB put is dropped as it arrives instead of being reassembled first
+(Zenoh's default cap is 1 GiB). The largest messages a server handles are the X-ray PNGs it
+sends, which pass through the engine when it routes them: 40–80 KB each for the phantom, about 1 MB
+for an incompressible 1024 × 1024 view; every other message is under 4 KB."""
+CLIENT_MAX_MESSAGE_BYTES = 16 * 1024 * 1024
+"""The same cap for clients (the X-ray PNGs are the largest replies they receive)."""
+_ZENOH_DEFAULT_MAX_MESSAGE = 2**30
+
+
 def zenoh_config_json5(
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     config_file: str | Path | None = None,
     mode: str = "peer",
+    max_message_bytes: int = CLIENT_MAX_MESSAGE_BYTES,
 ) -> str:
     """A Zenoh configuration (JSON5 text) for both the Rust and the Python sessions.
 
     Without ``config_file``, multicast scouting is off, so that only the given endpoints connect
     (several servers on one host or network never join each other by accident). Endpoints look like
-    ``tcp/127.0.0.1:7447``.
+    ``tcp/127.0.0.1:7447``. Messages larger than ``max_message_bytes`` are dropped by the
+    transport before they are reassembled (``transport/link/rx/max_message_size``), unless the
+    file sets its own cap.
     """
+    cap = json.dumps(int(max_message_bytes))
     if config_file is not None:
         import zenoh
 
@@ -114,10 +129,16 @@ def zenoh_config_json5(
                 cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
             if connect:
                 cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
+            if json.loads(cfg.get_json("transport/link/rx/max_message_size")) == _ZENOH_DEFAULT_MAX_MESSAGE:
+                cfg.insert_json5("transport/link/rx/max_message_size", cap)
         except Exception as exc:  # zenoh raises its own ZError
             raise InvalidInputError(f"cannot read the zenoh config {config_file}: {exc}") from None
         return str(cfg)  # the whole configuration, as JSON
-    conf: dict[str, Any] = {"scouting": {"multicast": {"enabled": False}}, "mode": mode}
+    conf: dict[str, Any] = {
+        "scouting": {"multicast": {"enabled": False}},
+        "mode": mode,
+        "transport": {"link": {"rx": {"max_message_size": int(max_message_bytes)}}},
+    }
     if listen:
         conf["listen"] = {"endpoints": list(listen)}
     if connect:
@@ -519,16 +540,26 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
             listen = list(options.listen) or [DEFAULT_ENDPOINT]
             run.endpoints = listen
             # The engine is the router: trainees, recorders and model workers connect to it.
-            conf = zenoh_config_json5(listen, options.connect, options.zenoh_config, mode="router")
+            conf = zenoh_config_json5(
+                listen, options.connect, options.zenoh_config, mode="router", max_message_bytes=SERVER_MAX_MESSAGE_BYTES
+            )
             try:
                 run.engine = start_engine(volume, path, conf, options.settings, options.prefix)
             except TransportError as exc:
                 raise _friendly(exc, listen) from None
-            py_conf = zenoh_config_json5((), [_loopback(e) for e in listen], options.zenoh_config, mode="client")
+            py_conf = zenoh_config_json5(
+                (),
+                [_loopback(e) for e in listen],
+                options.zenoh_config,
+                mode="client",
+                max_message_bytes=SERVER_MAX_MESSAGE_BYTES,
+            )
         else:
             connect = list(options.connect) or ([] if options.listen else [DEFAULT_ENDPOINT])
             run.endpoints = list(options.listen) or connect
-            py_conf = zenoh_config_json5(options.listen, connect, options.zenoh_config, mode="peer")
+            py_conf = zenoh_config_json5(
+                options.listen, connect, options.zenoh_config, mode="peer", max_message_bytes=SERVER_MAX_MESSAGE_BYTES
+            )
         try:
             run.zenoh = open_zenoh(py_conf)
         except TransportError as exc:
