@@ -505,6 +505,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_phantom)
 
     p = sub.add_parser(
+        "lab-config",
+        help="the secure lab mode: TLS, passwords and access control for every station, instructor and model worker",
+        description="Reads a lab file (TOML) naming the server's TLS endpoint and certificates and every "
+        "identity of the lab (stations, instructors, model workers), and writes one Zenoh configuration per "
+        "member: the server's (TLS listener, the password dictionary, an access-control list that denies by "
+        "default) and one client configuration for each identity. A station may publish only its own poses, "
+        "query only its own control, metrics and X-rays and hear only its own outputs; an instructor reads every "
+        "session; only model workers (and the server's own services) answer the model's queries; only the "
+        "server publishes forces. The lab file's format and the how-to are in docs/deployment.md; deploy/ has "
+        "an example.\n\n"
+        "  dhg lab-config --lab deploy/lab.toml --out deploy/out --make-certs\n"
+        "  dhg-serve --zenoh-config deploy/out/server.json5 --listen tls/0.0.0.0:7447\n"
+        "  dhg trainee --connect tls/dhg-server.lab:7447 --session station-1 --zenoh-config deploy/out/station-1.json5",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--lab", required=True, metavar="FILE.toml", help="the lab file")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for server.json5, users.txt and <name>.json5")
+    p.add_argument(
+        "--make-certs",
+        action="store_true",
+        help="create a lab CA and the server's certificate with openssl where the lab file's paths do not exist",
+    )
+    p.set_defaults(func=cmd_lab_config)
+
+    p = sub.add_parser(
         "study",
         help="does guidance make virtual novices drill better, and learn? paired arms, offline, with statistics",
         description="Each novice seed (one hand: style, tremor, reaction, noise) follows a protocol per arm, offline "
@@ -570,6 +596,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_commands(sub, "")
     return parser
+
+
+def cmd_lab_config(args: argparse.Namespace) -> int:
+    from dhg.lab import load_lab, write_lab
+
+    written = write_lab(args.lab, args.out, certs=args.make_certs)
+    lab = load_lab(args.lab)
+    print(f"wrote {len(written)} files to {args.out} (passwords inside: readable by you only)")
+    print(f"  server: dhg-serve --zenoh-config {Path(args.out) / 'server.json5'} --listen {lab.listen}")
+    for ident in lab.identities:
+        conf = Path(args.out) / f"{ident.name}.json5"
+        print(f"  {ident.role:12s} {ident.name:16s} --connect {lab.endpoint} --zenoh-config {conf}")
+    return EXIT_OK
 
 
 def cmd_study(args: argparse.Namespace) -> int:

@@ -1,0 +1,223 @@
+"""The secure lab mode (``dhg lab-config``): TLS, passwords and access control, end to end over real
+Zenoh sessions with certificates this test creates (openssl)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import stat
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from dhg import protocol
+from dhg.client import TraineeClient
+from dhg.errors import InvalidInputError, TransportError
+from dhg.lab import acl, load_lab, write_lab
+from dhg.live_demo import ServerProcess, free_port
+
+pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl to create certificates")
+
+LAB = """
+[server]
+endpoint = "tls/localhost:{port}"
+listen = "tls/127.0.0.1:{port}"
+ca_certificate = "certs/ca.pem"
+certificate = "certs/server.pem"
+private_key = "certs/server-key.pem"
+password = "server-secret-1"
+
+[[station]]
+name = "station-1"
+password = "station-one-pw"
+
+[[station]]
+name = "station-2"
+password = "station-two-pw"
+
+[[instructor]]
+name = "teacher"
+password = "teacher-pw-1"
+
+[[model_worker]]
+name = "model-1"
+password = "model-one-pw"
+"""
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    root = tmp_path_factory.mktemp("lab")
+    port = free_port()
+    (root / "lab.toml").write_text(LAB.format(port=port))
+    write_lab(root / "lab.toml", root / "out", certs=True)
+    return root, f"tls/localhost:{port}", f"tls/127.0.0.1:{port}"
+
+
+def test_the_lab_file_gives_each_identity_only_its_own_keys(lab):
+    root, _, _ = lab
+    parsed = load_lab(root / "lab.toml")
+    rules = {r["id"]: r for r in acl(parsed)["rules"]}
+    # A station publishes only its own poses; no client may put a force, guidance or state.
+    assert rules["station-1:pose"]["key_exprs"] == ["dhg/session/station-1/pose", "dhg/session/station-1-$*/pose"]
+    for r in rules.values():
+        if "put" in r["messages"] and "ingress" in r["flows"]:
+            assert all(k.endswith("/pose") for k in r["key_exprs"]), r
+    assert all("station-2" not in k for r in rules.values() if r["id"].startswith("station-1") for k in r["key_exprs"])
+    assert acl(parsed)["default_permission"] == "deny"
+    for f in (root / "out").iterdir():  # passwords inside: the owner's only
+        assert stat.S_IMODE(f.stat().st_mode) == 0o600
+    conf = json.loads((root / "out" / "station-1.json5").read_text())
+    assert conf["transport"]["auth"]["usrpwd"]["user"] == "station-1" and conf["mode"] == "client"
+
+
+def test_a_lab_file_with_mistakes_is_refused_with_the_reason(tmp_path):
+    for text, match in (
+        ('[server]\nendpoint = "tcp/1.2.3.4:7447"', "tls/ endpoint"),
+        (LAB.format(port=1).replace('name = "station-2"', 'name = "station-1"'), "used twice"),
+        (LAB.format(port=1).replace('"station-one-pw"', '"short"'), "at least 8"),
+        (LAB.format(port=1).replace('name = "teacher"', 'name = "../x"'), "name"),
+    ):
+        (tmp_path / "lab.toml").write_text(text)
+        with pytest.raises(InvalidInputError, match=match):
+            load_lab(tmp_path / "lab.toml")
+
+
+def _client(root, endpoint, name, session_id=None, **kw) -> TraineeClient:
+    conf = root / "out" / f"{name}.json5"
+    return TraineeClient(endpoint, session_id or name, zenoh_config_file=str(conf), **kw)
+
+
+def _stream(c: TraineeClient, seconds: float) -> None:
+    info = c.create()
+    a, b = np.array(info["entry_m"]), np.array(info["target_m"])
+    d = (b - a) / np.linalg.norm(b - a)
+    t0 = time.monotonic()
+    k = 0
+    while time.monotonic() - t0 < seconds:
+        c.send_pose(a + d * (-3e-3 + 1e-3 * min(k / 1000, 2.0)), (1.0, 0.0, 0.0, 0.0), True, 1200.0)
+        k += 1
+        time.sleep(0.001)
+
+
+def _wait(cond, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"condition not met within {timeout_s} s")
+
+
+def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_path):
+    root, endpoint, listen = lab
+    server_conf = str(root / "out" / "server.json5")
+    server = ServerProcess(
+        ["--role", "sim", "--listen", listen, "--zenoh-config", server_conf, "--voxel-mm", "1.0"], echo=False
+    )
+    worker = None
+    try:
+        # An unauthenticated client (TLS, no password) is refused.
+        anon = tmp_path / "anon.json5"
+        conf = json.loads((root / "out" / "station-1.json5").read_text())
+        del conf["transport"]["auth"]
+        anon.write_text(json.dumps(conf))
+        with pytest.raises(TransportError):
+            TraineeClient(endpoint, "anon-1", zenoh_config_file=str(anon)).control("info", timeout_s=1.0)
+
+        # A model worker identity serves the model.
+        worker = ServerProcess(
+            ["--role", "model", "--connect", endpoint, "--zenoh-config", str(root / "out" / "model-1.json5")],
+            echo=False,
+        )
+        with _client(root, endpoint, "station-1") as s1, _client(root, endpoint, "station-2") as s2:
+            # Station 1 tries to be the model: its queryable is not allowed, its replies never count.
+            rogue_n = (0.0, 0.0, 2.5)
+
+            def rogue(q):
+                seq, _ = protocol.decode_predict(q.payload.to_bytes())
+                q.reply("dhg/model/predict", protocol.encode_prediction(seq, rogue_n, 0.0, "rogue"))
+
+            rogue_q = s1._z.declare_queryable("dhg/model/predict", rogue, complete=True)
+            s2.create()
+            seen_by_2: list[tuple] = []
+            s2._on_force = lambda m: seen_by_2.append(m["force_n"])
+            forged = protocol.encode("force", force_n=(0.0, 0.0, 0.123))
+            stop = threading.Event()
+
+            def forge():  # station 1 puts forces on station 2's key the whole time
+                while not stop.is_set():
+                    s1._z.put("dhg/session/station-2/force", forged)
+                    time.sleep(0.005)
+
+            t = threading.Thread(target=forge, daemon=True)
+            t.start()
+            streamer = threading.Thread(target=_stream, args=(s2, 3.0), daemon=True)
+            streamer.start()
+            _stream(s1, 3.0)
+            streamer.join()
+            stop.set()
+            t.join()
+            # Station 1 drilled its own session and was guided by the model worker.
+            _wait(lambda: len(s1.guidance) >= 10, 10.0)
+            assert s1.force is not None and s1.forces_received > 1000
+            predicted = np.array([g["predicted_force_n"] for g in s1.guidance])
+            assert not np.any(np.all(np.isclose(predicted, rogue_n, atol=1e-6), axis=1))
+            # Station 2 heard its own forces only: none of station 1's forgeries.
+            assert len(seen_by_2) > 1000 and not any(abs(f[2] - 0.123) < 1e-6 for f in seen_by_2)
+            # Station 1 cannot reset, re-gain or query station 2.
+            for op in ("reset", "info"):
+                with pytest.raises(TransportError):
+                    s1._json("dhg/session/station-2/control", {"op": op}, timeout_s=1.0)
+            rogue_q.undeclare()
+        # The instructor reads every session.
+        with _client(root, endpoint, "teacher", "teacher-view") as teacher:
+            health = teacher.health(1.0)
+            assert {"station-1", "station-2"} <= set(health["session_ids"])
+            metrics = teacher._json("dhg/session/station-1/metrics")
+            assert metrics["records"] > 0
+    finally:
+        if worker is not None:
+            worker.stop()
+        assert server.stop() == 0
+
+
+def test_dhg_lab_config_cli_writes_the_files_and_says_how_to_use_them(tmp_path):
+    import subprocess
+    import sys
+
+    (tmp_path / "lab.toml").write_text(LAB.format(port=7447))
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "dhg.cli",
+            "lab-config",
+            "--lab",
+            str(tmp_path / "lab.toml"),
+            "--out",
+            str(tmp_path / "o"),
+            "--make-certs",
+        ],  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "--zenoh-config" in done.stdout and "station-1" in done.stdout
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [
+        "model-1.json5", "server.json5", "station-1.json5", "station-2.json5", "teacher.json5", "users.txt",
+    ]  # fmt: skip
+    assert os.path.isfile(tmp_path / "certs" / "server.pem")
+    missing = tmp_path / "lab2.toml"
+    missing.write_text(LAB.format(port=7447).replace("certs/", "nocerts/"))
+    done = subprocess.run(
+        [sys.executable, "-m", "dhg.cli", "lab-config", "--lab", str(missing), "--out", str(tmp_path / "o2")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 3 and "--make-certs" in done.stderr
