@@ -91,3 +91,61 @@ def test_the_predict_decoder_refuses_a_window_its_payload_does_not_hold(rows, co
         assert "predict payload" in str(exc)
     else:
         assert seq == 1 and window.shape == (rows, cols) and len(tail) == 4 * rows * cols
+
+
+class _Sample:
+    def __init__(self, payload: bytes) -> None:
+        self.payload = self
+        self._b = payload
+
+    def to_bytes(self) -> bytes:
+        return self._b
+
+
+_feature = st.floats(allow_nan=True, allow_infinity=True, width=32)
+_state = st.one_of(
+    st.binary(max_size=120),  # garbage
+    st.tuples(
+        st.floats(-1.0, 30.0) | st.sampled_from([math.nan, math.inf, 1e30]), st.lists(_feature, min_size=9, max_size=9)
+    ),
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(_state, min_size=1, max_size=60))
+def test_the_recorder_writes_only_possible_states_and_never_stops(messages):
+    """Whatever arrives on a session's state key, the recorder keeps running, writes only
+    finite states with a session clock, and counts every other message."""
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+
+    from dhg.dataset import load_dataset
+    from dhg.layers import Layer
+    from dhg.recorder import MAX_SESSION_TIME_S, SessionRecorder, valid_message
+
+    with tempfile.TemporaryDirectory() as tmp:
+        rec = SessionRecorder((), "prop-1", Path(tmp) / "ds", zenoh_session=object())
+        possible = 0
+        for m in messages:
+            if isinstance(m, bytes):
+                payload = m
+                try:  # garbage may happen to be a state
+                    possible += valid_message("state", protocol.decode("state", m))
+                except InvalidInputError:
+                    pass
+            else:
+                t, feats = m
+                payload = protocol.encode("state", time_s=t, features=feats)
+                layer_ok = float(np.float32(feats[6])) in {float(v) for v in Layer}  # the layer feature
+                possible += (
+                    math.isfinite(t) and 0 <= t <= MAX_SESSION_TIME_S and all(map(math.isfinite, feats)) and layer_ok
+                )
+            rec._on_state(_Sample(payload))
+        assert rec.decode_errors + rec.invalid_messages + possible == len(messages)
+        wrote = rec.flush(final=True)
+        assert wrote == (possible > 0)
+        if wrote:
+            for ep in load_dataset(Path(tmp) / "ds").episodes:
+                assert all(map(math.isfinite, ep.features.ravel())) and ep.times_s.min() >= 0

@@ -29,6 +29,8 @@ import numpy as np
 
 from dhg import protocol
 from dhg.dataset import EpisodeInput, write_dataset
+from dhg.features import FEATURE_NAMES
+from dhg.layers import Layer
 from dhg.live_streams import Episode, EpisodeSplitter, PoseLog, RawParts, force_jerk
 from dhg.surgeons import skill_metrics
 from dhg.synth import attempt_score
@@ -38,6 +40,8 @@ from dhg.trainee import state_records
 __all__ = ["AllSessionsRecorder", "SessionRecorder"]
 
 _DRILL_ON = protocol.FLAGS["drill_on"]
+_LAYER_FEATURE = FEATURE_NAMES.index("layer")
+_LAYER_IDS = frozenset(float(layer) for layer in Layer)
 
 MAX_SESSION_TIME_S = 7 * 24 * 3600.0
 """A session clock past a week (s) is not a session's: such a state is refused."""
@@ -68,12 +72,15 @@ def recorded_subscriber(z: Any, key: str, callback: Callable[[Any], None], on_mi
 
 def valid_message(name: str, m: dict[str, Any]) -> bool:
     """Whether a decoded ``state``, ``pose`` or ``force`` message can be true: every float
-    finite, a state's clock within 0..:data:`MAX_SESSION_TIME_S`."""
+    finite; a state's clock within 0..:data:`MAX_SESSION_TIME_S` and its layer feature a layer id."""
     from dhg.client import all_finite
 
     if not all_finite(m):
         return False
-    return name != "state" or 0.0 <= m["time_s"] <= MAX_SESSION_TIME_S
+    if name != "state":
+        return True
+    layer = m["features"][_LAYER_FEATURE]
+    return 0.0 <= m["time_s"] <= MAX_SESSION_TIME_S and layer in _LAYER_IDS
 
 
 class _FlushLoop:

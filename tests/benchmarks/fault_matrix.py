@@ -1,0 +1,424 @@
+"""The fault matrix: hostile peers, frozen subscribers, floods, oversized payloads, a model worker
+killed or stopped, a server killed while recording, each against a live ``dhg-serve`` on loopback.
+For every fault it prints what was expected, what happened, the measured loss and recovery, and
+PASS or FAIL; it exits 1 if any fault failed.
+
+    python tests/benchmarks/fault_matrix.py [--only NAME,NAME] [--json FILE]
+
+About two minutes on 2 cores. ``docs/reliability.md`` holds its output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dhg import protocol
+from dhg.client import TraineeClient
+from dhg.errors import EngineError
+from dhg.live_demo import ServerProcess, free_port
+
+PEAK_N = 3.3
+
+
+@dataclass
+class Outcome:
+    fault: str
+    expected: str
+    happened: str
+    ok: bool
+
+
+def serve(*args: str) -> tuple[ServerProcess, str]:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    return ServerProcess(["--listen", endpoint, "--voxel-mm", "1.0", *args], echo=False), endpoint
+
+
+def entry(c: TraineeClient) -> tuple[np.ndarray, np.ndarray]:
+    info = c.create()
+    a, b = np.array(info["entry_m"]), np.array(info["target_m"])
+    return a, (b - a) / np.linalg.norm(b - a)
+
+
+def stream(c: TraineeClient, seconds: float, depth_m: float = 0.0) -> None:
+    """1 kHz poses on absolute deadlines, the drill on, moving from 3 mm before A to ``depth_m``."""
+    a, d = entry(c)
+    n = int(seconds * 1000)
+    t0 = time.monotonic_ns()
+    for k in range(n):
+        s = -3e-3 + (depth_m + 3e-3) * k / n
+        c.send_pose(a + d * s, (1.0, 0.0, 0.0, 0.0), True, 1200.0)
+        pause = t0 + (k + 1) * 1_000_000 - time.monotonic_ns()
+        if pause > 0:
+            time.sleep(pause * 1e-9)
+
+
+def gaps(times: list[float], t0: float) -> float:
+    t = np.array([x for x in times if x >= t0])
+    return float(np.diff(t).max()) if len(t) > 1 else float("inf")
+
+
+def forged_forces(endpoint: str) -> Outcome:
+    handed: list[tuple] = []
+    with (
+        TraineeClient(endpoint, "victim", on_force=lambda m: handed.append(m["force_n"])) as v,
+        TraineeClient(endpoint, "rogue") as r,
+    ):
+        th = threading.Thread(target=stream, args=(v, 2.0))
+        th.start()
+        for payload in (
+            protocol.encode("force", force_n=(float("nan"), 0.0, 0.0)),
+            protocol.encode("force", force_n=(1e6, 0.0, 0.0)),
+            protocol.encode("force", force_n=(0.0, 0.0, 3.2)),
+        ) * 100:
+            r._z.put(v.keys["force"], payload)
+        th.join()
+        rej = dict(v.guard.rejected)
+    f = np.array(handed)
+    worst = float(np.linalg.norm(f, axis=1).max())
+    finite = bool(np.all(np.isfinite(f)))
+    return Outcome(
+        "forged forces on another session's key (100 NaN, 100 × 1e6 N, 100 × 3.2 N jolts)",
+        "the client hands on no NaN and nothing above 3.3 N; refusals counted",
+        f"handed {len(f)} forces, all finite: {finite}, largest {worst:.2f} N; refused {rej}",
+        finite and worst <= PEAK_N and rej["non_finite"] > 0 and rej["over_limit"] > 0,
+    )
+
+
+def fake_ids_and_impossible_states(endpoint: str, root: Path) -> Outcome:
+    out = root / "class"
+    rec = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "dhg.cli",
+            "record",
+            "--all",
+            "--connect",
+            endpoint,
+            "--out",
+            str(out),
+            "--status-every",
+            "0",
+        ],  # fmt: skip
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )
+    assert rec.stdout is not None
+    rec.stdout.readline()
+    with TraineeClient(endpoint, "real") as c, TraineeClient(endpoint, "rogue2") as r:
+        for k in range(2000):
+            r._z.put(f"dhg/session/fake-{k}/state", protocol.encode("state", time_s=0.5))
+        for sid in (".", ".."):
+            r._z.put(f"dhg/session/{sid}/state", protocol.encode("state", time_s=0.5))
+        th = threading.Thread(target=stream, args=(c, 3.0))
+        th.start()
+        time.sleep(1.0)
+        for bad in (float("nan"), 1e30):
+            r._z.put("dhg/session/real/state", protocol.encode("state", time_s=bad))
+        th.join()
+    time.sleep(1.5)
+    rec.send_signal(signal.SIGINT)
+    text, _ = rec.communicate(timeout=30)
+    folders = sorted(p.name for p in out.iterdir()) if out.exists() else []
+    fake = [f for f in folders if f.startswith(("fake-", "."))]
+    return Outcome(
+        "2,000 fake session ids and '.', '..' put on state; a NaN and a 1e30 s state in a real session",
+        "dhg record --all records only sessions the server has (none of the fakes), counts the rest, exits 0",
+        f"exit {rec.returncode}; folders {folders}; last line: {text.strip().splitlines()[-1]!r}",
+        rec.returncode == 0 and "real" in folders and not fake,
+    )
+
+
+FROZEN = """
+import json, time, zenoh
+conf = {"mode": "client", "connect": {"endpoints": ["%s"]}, "scouting": {"multicast": {"enabled": False}}}
+z = zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
+sub = z.declare_subscriber("dhg/**", lambda s: None)
+print("ready", flush=True)
+time.sleep(600)
+"""
+
+
+def frozen_subscriber(endpoint: str) -> Outcome:
+    frozen = subprocess.Popen([sys.executable, "-c", FROZEN % endpoint], stdout=subprocess.PIPE, text=True)
+    assert frozen.stdout is not None
+    frozen.stdout.readline()
+    os.kill(frozen.pid, signal.SIGSTOP)
+    arrivals: list[float] = []
+    stop = threading.Event()
+    try:
+        with (
+            TraineeClient(endpoint, "flow", on_force=lambda m: arrivals.append(time.monotonic())) as c,
+            TraineeClient(endpoint, "flooder") as fl,
+        ):
+            blob = b"x" * 60_000
+            th = threading.Thread(target=lambda: [fl._z.put("dhg/flood/x", blob) for _ in iter(stop.is_set, True)])
+            th.start()
+            t0 = time.monotonic()
+            stream(c, 5.0)
+            stop.set()
+            th.join()
+    finally:
+        os.kill(frozen.pid, signal.SIGCONT)
+        frozen.kill()
+        frozen.wait()
+        frozen.stdout.close()
+    gap = gaps(arrivals, t0)
+    return Outcome(
+        "a subscriber to dhg/** frozen (SIGSTOP), its link flooded with 60 KB puts, while a trainee drills 5 s",
+        "the trainee's forces flow on (largest gap well under 0.5 s)",
+        f"largest gap between forces {gap * 1e3:.1f} ms over {len([a for a in arrivals if a >= t0])} forces",
+        gap < 0.5,
+    )
+
+
+def rogue_worker(endpoint: str) -> Outcome:
+    rogue_n = (0.0, 0.0, 3.0)
+    late: list = []
+    lock = threading.Lock()
+    stop = threading.Event()
+    with TraineeClient(endpoint, "guided") as c, TraineeClient(endpoint, "rogue3") as r:
+        before = c.health(1.0)["model"]
+
+        def on_query(q):
+            seq, _ = protocol.decode_predict(q.payload.to_bytes())
+            with lock:
+                late.append((time.monotonic() + 0.04, q, seq))
+
+        qa = r._z.declare_queryable("dhg/model/predict", on_query, complete=True)
+
+        def answer():
+            while not stop.is_set():
+                now = time.monotonic()
+                with lock:
+                    due = [x for x in late if x[0] <= now]
+                    late[:] = [x for x in late if x[0] > now]
+                for _, q, seq in due:
+                    for _ in range(200):
+                        q.reply("dhg/model/predict", protocol.encode_prediction(seq, rogue_n, 0.0, "rogue"))
+                    q.drop()
+                time.sleep(0.002)
+
+        th = threading.Thread(target=answer)
+        th.start()
+        stream(c, 3.0)
+        time.sleep(0.5)
+        stop.set()
+        th.join()
+        qa.undeclare()
+        after = c.health(1.0)["model"]
+        predicted = np.array([g["predicted_force_n"] for g in c.guidance])
+    applied = int(np.sum(np.all(np.isclose(predicted, rogue_n, atol=1e-6), axis=1))) if len(predicted) else 0
+    ignored = after["ignored"] - before["ignored"]
+    return Outcome(
+        "a rogue model worker answering every query 200 times, 40 ms late, with 3 N",
+        "the genuine worker's first reply is applied; every rogue reply ignored and counted",
+        f"{len(predicted)} guidance messages, {applied} from the rogue; {ignored} replies ignored",
+        applied == 0 and ignored > 0 and len(predicted) > 10,
+    )
+
+
+def oversized(endpoint: str, server: ServerProcess) -> Outcome:
+    def hwm() -> float:
+        with open(f"/proc/{server.proc.pid}/status") as fh:
+            return next(int(x.split()[1]) for x in fh if x.startswith("VmHWM")) / 1024
+
+    # The sender is its own process: a 500 MB put holds the sending interpreter for a while, and
+    # the trainee's forces must be timed by a process that is not busy with it.
+    conf = {"mode": "client", "connect": {"endpoints": [endpoint]}, "scouting": {"multicast": {"enabled": False}}}
+    sender = (
+        f"import json, zenoh\nz = zenoh.open(zenoh.Config.from_json5({json.dumps(json.dumps(conf))}))\n"
+        "for size in (100, 500):\n    z.put('dhg/session/big/pose', bytes(size * 1024 * 1024))\nz.close()\n"
+    )
+    arrivals: list[float] = []
+    with TraineeClient(endpoint, "other", on_force=lambda m: arrivals.append(time.monotonic())) as c:
+        before = hwm()
+        th = threading.Thread(target=stream, args=(c, 6.0))
+        th.start()
+        time.sleep(1.0)
+        t0 = time.monotonic()
+        subprocess.run([sys.executable, "-c", sender], check=True, timeout=120)
+        th.join()
+        grown = hwm() - before
+    gap = gaps(arrivals, t0)
+    return Outcome(
+        "100 MB and 500 MB puts on a pose key while another trainee drills",
+        "dropped at the transport: the server's peak memory grows far less than the payload; forces flow (gap < 0.1 s)",
+        f"peak memory +{grown:.0f} MB; the other trainee's largest force gap {gap * 1e3:.1f} ms",
+        grown < 50 and gap < 0.1,
+    )
+
+
+def squatter(endpoint_args: tuple[str, ...] = ("--max-sessions", "4", "--idle-timeout", "2.0")) -> Outcome:
+    server, endpoint = serve(*endpoint_args)
+    stop = threading.Event()
+    try:
+        squat = [TraineeClient(endpoint, f"squat-{k}") for k in range(4)]
+
+        def hold():
+            while not stop.is_set():
+                for c in squat:
+                    c.send_pose((0.0, 0.0, 0.0))
+                stop.wait(1.0)
+
+        th = threading.Thread(target=hold)
+        th.start()
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        got, refused = None, 0
+        with TraineeClient(endpoint, "real-trainee") as real:
+            while got is None and time.monotonic() - t0 < 20:
+                try:
+                    got = real.create()
+                except EngineError:
+                    refused += 1
+                    time.sleep(0.05)
+        waited = time.monotonic() - t0
+    finally:
+        stop.set()
+        th.join()
+        for c in squat:
+            c.close()
+        server.stop()
+    return Outcome(
+        "one pose a second to each of 4 ids on a 4-slot server (idle timeout 2 s)",
+        "the squatters' sessions are freed; a real trainee gets a slot",
+        f"slot after {waited:.1f} s ({refused} refusals)" if got else f"no slot in 20 s ({refused} refusals)",
+        got is not None,
+    )
+
+
+def model_worker_lost(how: str) -> Outcome:
+    server, endpoint = serve("--role", "sim")
+    worker = ServerProcess(["--role", "model", "--connect", endpoint], echo=False)
+    arrivals: list[float] = []
+    try:
+        with TraineeClient(endpoint, "w", on_force=lambda m: arrivals.append(time.monotonic())) as c:
+            th = threading.Thread(target=stream, args=(c, 6.0))
+            th.start()
+            time.sleep(2.0)
+            t0 = time.monotonic()
+            if how == "killed":
+                worker.proc.kill()
+            else:
+                os.kill(worker.proc.pid, signal.SIGSTOP)
+            th.join()
+            after = [g for g in c.guidance if g["received_ns"] * 1e-9 > t0 + 1.0]
+            flag = protocol.FLAGS["model_available"]
+            still = sum(1 for g in after if g["flags"] & flag)
+            health = c.health(2.0)["model"]
+    finally:
+        if how != "killed":
+            os.kill(worker.proc.pid, signal.SIGCONT)
+        worker.stop()
+        server.stop()
+    gap = gaps(arrivals, t0)
+    return Outcome(
+        f"the model worker {how} {'(SIGKILL)' if how == 'killed' else '(SIGSTOP)'} mid-attempt",
+        "no gap in the forces; guidance fades out; health says the model is unavailable",
+        f"largest force gap {gap * 1e3:.1f} ms; guidance messages flagged available after +1 s: {still}; "
+        f"health available: {health['available']}",
+        gap < 0.5 and not health["available"],
+    )
+
+
+def server_killed_while_recording(root: Path) -> Outcome:
+    from dhg.dataset import load_dataset
+
+    server, endpoint = serve()
+    out = root / "rec"
+    rec = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "dhg.cli",
+            "record",
+            "--session",
+            "rec-1",
+            "--connect",
+            endpoint,
+            "--out",
+            str(out),
+            "--status-every",
+            "0",
+        ],  # fmt: skip
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    time.sleep(1.0)
+    with TraineeClient(endpoint, "rec-1") as c:
+        th = threading.Thread(target=stream, args=(c, 4.0))
+        th.start()
+        th.join()
+        sent_records = len(c.states)
+    server.proc.kill()
+    server.proc.wait()
+    time.sleep(2.0)
+    rec.send_signal(signal.SIGINT)
+    rec.communicate(timeout=30)
+    kept = len(load_dataset(out).episodes[0].times_s) if (out / "card.json").exists() else 0
+    lost_s = (sent_records - kept) / 10
+    return Outcome(
+        "the server killed (SIGKILL) just after a 4 s attempt, dhg record running",
+        "the dataset keeps every record up to the last flush (at most 1 s lost)",
+        f"{kept} of {sent_records} records kept ({lost_s:.1f} s lost); recorder exit {rec.returncode}",
+        rec.returncode == 0 and lost_s <= 1.0,
+    )
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--only", help="comma-separated fault names")
+    ap.add_argument("--json", metavar="FILE", help="also write the outcomes as JSON")
+    args = ap.parse_args()
+    root = Path(tempfile.mkdtemp(prefix="dhg-faults-"))
+    server, endpoint = serve("--idle-timeout", "3.0")
+    faults: dict[str, Callable[[], Outcome]] = {
+        "forged-forces": lambda: forged_forces(endpoint),
+        "fake-ids": lambda: fake_ids_and_impossible_states(endpoint, root),
+        "frozen-subscriber": lambda: frozen_subscriber(endpoint),
+        "rogue-worker": lambda: rogue_worker(endpoint),
+        "oversized": lambda: oversized(endpoint, server),
+        "squatter": squatter,
+        "worker-killed": lambda: model_worker_lost("killed"),
+        "worker-stopped": lambda: model_worker_lost("stopped"),
+        "server-killed": lambda: server_killed_while_recording(root),
+    }
+    chosen = args.only.split(",") if args.only else list(faults)
+    outcomes = []
+    try:
+        for name in chosen:
+            try:
+                o = faults[name]()
+            except Exception as exc:  # a fault that breaks the harness is a failure, said plainly
+                o = Outcome(name, "the fault runs", f"{type(exc).__name__}: {exc}", False)
+            outcomes.append(o)
+            print(f"{'PASS' if o.ok else 'FAIL'}  {name}\n  fault:    {o.fault}\n  expected: {o.expected}\n"
+                  f"  happened: {o.happened}", flush=True)  # fmt: skip
+    finally:
+        server.stop()
+    if args.json:
+        Path(args.json).write_text(json.dumps([o.__dict__ for o in outcomes], indent=1))
+    failed = [o for o in outcomes if not o.ok]
+    print(f"{len(outcomes) - len(failed)} of {len(outcomes)} faults handled as expected")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
