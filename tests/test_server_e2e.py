@@ -940,3 +940,31 @@ def test_a_bad_zenoh_config_file_is_a_clear_error(tmp_path):
     )
     assert r.returncode == 3, r.stderr
     assert "zenoh config" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["trainee", "--duration", "1"],
+        ["record", "--session", "x-1", "--out", "OUT", "--duration", "1"],
+        ["study", "--out", "OUT", "--seeds", "1", "--arms", "none", "--train", "1", "--live", "ENDPOINT"],
+    ],
+    ids=["trainee", "record", "study-live"],
+)
+def test_every_networked_command_reads_its_zenoh_config(tmp_path, command):
+    """Issue 21, item 7: dhg trainee, record and study --live take --zenoh-config (and say what is
+    wrong with a broken one, exit 3, instead of ignoring it)."""
+    conf = tmp_path / "broken.json5"
+    conf.write_text("{ this is not json5")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    args = [a.replace("OUT", str(tmp_path / "out")).replace("ENDPOINT", endpoint) for a in command]
+    if "--live" not in args:
+        args += ["--connect", endpoint]
+    r = subprocess.run(
+        [sys.executable, "-m", "dhg.cli", *args, "--zenoh-config", str(conf)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 3, r.stderr
+    assert "zenoh config" in r.stderr and "Traceback" not in r.stderr
