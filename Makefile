@@ -18,7 +18,7 @@ export CARGO_TARGET_DIR ?= $(DHG_CACHE)/target
 export VIRTUAL_ENV := $(abspath $(VENV))
 PURELIB := import sysconfig; print(sysconfig.get_paths()["purelib"])
 
-.PHONY: help venv build demo test test-rust test-python lint bench clean
+.PHONY: help venv build demo test test-rust test-python lint bench clean fuzz
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -56,6 +56,10 @@ demo: build ## dhg-serve on the phantom + bundled model, a guided and an unguide
 test: build ## cargo test + pytest
 	cargo test --workspace -q
 	$(VPY) -m pytest -q
+
+FUZZ_SECONDS ?= 20
+fuzz: ## build the libFuzzer targets on stable Rust and run each FUZZ_SECONDS (20) from its seed corpus
+	FUZZ_TARGET_DIR=$(DHG_CACHE)/fuzz-target fuzz/run.sh $(FUZZ_SECONDS)
 
 lint: build ## clippy, rustfmt, ruff, stubtest
 	cargo clippy --workspace --all-targets -q -- -D warnings
