@@ -12,6 +12,9 @@ fuzz_target!(|data: &[u8]| {
         let q = p.orientation.quaternion();
         assert!((q.norm() - 1.0).abs() < 1e-6, "a decoded orientation is a unit quaternion");
         // What decodes re-encodes to a payload that decodes to the same pose.
-        assert_eq!(decode_pose(&encode_pose(&msg)).map(|m| (m.seq, m.client_time_ns)), Ok((msg.seq, msg.client_time_ns)));
+        assert_eq!(
+            decode_pose(&encode_pose(&msg)).map(|m| (m.seq, m.client_time_ns)),
+            Ok((msg.seq, msg.client_time_ns))
+        );
     }
 });

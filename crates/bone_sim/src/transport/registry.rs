@@ -34,11 +34,7 @@ pub fn check_id(id: &str) -> SimResult<&str> {
     if ok {
         Ok(id)
     } else {
-        Err(SimError::InvalidOption {
-            name: "session id",
-            value: id.chars().take(80).collect(),
-            allowed: ID_RULE,
-        })
+        Err(SimError::InvalidOption { name: "session id", value: id.chars().take(80).collect(), allowed: ID_RULE })
     }
 }
 
