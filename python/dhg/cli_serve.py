@@ -452,6 +452,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
     _run_recorder(rec, args, status)
     bad = f"; {rec.invalid_messages} impossible messages left out" if rec.invalid_messages else ""
+    bad += f"; {rec.lost_states} states lost in transport (not recoverable)" if rec.lost_states else ""
     print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}{bad}")
     if args.raw:
         print(
@@ -486,6 +487,7 @@ def _record_all(args: argparse.Namespace) -> int:
             if rec.refused_ids
             else "",
             f"{rec.flush_errors} failed flushes (last: {rec.last_flush_error})" if rec.flush_errors else "",
+            f"{rec.lost_states} states lost in transport (not recoverable)" if rec.lost_states else "",
         ]
         return "".join(f"; {p}" for p in parts if p)
 
