@@ -303,6 +303,70 @@ time.sleep(600)
 """
 
 
+_TWO_SUBSCRIBERS = """
+import json, sys, time, zenoh, zenoh.ext as zx
+from dhg import protocol
+endpoint, key, seconds = sys.argv[1], sys.argv[2], float(sys.argv[3])
+conf = {"mode": "client", "connect": {"endpoints": [endpoint]}, "scouting": {"multicast": {"enabled": False}}}
+z = zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
+plain, advanced, missed = set(), set(), [0]
+def seq(sample, into):
+    try:
+        into.add(protocol.decode("state", sample.payload.to_bytes())["record_seq"])
+    except Exception:
+        pass
+subs = [
+    z.declare_subscriber(key, lambda s: seq(s, plain)),
+    zx.declare_advanced_subscriber(z, key, lambda s: seq(s, advanced),
+        history=zx.HistoryConfig(detect_late_publishers=True), recovery=zx.RecoveryConfig(heartbeat=True)),
+]
+listener = subs[1].sample_miss_listener(lambda m: missed.__setitem__(0, missed[0] + m.nb))
+print("ready", flush=True)
+time.sleep(seconds)
+print(json.dumps({"plain": sorted(plain), "advanced": sorted(advanced), "missed": missed[0]}), flush=True)
+"""
+
+
+def test_a_recorder_behind_a_full_link_recovers_the_states_it_missed():
+    """Issue 21, item 3: the recorded streams drop rather than block, and stay lossless for a
+    recorder. A process with a plain and an advanced subscriber to one session's state is frozen
+    while its link is flooded at the state's priority: the plain subscriber loses states, the
+    advanced one (as ``dhg record`` subscribes) recovers every one from the server's cache."""
+    import json
+
+    import zenoh
+
+    proc, endpoint = _serve("--idle-timeout", "3.0")
+    key = "dhg/session/lossy-1/state"
+    helper = subprocess.Popen(
+        [sys.executable, "-c", _TWO_SUBSCRIBERS, endpoint, key, "12"], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert helper.stdout is not None and helper.stdout.readline().strip() == "ready"
+        with TraineeClient(endpoint, "lossy-1") as c, TraineeClient(endpoint, "flooder-3") as flooder:
+            a, d, q = _entry(c)
+            th = threading.Thread(target=_stream, args=(c, np.repeat((a - 3e-3 * d)[None], 7000, axis=0), q))
+            th.start()
+            _wait(lambda: len(c.states) >= 10, 10.0)
+            os.kill(helper.pid, signal.SIGSTOP)
+            blob, t0 = b"x" * 60_000, time.monotonic()
+            while time.monotonic() - t0 < 3.0:  # fill the frozen link at the state's priority
+                flooder._z.put(key, blob, priority=zenoh.Priority.DATA_HIGH)
+            os.kill(helper.pid, signal.SIGCONT)
+            th.join()
+        got = json.loads(helper.stdout.readline())
+    finally:
+        helper.kill()
+        helper.wait()
+        if helper.stdout is not None:
+            helper.stdout.close()
+        assert proc.stop() == 0
+    plain, advanced = set(got["plain"]), set(got["advanced"])
+    everything = set(range(1, max(plain | advanced) + 1))
+    assert len(everything - plain) >= 5, "the flood did not make the plain subscriber lose states"
+    assert advanced == everything and got["missed"] == 0
+
+
 def test_a_frozen_subscriber_does_not_stall_another_sessions_forces():
     """Issue 21, item 3: a client subscribed to ``dhg/**`` and then frozen (SIGSTOP), its link
     flooded full, used to halt every session's forces for 5 s (state and guidance blocked the
