@@ -451,15 +451,30 @@ def _cmd_record(args: argparse.Namespace) -> int:
             print(f"  {t:5.0f} s: {rec.records} records in {rec.attempts} attempt(s){ticks}", flush=True)
 
     _run_recorder(rec, args, status)
-    bad = f"; {rec.invalid_messages} impossible messages left out" if rec.invalid_messages else ""
-    bad += f"; {rec.lost_states} states lost in transport (not recoverable)" if rec.lost_states else ""
-    print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}{bad}")
+    print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}{_left_out(rec)}")
     if args.raw:
         print(
             f"  1 kHz stream: {rec.raw_rows} ticks; {rec.raw_ticks_without_pose} without their pose (lost in "
             f"transport), {rec.raw_rows_without_records} in attempts too short for a record"
         )
     return EXIT_OK
+
+
+def _left_out(rec: Any) -> str:
+    """What a recorder (one session or ``--all``) left out, as "; ..." clauses; "" when nothing."""
+
+    def n(name: str) -> int:
+        return int(getattr(rec, name, 0))
+
+    parts = [
+        f"{n('invalid_messages')} impossible messages left out" if n("invalid_messages") else "",
+        f"{n('refused_ids')} ids the server does not have ({n('unconfirmed_messages')} messages)"
+        if n("refused_ids")
+        else "",
+        f"{n('flush_errors')} failed flushes (last: {rec.last_flush_error})" if n("flush_errors") else "",
+        f"{n('lost_states')} states lost in transport (not recoverable)" if n("lost_states") else "",
+    ]
+    return "".join(f"; {p}" for p in parts if p)
 
 
 def _record_all(args: argparse.Namespace) -> int:
@@ -480,22 +495,11 @@ def _record_all(args: argparse.Namespace) -> int:
     )
     print(f"recording every session into {args.out}/<session id> (Ctrl-C to stop)", flush=True)
 
-    def refusals() -> str:
-        parts = [
-            f"{rec.invalid_messages} impossible messages left out" if rec.invalid_messages else "",
-            f"{rec.refused_ids} ids the server does not have ({rec.unconfirmed_messages} messages)"
-            if rec.refused_ids
-            else "",
-            f"{rec.flush_errors} failed flushes (last: {rec.last_flush_error})" if rec.flush_errors else "",
-            f"{rec.lost_states} states lost in transport (not recoverable)" if rec.lost_states else "",
-        ]
-        return "".join(f"; {p}" for p in parts if p)
-
     def status(t: float) -> None:
-        print(f"  {t:5.0f} s: {len(rec.sessions)} sessions, {rec.records} records{refusals()}", flush=True)
+        print(f"  {t:5.0f} s: {len(rec.sessions)} sessions, {rec.records} records{_left_out(rec)}", flush=True)
 
     _run_recorder(rec, args, status)
-    print(f"recorded {rec.records} records of {len(rec.sessions)} sessions to {args.out}{refusals()}")
+    print(f"recorded {rec.records} records of {len(rec.sessions)} sessions to {args.out}{_left_out(rec)}")
     return EXIT_OK
 
 

@@ -65,6 +65,17 @@ def stream(c: TraineeClient, seconds: float, depth_m: float = 0.0) -> None:
             time.sleep(pause * 1e-9)
 
 
+def record(endpoint: str, *args: str) -> subprocess.Popen[str]:
+    """``dhg record --connect endpoint ARGS --status-every 0`` in its own process, output on one pipe."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, *args, "--status-every", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )
+
+
 def gaps(times: list[float], t0: float) -> float:
     t = np.array([x for x in times if x >= t0])
     return float(np.diff(t).max()) if len(t) > 1 else float("inf")
@@ -99,25 +110,7 @@ def forged_forces(endpoint: str) -> Outcome:
 
 def fake_ids_and_impossible_states(endpoint: str, root: Path) -> Outcome:
     out = root / "class"
-    rec = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "dhg.cli",
-            "record",
-            "--all",
-            "--connect",
-            endpoint,
-            "--out",
-            str(out),
-            "--status-every",
-            "0",
-        ],  # fmt: skip
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=dict(os.environ, PYTHONUNBUFFERED="1"),
-    )
+    rec = record(endpoint, "--all", "--out", str(out))
     assert rec.stdout is not None
     rec.stdout.readline()
     with TraineeClient(endpoint, "real") as c, TraineeClient(endpoint, "rogue2") as r:
@@ -342,25 +335,7 @@ def server_killed_while_recording(root: Path) -> Outcome:
 
     server, endpoint = serve()
     out = root / "rec"
-    rec = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "dhg.cli",
-            "record",
-            "--session",
-            "rec-1",
-            "--connect",
-            endpoint,
-            "--out",
-            str(out),
-            "--status-every",
-            "0",
-        ],  # fmt: skip
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+    rec = record(endpoint, "--session", "rec-1", "--out", str(out))
     time.sleep(1.0)
     with TraineeClient(endpoint, "rec-1") as c:
         th = threading.Thread(target=stream, args=(c, 4.0))
