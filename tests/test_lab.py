@@ -221,3 +221,26 @@ def test_dhg_lab_config_cli_writes_the_files_and_says_how_to_use_them(tmp_path):
         timeout=120,
     )
     assert done.returncode == 3 and "--make-certs" in done.stderr
+
+
+def test_dhg_serve_with_the_lab_file_caps_each_stations_sessions(lab):
+    """A station names its sessions after itself (its access-control list allows no other); with
+    ``--lab`` the server lets it hold at most ``sessions_per_station`` (2) of them, so one station
+    cannot take every slot. Over plain TCP: the cap does not depend on the transport."""
+    from dhg.errors import EngineError
+
+    root, _, _ = lab
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    server = ServerProcess(["--listen", endpoint, "--lab", str(root / "lab.toml"), "--voxel-mm", "1.0"], echo=False)
+    try:
+        with TraineeClient(endpoint, "station-1") as a, TraineeClient(endpoint, "station-2") as b:
+            a.create()
+            a._json("dhg/session/station-1-retry/control", {"op": "create"})
+            with pytest.raises(EngineError, match="station-1 already holds 2 sessions"):
+                a._json("dhg/session/station-1-third/control", {"op": "create"})
+            assert b.create()["session"] == "station-2"  # another station is not held back
+            a._json("dhg/session/station-1-retry/control", {"op": "close"})
+            assert a._json("dhg/session/station-1-third/control", {"op": "create"})["session"] == "station-1-third"
+            assert a._json("dhg/session/visitor/control", {"op": "create"})["session"] == "visitor"  # not a station's
+    finally:
+        assert server.stop() == 0

@@ -31,6 +31,7 @@ fn server() -> &'static Mutex<Server> {
             zenoh_json5: r#"{"mode": "peer", "listen": {"endpoints": ["tcp/127.0.0.1:0"]},
                 "scouting": {"multicast": {"enabled": false}}}"#
                 .into(),
+            owners: bone_sim::transport::registry::Owners { names: vec!["s1".into()], max_sessions: 2 },
         };
         Mutex::new(Server::start(&volume, &engine, config).expect("a server"))
     })

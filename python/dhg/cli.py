@@ -516,7 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
         "server publishes forces. The lab file's format and the how-to are in docs/deployment.md; deploy/ has "
         "an example.\n\n"
         "  dhg lab-config --lab deploy/lab.toml --out deploy/out --make-certs\n"
-        "  dhg-serve --zenoh-config deploy/out/server.json5 --listen tls/0.0.0.0:7447\n"
+        "  dhg-serve --zenoh-config deploy/out/server.json5 --listen tls/0.0.0.0:7447 --lab deploy/lab.toml\n"
         "  dhg trainee --connect tls/dhg-server.lab:7447 --session station-1 --zenoh-config deploy/out/station-1.json5",
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -604,7 +604,9 @@ def cmd_lab_config(args: argparse.Namespace) -> int:
     written = write_lab(args.lab, args.out, certs=args.make_certs)
     lab = load_lab(args.lab)
     print(f"wrote {len(written)} files to {args.out} (passwords inside: readable by you only)")
-    print(f"  server: dhg-serve --zenoh-config {Path(args.out) / 'server.json5'} --listen {lab.listen}")
+    print(
+        f"  server: dhg-serve --zenoh-config {Path(args.out) / 'server.json5'} --listen {lab.listen} --lab {args.lab}"
+    )
     for ident in lab.identities:
         conf = Path(args.out) / f"{ident.name}.json5"
         print(f"  {ident.role:12s} {ident.name:16s} --connect {lab.endpoint} --zenoh-config {conf}")

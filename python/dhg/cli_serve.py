@@ -111,6 +111,12 @@ def serve_parser() -> argparse.ArgumentParser:
     p.add_argument("--prefix", default="dhg", help="first chunk of every key expression (default: dhg)")
     p.add_argument("--max-sessions", type=int, default=d.max_sessions, metavar="N", help="trainee slots (default 16)")
     p.add_argument(
+        "--lab",
+        metavar="FILE.toml",
+        help="the lab file of dhg lab-config: each station may hold at most [server] sessions_per_station "
+        "sessions (default 2), named after it",
+    )
+    p.add_argument(
         "--idle-timeout",
         type=float,
         default=d.idle_timeout_s,
@@ -173,6 +179,13 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     if args.status_every <= 0:
         raise ValueError("--status-every must be positive")
+    owners: tuple[str, ...] = ()
+    per_owner = 0
+    if args.lab:
+        from dhg.lab import load_lab
+
+        lab = load_lab(args.lab)
+        owners, per_owner = tuple(s.name for s in lab.of("station")), lab.sessions_per_station
     settings = serve.ServerSettings(
         max_sessions=args.max_sessions,
         idle_timeout_s=args.idle_timeout,
@@ -180,6 +193,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         guidance_mode=args.guidance_mode,
         guidance_gain=args.guidance_gain,
         wait=args.wait,
+        session_owners=owners,
+        max_sessions_per_owner=per_owner,
     )
     options = serve.ServeOptions(
         role=args.role,

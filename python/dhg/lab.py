@@ -29,6 +29,7 @@ The lab file (TOML)::
     certificate = "certs/server.pem"          # the server's certificate and key, signed by the CA
     private_key = "certs/server-key.pem"
     password = "..."                          # the server identity's own password
+    sessions_per_station = 2                  # optional: what dhg-serve --lab lets one station hold
 
     [[station]]
     name = "station-1"
@@ -92,6 +93,8 @@ class Lab:
     certificate: Path
     private_key: Path
     server_password: str
+    sessions_per_station: int = 2
+    """Most sessions one station may hold at once (``dhg-serve --lab`` enforces it)."""
     identities: list[Identity] = field(default_factory=list)
 
     def of(self, role: str) -> list[Identity]:
@@ -131,7 +134,10 @@ def load_lab(path: str | os.PathLike[str]) -> Lab:
         certificate=rel("certificate"),
         private_key=rel("private_key"),
         server_password=str(_need(server, "password", f"{p} [server]")),
+        sessions_per_station=int(server.get("sessions_per_station", 2)),
     )
+    if lab.sessions_per_station < 1:
+        raise InvalidInputError(f"{p} [server]: sessions_per_station must be at least 1")
     seen = {SERVER_IDENTITY}
     for role in ROLES:
         for k, entry in enumerate(data.get(role, [])):

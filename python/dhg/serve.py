@@ -75,6 +75,11 @@ class ServerSettings:
     corridor_profile: tuple[float, tuple[float, ...]] | None = None
     """The corridor's stiffness along A→B: (bin width (m), stiffness per bin (N/m)), from a model's
     demonstration profiles (:mod:`dhg.profiles`); None: the fixed 400 N/m."""
+    session_owners: tuple[str, ...] = ()
+    """Stations whose sessions (``S`` or ``S-<anything>``) are capped at ``max_sessions_per_owner``
+    each (``dhg-serve --lab`` reads them from the lab file)."""
+    max_sessions_per_owner: int = 0
+    """Most sessions one station may hold at once (0: no cap)."""
     wait: str = "sleep"
     """How the 1 kHz tick thread and the force publisher wait: ``"sleep"`` (idle cores stay idle),
     or ``"spin"`` (while a session is open each keeps a core at 100 %, so no wake-up latency is added
@@ -376,6 +381,8 @@ def start_engine(
         corridor_profile=None
         if s.corridor_profile is None
         else (float(s.corridor_profile[0]), [float(k) for k in s.corridor_profile[1]]),
+        session_owners=list(s.session_owners),
+        max_sessions_per_owner=s.max_sessions_per_owner,
     )
 
 

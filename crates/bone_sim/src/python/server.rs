@@ -59,7 +59,9 @@ impl PyServer {
     /// `guidance_mode` is a new session's guidance mode (`paper`, `corridor`, `brake`, `shaped`);
     /// `corridor_profile` (bin width (m), stiffness per bin (N/m)) its corridor's stiffness along A→B.
     #[new]
-    #[pyo3(signature = (volume, entry_m, target_m, zenoh_json5, prefix="dhg", max_sessions=16, server=None, session=None, wait="sleep", guidance_mode="shaped", corridor_profile=None))]
+    /// `session_owners` names the stations whose sessions (`S` or `S-<anything>`) are capped at
+    /// `max_sessions_per_owner` each (0: no cap).
+    #[pyo3(signature = (volume, entry_m, target_m, zenoh_json5, prefix="dhg", max_sessions=16, server=None, session=None, wait="sleep", guidance_mode="shaped", corridor_profile=None, session_owners=Vec::new(), max_sessions_per_owner=0))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -74,6 +76,8 @@ impl PyServer {
         wait: &str,
         guidance_mode: &str,
         corridor_profile: Option<(f64, Vec<f64>)>,
+        session_owners: Vec<String>,
+        max_sessions_per_owner: usize,
     ) -> PyResult<Self> {
         let path = PlannedPath::new(entry_m.into(), target_m.into()).py()?;
         let mut engine = EngineConfig::new(path);
@@ -86,8 +90,9 @@ impl PyServer {
             engine.guidance.validate().py()?;
         }
         engine.session = config_from_dict(session)?;
+        let owners = crate::transport::registry::Owners { names: session_owners, max_sessions: max_sessions_per_owner };
         let mut cfg =
-            ServerConfig { prefix: prefix.to_owned(), idle_timeout_s: 5.0, model_timeout_s: 0.25, zenoh_json5 };
+            ServerConfig { prefix: prefix.to_owned(), idle_timeout_s: 5.0, model_timeout_s: 0.25, zenoh_json5, owners };
         let mut gain = engine.default_gain;
         if let Some(dict) = server {
             set_flat_fields(

@@ -42,6 +42,8 @@ pub struct ServerConfig {
     pub model_timeout_s: f64,
     /// Zenoh configuration (JSON5).
     pub zenoh_json5: String,
+    /// Session owners (stations) and how many sessions each may hold.
+    pub owners: registry::Owners,
 }
 
 impl ServerConfig {
@@ -174,6 +176,7 @@ impl Server {
             engine_config.default_path.clone(),
             (engine_config.default_mode, engine_config.default_gain),
             engine_config.session.burr_radius_m,
+            config.owners.clone(),
         );
         let shared = Arc::new(Shared {
             prefix: config.prefix.clone(),

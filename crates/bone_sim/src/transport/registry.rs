@@ -43,7 +43,17 @@ pub const ID_RULE: &str = "1-64 characters of A-Z a-z 0-9 _ - ., the first a let
 
 #[cfg(test)]
 mod id_tests {
-    use super::check_id;
+    use super::{check_id, Owners};
+
+    #[test]
+    fn a_sessions_owner_is_the_longest_station_name_it_starts_with() {
+        let o = Owners { names: vec!["st-1".into(), "st-1-b".into(), "st-2".into()], max_sessions: 2 };
+        assert_eq!(o.of("st-1"), Some("st-1"));
+        assert_eq!(o.of("st-1-x"), Some("st-1"));
+        assert_eq!(o.of("st-1-b-3"), Some("st-1-b"));
+        assert_eq!(o.of("st-10"), None, "st-10 is not st-1's");
+        assert_eq!(o.of("other"), None);
+    }
 
     #[test]
     fn ids_that_a_file_system_or_shell_treats_specially_are_refused() {
@@ -103,6 +113,30 @@ pub struct Registry {
     default_mode: GuidanceMode,
     default_gain: f64,
     default_burr_m: f64,
+    owners: Owners,
+}
+
+/// Who owns which session ids, and how many one owner may hold at once: in the secure lab mode a
+/// station `S` names its sessions `S` or `S-<anything>` (its access-control list allows no other),
+/// and without a cap one station could take every slot.
+#[derive(Debug, Clone, Default)]
+pub struct Owners {
+    /// Owner names (stations).
+    pub names: Vec<String>,
+    /// Most sessions one owner may hold (0: no cap).
+    pub max_sessions: usize,
+}
+
+impl Owners {
+    /// The owner of session `id`: the longest name `S` with `id == S` or `id` starting `S-`.
+    #[must_use]
+    pub fn of<'a>(&'a self, id: &str) -> Option<&'a str> {
+        self.names
+            .iter()
+            .filter(|s| id == s.as_str() || (id.starts_with(s.as_str()) && id.as_bytes().get(s.len()) == Some(&b'-')))
+            .max_by_key(|s| s.len())
+            .map(String::as_str)
+    }
 }
 
 impl Registry {
@@ -114,6 +148,7 @@ impl Registry {
         default_path: PlannedPath,
         (default_mode, default_gain): (GuidanceMode, f64),
         default_burr_m: f64,
+        owners: Owners,
     ) -> Self {
         let now = Instant::now();
         let slots = poses
@@ -135,7 +170,16 @@ impl Registry {
                 last_pose_at: None,
             })
             .collect();
-        Self { commands, by_id: HashMap::new(), slots, default_path, default_mode, default_gain, default_burr_m }
+        Self {
+            commands,
+            by_id: HashMap::new(),
+            slots,
+            default_path,
+            default_mode,
+            default_gain,
+            default_burr_m,
+            owners,
+        }
     }
 
     /// Sends a command to the tick thread.
@@ -161,6 +205,14 @@ impl Registry {
             return Ok((slot, false));
         }
         check_id(id)?;
+        if let Some(owner) = self.owners.of(id).filter(|_| self.owners.max_sessions > 0) {
+            let held = self.by_id.keys().filter(|k| self.owners.of(k) == Some(owner)).count();
+            if held >= self.owners.max_sessions {
+                return Err(SimError::Engine(format!(
+                    "{owner} already holds {held} sessions, the most one station may (close one first)"
+                )));
+            }
+        }
         let Some(slot) = self.slots.iter().position(|s| s.id.is_none()) else {
             return Err(SimError::Engine(format!("all {} session slots are taken", self.slots.len())));
         };
