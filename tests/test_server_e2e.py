@@ -294,19 +294,19 @@ def test_isolated_poses_cannot_squat_the_slots():
 
 
 _FROZEN_SUBSCRIBER = """
-import json, time, zenoh
+import json, sys, zenoh
 conf = {"mode": "client", "connect": {"endpoints": ["%s"]}, "scouting": {"multicast": {"enabled": False}}}
 z = zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
 sub = z.declare_subscriber("dhg/**", lambda sample: None)
 print("ready", flush=True)
-time.sleep(600)
+sys.stdin.read()  # until the test closes the pipe (or kills it)
 """
 
 
 _TWO_SUBSCRIBERS = """
 import json, sys, time, zenoh, zenoh.ext as zx
 from dhg import protocol
-endpoint, key, seconds = sys.argv[1], sys.argv[2], float(sys.argv[3])
+endpoint, key = sys.argv[1], sys.argv[2]
 conf = {"mode": "client", "connect": {"endpoints": [endpoint]}, "scouting": {"multicast": {"enabled": False}}}
 z = zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
 plain, advanced, missed = set(), set(), [0]
@@ -322,7 +322,13 @@ subs = [
 ]
 listener = subs[1].sample_miss_listener(lambda m: missed.__setitem__(0, missed[0] + m.nb))
 print("ready", flush=True)
-time.sleep(seconds)
+newest = int(sys.stdin.readline())  # the last state the trainee saw: the advanced subscriber recovers up to it
+deadline = time.monotonic() + 20.0
+while time.monotonic() < deadline:
+    top = max(plain | advanced, default=0)
+    if top >= newest and advanced >= set(range(1, top + 1)):
+        break
+    time.sleep(0.01)
 print(json.dumps({"plain": sorted(plain), "advanced": sorted(advanced), "missed": missed[0]}), flush=True)
 """
 
@@ -339,7 +345,10 @@ def test_a_recorder_behind_a_full_link_recovers_the_states_it_missed():
     proc, endpoint = _serve("--idle-timeout", "3.0")
     key = "dhg/session/lossy-1/state"
     helper = subprocess.Popen(
-        [sys.executable, "-c", _TWO_SUBSCRIBERS, endpoint, key, "12"], stdout=subprocess.PIPE, text=True
+        [sys.executable, "-c", _TWO_SUBSCRIBERS, endpoint, key],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
     )
     try:
         assert helper.stdout is not None and helper.stdout.readline().strip() == "ready"
@@ -354,12 +363,17 @@ def test_a_recorder_behind_a_full_link_recovers_the_states_it_missed():
                 flooder._z.put(key, blob, priority=zenoh.Priority.DATA_HIGH)
             os.kill(helper.pid, signal.SIGCONT)
             th.join()
+            newest = max(st["record_seq"] for st in c.states)
+        assert helper.stdin is not None
+        helper.stdin.write(f"{newest}\n")
+        helper.stdin.flush()
         got = json.loads(helper.stdout.readline())
     finally:
         helper.kill()
         helper.wait()
-        if helper.stdout is not None:
-            helper.stdout.close()
+        for pipe in (helper.stdin, helper.stdout):
+            if pipe is not None:
+                pipe.close()
         assert proc.stop() == 0
     plain, advanced = set(got["plain"]), set(got["advanced"])
     everything = set(range(1, max(plain | advanced) + 1))
@@ -372,7 +386,9 @@ def test_a_frozen_subscriber_does_not_stall_another_sessions_forces():
     flooded full, used to halt every session's forces for 5 s (state and guidance blocked the
     comm thread). The outputs now drop for that subscriber instead: a trainee's forces flow on."""
     proc, endpoint = _serve("--idle-timeout", "2.0")
-    frozen = subprocess.Popen([sys.executable, "-c", _FROZEN_SUBSCRIBER % endpoint], stdout=subprocess.PIPE, text=True)
+    frozen = subprocess.Popen(
+        [sys.executable, "-c", _FROZEN_SUBSCRIBER % endpoint], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
     stop = threading.Event()
     try:
         assert frozen.stdout is not None and frozen.stdout.readline().strip() == "ready"
@@ -401,8 +417,9 @@ def test_a_frozen_subscriber_does_not_stall_another_sessions_forces():
         os.kill(frozen.pid, signal.SIGCONT)
         frozen.kill()
         frozen.wait()
-        if frozen.stdout is not None:
-            frozen.stdout.close()
+        for pipe in (frozen.stdin, frozen.stdout):
+            if pipe is not None:
+                pipe.close()
         assert proc.stop() == 0
     assert len(during) > 2000
     gap = float(np.diff(during).max())

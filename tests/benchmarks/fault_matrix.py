@@ -76,6 +76,15 @@ def record(endpoint: str, *args: str) -> subprocess.Popen[str]:
     )
 
 
+def wait_for(cond: Callable[[], bool], timeout_s: float, what: str) -> None:
+    """Polls ``cond`` until it holds; a fault whose precondition never comes fails, saying which."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{what}: not within {timeout_s:g} s")
+        time.sleep(0.01)
+
+
 def gaps(times: list[float], t0: float) -> float:
     t = np.array([x for x in times if x >= t0])
     return float(np.diff(t).max()) if len(t) > 1 else float("inf")
@@ -120,11 +129,11 @@ def fake_ids_and_impossible_states(endpoint: str, root: Path) -> Outcome:
             r._z.put(f"dhg/session/{sid}/state", protocol.encode("state", time_s=0.5))
         th = threading.Thread(target=stream, args=(c, 3.0))
         th.start()
-        time.sleep(1.0)
+        wait_for(lambda: len(c.states) >= 5, 10.0, "the real session's first states")
         for bad in (float("nan"), 1e30):
             r._z.put("dhg/session/real/state", protocol.encode("state", time_s=bad))
         th.join()
-    time.sleep(1.5)
+    wait_for(lambda: (out / "real" / "card.json").exists(), 10.0, "the recorder's first flush of the real session")
     rec.send_signal(signal.SIGINT)
     text, _ = rec.communicate(timeout=30)
     folders = sorted(p.name for p in out.iterdir()) if out.exists() else []
@@ -138,17 +147,19 @@ def fake_ids_and_impossible_states(endpoint: str, root: Path) -> Outcome:
 
 
 FROZEN = """
-import json, time, zenoh
+import json, sys, zenoh
 conf = {"mode": "client", "connect": {"endpoints": ["%s"]}, "scouting": {"multicast": {"enabled": False}}}
 z = zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
 sub = z.declare_subscriber("dhg/**", lambda s: None)
 print("ready", flush=True)
-time.sleep(600)
+sys.stdin.read()  # until the harness closes the pipe (or kills it)
 """
 
 
 def frozen_subscriber(endpoint: str) -> Outcome:
-    frozen = subprocess.Popen([sys.executable, "-c", FROZEN % endpoint], stdout=subprocess.PIPE, text=True)
+    frozen = subprocess.Popen(
+        [sys.executable, "-c", FROZEN % endpoint], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
     assert frozen.stdout is not None
     frozen.stdout.readline()
     os.kill(frozen.pid, signal.SIGSTOP)
@@ -171,6 +182,7 @@ def frozen_subscriber(endpoint: str) -> Outcome:
         frozen.kill()
         frozen.wait()
         frozen.stdout.close()
+        frozen.stdin.close()
     gap = gaps(arrivals, t0)
     return Outcome(
         "a subscriber to dhg/** frozen (SIGSTOP), its link flooded with 60 KB puts, while a trainee drills 5 s",
@@ -210,7 +222,12 @@ def rogue_worker(endpoint: str) -> Outcome:
         th = threading.Thread(target=answer)
         th.start()
         stream(c, 3.0)
-        time.sleep(0.5)
+
+        def answered() -> bool:
+            with lock:
+                return not late
+
+        wait_for(answered, 10.0, "the rogue's late replies to the last queries")
         stop.set()
         th.join()
         qa.undeclare()
@@ -243,7 +260,7 @@ def oversized(endpoint: str, server: ServerProcess) -> Outcome:
         before = hwm()
         th = threading.Thread(target=stream, args=(c, 6.0))
         th.start()
-        time.sleep(1.0)
+        wait_for(lambda: len(arrivals) > 500, 10.0, "the other trainee's forces")
         t0 = time.monotonic()
         subprocess.run([sys.executable, "-c", sender], check=True, timeout=120)
         th.join()
@@ -271,10 +288,10 @@ def squatter(endpoint_args: tuple[str, ...] = ("--max-sessions", "4", "--idle-ti
 
         th = threading.Thread(target=hold)
         th.start()
-        time.sleep(0.5)
-        t0 = time.monotonic()
-        got, refused = None, 0
         with TraineeClient(endpoint, "real-trainee") as real:
+            wait_for(lambda: real.health(1.0)["sessions"] == 4, 10.0, "the squatters holding every slot")
+            t0 = time.monotonic()
+            got, refused = None, 0
             while got is None and time.monotonic() - t0 < 20:
                 try:
                     got = real.create()
@@ -304,7 +321,7 @@ def model_worker_lost(how: str) -> Outcome:
         with TraineeClient(endpoint, "w", on_force=lambda m: arrivals.append(time.monotonic())) as c:
             th = threading.Thread(target=stream, args=(c, 6.0))
             th.start()
-            time.sleep(2.0)
+            wait_for(lambda: len(c.guidance) >= 10, 10.0, "guidance from the worker")
             t0 = time.monotonic()
             if how == "killed":
                 worker.proc.kill()
@@ -336,7 +353,8 @@ def server_killed_while_recording(root: Path) -> Outcome:
     server, endpoint = serve()
     out = root / "rec"
     rec = record(endpoint, "--session", "rec-1", "--out", str(out))
-    time.sleep(1.0)
+    assert rec.stdout is not None
+    rec.stdout.readline()  # "recording session rec-1 ...": it is subscribed
     with TraineeClient(endpoint, "rec-1") as c:
         th = threading.Thread(target=stream, args=(c, 4.0))
         th.start()
@@ -344,10 +362,20 @@ def server_killed_while_recording(root: Path) -> Outcome:
         sent_records = len(c.states)
     server.proc.kill()
     server.proc.wait()
-    time.sleep(2.0)
+
+    def kept_on_disk() -> int:  # what the recorder's flushes have written so far
+        try:
+            return len(load_dataset(out).episodes[0].times_s)
+        except Exception:  # not written yet, or between two atomic rewrites
+            return 0
+
+    try:  # the recorder flushes every second: wait for everything it had, or give up (a loss)
+        wait_for(lambda: kept_on_disk() >= sent_records, 10.0, "the recorder's flush")
+    except TimeoutError:
+        pass
     rec.send_signal(signal.SIGINT)
     rec.communicate(timeout=30)
-    kept = len(load_dataset(out).episodes[0].times_s) if (out / "card.json").exists() else 0
+    kept = kept_on_disk()
     lost_s = (sent_records - kept) / 10
     return Outcome(
         "the server killed (SIGKILL) just after a 4 s attempt, dhg record running",
