@@ -18,6 +18,7 @@ from dhg.client import TraineeClient
 from dhg.errors import InvalidInputError, TransportError
 from dhg.lab import acl, load_lab, write_lab
 from dhg.live_demo import ServerProcess, free_port
+from support import wait_until as _wait
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl to create certificates")
 
@@ -103,15 +104,6 @@ def _stream(c: TraineeClient, seconds: float) -> None:
         time.sleep(0.001)
 
 
-def _wait(cond, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.01)
-    raise AssertionError(f"condition not met within {timeout_s} s")
-
-
 def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_path):
     root, endpoint, listen = lab
     server_conf = str(root / "out" / "server.json5")
@@ -142,6 +134,9 @@ def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_pat
                 q.reply("dhg/model/predict", protocol.encode_prediction(seq, rogue_n, 0.0, "rogue"))
 
             rogue_q = s1._z.declare_queryable("dhg/model/predict", rogue, complete=True)
+            # ...and to join the worker pool: its token and queryable are refused as well.
+            rogue_pool_q = s1._z.declare_queryable("dhg/model/workers/station-1/predict", rogue, complete=True)
+            rogue_token = s1._z.liveliness().declare_token("dhg/model/workers/station-1")
             s2.create()
             seen_by_2: list[tuple] = []
             s2._on_force = lambda m: seen_by_2.append(m["force_n"])
@@ -166,13 +161,16 @@ def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_pat
             assert s1.force is not None and s1.forces_received > 1000
             predicted = np.array([g["predicted_force_n"] for g in s1.guidance])
             assert not np.any(np.all(np.isclose(predicted, rogue_n, atol=1e-6), axis=1))
+            # The pool holds the model worker, under its own name, and nobody else.
+            assert [w["id"] for w in s1.health(1.0)["model"]["workers"]] == ["model-1"]
             # Station 2 heard its own forces only: none of station 1's forgeries.
             assert len(seen_by_2) > 1000 and not any(abs(f[2] - 0.123) < 1e-6 for f in seen_by_2)
             # Station 1 cannot reset, re-gain or query station 2.
             for op in ("reset", "info"):
                 with pytest.raises(TransportError):
                     s1._json("dhg/session/station-2/control", {"op": op}, timeout_s=1.0)
-            rogue_q.undeclare()
+            for entity in (rogue_q, rogue_pool_q, rogue_token):
+                entity.undeclare()
         # The instructor reads every session.
         with _client(root, endpoint, "teacher", "teacher-view") as teacher:
             health = teacher.health(1.0)

@@ -19,15 +19,11 @@ from dhg import protocol
 from dhg.client import TraineeClient
 from dhg.errors import InvalidInputError
 from dhg.live_demo import ServerProcess, free_port
-
-PEAK_FORCE_N = 3.3  # the Touch profile's peak: nothing above it may reach a device
-
-
-def _serve(*args: str, endpoint: str | None = None) -> tuple[ServerProcess, str]:
-    endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
-    flag = "--connect" if "model" in args else "--listen"
-    return ServerProcess([flag, endpoint, "--voxel-mm", "1.0", "--status-every", "1", *args], echo=False), endpoint
-
+from support import PEAK_FORCE_N
+from support import entry as _entry
+from support import serve as _serve
+from support import stream as _stream
+from support import wait_until as _wait
 
 @pytest.fixture(scope="module")
 def server() -> Iterator[tuple[ServerProcess, str]]:
@@ -36,35 +32,6 @@ def server() -> Iterator[tuple[ServerProcess, str]]:
     yield proc, endpoint
     assert proc.stop() == 0
     assert "dhg-serve stopped" in proc.lines[-1]
-
-
-def _entry(client: TraineeClient) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float]]:
-    """The session's entry point A, its unit drill direction, and a quaternion pointing +z of the tool
-    along it (so the burr is in line with the path)."""
-    info = client.create()
-    a, b = np.array(info["entry_m"]), np.array(info["target_m"])
-    d = (b - a) / np.linalg.norm(b - a)
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(z, d)
-    s = np.linalg.norm(axis)
-    if s < 1e-9:
-        q = (1.0, 0.0, 0.0, 0.0)
-    else:
-        half = np.arctan2(s, z @ d) / 2
-        ax = axis / s * np.sin(half)
-        q = (float(np.cos(half)), float(ax[0]), float(ax[1]), float(ax[2]))
-    return a, d, q
-
-
-def _stream(client: TraineeClient, positions: np.ndarray, q: tuple, drill_on: bool = True) -> float:
-    """Publishes one pose per 1 ms on absolute deadlines; returns the wall time it took (s)."""
-    t0 = time.monotonic_ns()
-    for k, p in enumerate(positions):
-        client.send_pose(p, q, drill_on, 1250.0)
-        pause = t0 + (k + 1) * 1_000_000 - time.monotonic_ns()
-        if pause > 0:
-            time.sleep(pause * 1e-9)
-    return (time.monotonic_ns() - t0) * 1e-9
 
 
 def _record(endpoint: str, *args: str) -> subprocess.Popen[str]:
@@ -184,55 +151,6 @@ def test_a_peer_cannot_get_a_nan_or_over_limit_force_to_the_device(server):
     assert rejected["non_finite"] >= 5 and rejected["over_limit"] >= 5 and rejected["rate_limited"] >= 1
     steps = np.linalg.norm(np.diff(f, axis=0), axis=1)
     assert steps.max() <= victim.guard.burst_n + 1e-6  # the jolt reached the hand as a slew, not a step
-
-
-def test_a_rogue_model_worker_cannot_override_the_genuine_ones_replies(server):
-    """Issue 21, item 4: a peer serving ``<p>/model/predict`` that answers each query five times,
-    40 ms late, with a 3 N "prediction": the genuine worker's first reply is the one applied,
-    every other is ignored and counted."""
-    _, endpoint = server
-    rogue_n = (0.0, 0.0, 3.0)
-    late: list[tuple[float, object, int]] = []
-    lock = threading.Lock()
-    with TraineeClient(endpoint, "guided-r1") as c, TraineeClient(endpoint, "rogue-m1") as rogue:
-        before = c.health(1.0)["model"]
-
-        def on_query(q):
-            seq, _ = protocol.decode_predict(q.payload.to_bytes())
-            with lock:
-                late.append((time.monotonic() + 0.04, q, seq))
-
-        queryable = rogue._z.declare_queryable("dhg/model/predict", on_query, complete=True)
-        stop = threading.Event()
-
-        def answer_late():
-            while not stop.is_set():
-                with lock:
-                    due = [x for x in late if x[0] <= time.monotonic()]
-                    late[:] = [x for x in late if x[0] > time.monotonic()]
-                for _, q, seq in due:
-                    for _ in range(5):
-                        q.reply("dhg/model/predict", protocol.encode_prediction(seq, rogue_n, 0.001, "rogue"))
-                    q.drop()
-                time.sleep(0.002)
-
-        worker = threading.Thread(target=answer_late, daemon=True)
-        worker.start()
-        try:
-            a, d, q = _entry(c)
-            _stream(c, a + d * np.linspace(-3e-3, 2e-3, 2500)[:, None], q)
-            _wait(lambda: c.health(1.0)["model"]["ignored"] - before["ignored"] >= 50, 10.0)
-        finally:
-            stop.set()
-            worker.join()
-            queryable.undeclare()
-        after = c.health(1.0)["model"]
-        guidance = list(c.guidance)
-    assert len(guidance) >= 15
-    predicted = np.array([g["predicted_force_n"] for g in guidance])
-    assert not np.any(np.all(np.isclose(predicted, rogue_n, atol=1e-6), axis=1)), "a rogue reply was applied"
-    queries = after["queries"] - before["queries"]
-    assert after["replies"] - before["replies"] <= queries  # at most one reply applied per query
 
 
 def _peak_rss_mb(pid: int) -> float:
@@ -969,15 +887,6 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
         assert engine.stop() == 0
     assert faded_after < 1.0
     assert back_after <= 1.0
-
-
-def _wait(cond, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.005)
-    raise AssertionError(f"condition not met within {timeout_s} s")
 
 
 def test_ctrl_c_stops_a_busy_server_cleanly_with_a_zenoh_config_file(tmp_path):

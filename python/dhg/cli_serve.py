@@ -158,6 +158,13 @@ def serve_parser() -> argparse.ArgumentParser:
         "instead while a session is open, keeping two cores at 100 %%: use it on a machine with cores to "
         "spare that cannot give the tick thread SCHED_FIFO, never on a 2-core machine",
     )
+    p.add_argument(
+        "--worker-id",
+        metavar="NAME",
+        help="this model service's name in the engine's worker pool (default: the Zenoh user name of "
+        "--zenoh-config, else the Zenoh session id); several workers share the queries and take over "
+        "from one that stops",
+    )
     p.add_argument("--status-every", type=float, default=5.0, metavar="S", help="status line period (default 5 s)")
     return p
 
@@ -204,6 +211,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         prefix=args.prefix,
         settings=settings,
         model_device=args.device,
+        worker_id=args.worker_id,
     )
     # Python hands the GIL over every 5 ms by default: a model reply could wait that long behind a
     # Zenoh callback. 0.5 ms keeps the guidance path's tail short at negligible cost.

@@ -14,9 +14,11 @@ a Zenoh configuration that
     ``<station>`` or ``<station>-<anything>``;
   - an **instructor** may read every session (subscribe to every output, query every session and
     the server's health, recover the recorded streams) and publish nothing;
-  - a **model worker** may serve ``<prefix>/model/predict`` and nothing else;
+  - a **model worker** may join the engine's worker pool under its own name (the liveliness
+    token ``<prefix>/model/workers/<name>`` and the queryable below it), serve the shared
+    ``<prefix>/model/predict``, and nothing else;
   - the **server** identity (its own model and X-ray services, which connect to its engine over
-    loopback) serves predictions and X-rays;
+    loopback) does the same as worker ``dhg-server`` and serves X-rays;
   - nobody but the engine publishes a force, guidance or state: no client rule allows it.
 
 The lab file (TOML)::
@@ -221,25 +223,18 @@ def acl(lab: Lab) -> dict[str, Any]:
             ),
             _rule("instructor:hear", ["put", "reply", "liveliness_token"], ["egress"], [f"{p}/**"]),
         )
-    workers = [i.name for i in lab.of("model_worker")]
-    if workers:
+    # A model worker joins the engine's pool under its own name only (its token and its
+    # queryable), and may serve the shared key the engine queries while the pool is empty.
+    for n in [i.name for i in lab.of("model_worker")] + [SERVER_IDENTITY]:
+        own = f"{p}/model/workers/{n}"
+        extra = [f"{p}/session/*/xray/*"] if n == SERVER_IDENTITY else []
         grant(
-            "model_workers",
-            workers,
-            _rule("worker:serve", ["declare_queryable", "reply"], ["ingress"], [f"{p}/model/predict"]),
-            _rule("worker:queries", ["query"], ["egress"], [f"{p}/model/predict"]),
+            f"worker:{n}",
+            [n],
+            _rule(f"{n}:serve", ["declare_queryable", "reply"], ["ingress"], [f"{p}/model/predict", f"{own}/predict"] + extra),
+            _rule(f"{n}:join", ["liveliness_token"], ["ingress"], [own]),
+            _rule(f"{n}:queries", ["query"], ["egress"], [f"{p}/model/predict", f"{own}/predict"] + extra),
         )
-    grant(
-        "server",
-        [SERVER_IDENTITY],
-        _rule(
-            "server:serve",
-            ["declare_queryable", "reply"],
-            ["ingress"],
-            [f"{p}/model/predict", f"{p}/session/*/xray/*"],
-        ),
-        _rule("server:queries", ["query"], ["egress"], [f"{p}/model/predict", f"{p}/session/*/xray/*"]),
-    )
     return {
         "enabled": True,
         "default_permission": "deny",

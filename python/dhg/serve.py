@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from dhg import protocol
+from dhg.protocol import check_session_id
 from dhg.errors import InvalidInputError, TransportError
 
 __all__ = [
@@ -117,6 +118,7 @@ def zenoh_config_json5(
 ) -> str:
     """A Zenoh configuration (JSON5 text) for both the Rust and the Python sessions.
 
+    Zenoh's default transport, not the low-latency one: ``docs/decisions/0011-default-zenoh-transport.md``.
     Without ``config_file``, multicast scouting is off, so that only the given endpoints connect
     (several servers on one host or network never join each other by accident). Endpoints look like
     ``tcp/127.0.0.1:7447``. Messages larger than ``max_message_bytes`` are dropped by the
@@ -162,7 +164,15 @@ def open_zenoh(config_json5: str) -> Any:
 
 
 class ModelService:
-    """Answers ``<prefix>/model/predict`` queries with the model's predicted expert force.
+    """Answers the engine's model queries with the model's predicted expert force.
+
+    The service joins the engine's worker pool: it serves ``<prefix>/model/workers/<id>/predict``
+    and holds the liveliness token ``<prefix>/model/workers/<id>``, and the engine sends each
+    window to one worker of the pool (the one with the fewest queries in flight; see
+    ``docs/protocol.md``). ``worker_id`` names it (a session id's characters; default: the Zenoh
+    session's id; in the secure lab mode the worker's user name, the one key its access control
+    lets it hold). It also serves the shared ``<prefix>/model/predict``, which the engine queries
+    while its pool is empty.
 
     Queries are queued by the Zenoh callback; one worker thread takes everything that arrived
     within ``max_wait_s`` of the first query (up to ``max_batch`` windows), runs one forward pass,
@@ -171,7 +181,7 @@ class ModelService:
     lone query pays no waiting. Bad queries get an error reply and are counted. The queue holds at
     most ``max_queue`` queries (more are refused at once, as ``busy``), and a query that waited
     longer than ``max_age_s`` (the engine's 0.25 s query timeout by default: its asker has given up)
-    is refused as ``stale`` instead of computed.
+    is refused as ``stale`` instead of computed. Why no batching wait: ``docs/decisions/0010-model-service.md``.
     """
 
     def __init__(
@@ -184,6 +194,7 @@ class ModelService:
         max_queue: int = 256,
         max_age_s: float = 0.25,
         clock: Callable[[], float] = time.perf_counter,
+        worker_id: str | None = None,
     ):
         self.model = model
         self.model_id = str(model.meta.get("id") or model.meta.get("preset") or model.path.name)
@@ -206,7 +217,14 @@ class ModelService:
             model.predict(np.zeros((batch, model.window, 9), dtype=np.float32))
         self._worker = threading.Thread(target=self._run, name="dhg-model", daemon=True)
         self._worker.start()
-        self._queryable = session.declare_queryable(self.key, self._on_query, complete=True)
+        self.worker_id = check_session_id(worker_id if worker_id is not None else str(session.info.zid()))
+        self.worker_key = f"{prefix}/model/workers/{self.worker_id}"
+        self._queryables = [
+            session.declare_queryable(key, self._on_query, complete=True)
+            for key in (self.key, f"{self.worker_key}/predict")
+        ]
+        # Declared last: the engine sends this worker queries once it sees the token.
+        self._token = session.liveliness().declare_token(self.worker_key)
 
     def _on_query(self, query: Any) -> None:
         try:
@@ -281,7 +299,7 @@ class ModelService:
                 )
                 continue
             try:
-                q.reply(self.key, protocol.encode_prediction(seq, f, dt, self.model_id))
+                q.reply(q.key_expr, protocol.encode_prediction(seq, f, dt, self.model_id))
                 self.answered += 1
             finally:
                 q.drop()
@@ -300,12 +318,14 @@ class ModelService:
         }
 
     def close(self) -> None:
-        """Undeclares the queryable and stops the worker."""
+        """Leaves the pool (the token first, so the engine stops choosing it), undeclares the
+        queryables and stops the worker thread."""
         self._stop.set()
-        try:
-            self._queryable.undeclare()
-        except Exception:  # the session may already be closed
-            pass
+        for entity in (self._token, *self._queryables):
+            try:
+                entity.undeclare()
+            except Exception:  # the session may already be closed
+                pass
         self._worker.join(timeout=2.0)
 
 
@@ -445,6 +465,9 @@ class ServeOptions:
     settings: ServerSettings = ServerSettings()
     model_device: str = "auto"
     """``cpu``, ``cuda`` or ``auto`` (CUDA when present)."""
+    worker_id: str | None = None
+    """The model service's name in the engine's worker pool (default: the Zenoh user name of
+    ``zenoh_config`` when it has one, else the Zenoh session id)."""
 
 
 class RunningServer:
@@ -522,6 +545,19 @@ class RunningServer:
         self.close()
 
 
+def _zenoh_user(config: str | Path | None) -> str | None:
+    """The user name of a Zenoh config's user/password authentication, if it has one."""
+    if config is None:
+        return None
+    import zenoh
+
+    try:
+        user = json.loads(zenoh.Config.from_file(str(config)).get_json("transport/auth/usrpwd/user"))
+    except Exception:  # unreadable files are reported when the session opens
+        return None
+    return user if isinstance(user, str) and user else None
+
+
 def _friendly(exc: Exception, endpoints: Sequence[str]) -> TransportError:
     text = str(exc)
     if "Address already in use" in text:
@@ -575,7 +611,11 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
             if model is None:
                 raise InvalidInputError("the model service needs a model")
             run.model_service = ModelService(
-                run.zenoh, model, options.prefix, max_age_s=options.settings.model_timeout_s
+                run.zenoh,
+                model,
+                options.prefix,
+                max_age_s=options.settings.model_timeout_s,
+                worker_id=options.worker_id or _zenoh_user(options.zenoh_config),
             )
         if engine_role:
             run.xray_service = XRayService(run.zenoh, run.engine, volume, options.prefix)

@@ -3,7 +3,7 @@
 //! ([`WaitMode::Spin`]).
 
 use std::collections::VecDeque;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
@@ -11,9 +11,11 @@ use std::time::{Duration, Instant};
 use zenoh::bytes::Encoding;
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::query::{ConsolidationMode, QueryTarget};
+use zenoh::sample::SampleKind;
 use zenoh::Wait;
 use zenoh_ext::{AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
 
+use super::pool::Outcome;
 use super::{lock, Shared, ZENOH_IO_THREADS};
 use crate::engine::handoff::{Command, Output};
 use crate::engine::realtime;
@@ -214,10 +216,13 @@ impl Comm {
         let shared = self.shared.clone();
         let sent = Instant::now();
         shared.counters.model_queries.fetch_add(1, Ordering::Relaxed);
-        // At most one reply per query is applied: the first valid one. Zenoh delivers every
-        // queryable's reply, and a second worker (or a rogue one) must not override it.
-        let answered = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        // One worker of the pool answers (`pool`), or, with no worker in the pool, every
+        // queryable on the shared key. Either way at most one reply per query is applied: the
+        // first valid one; a second worker's (or a rogue's) extra replies must not override it.
+        let worker = lock(&shared.pool).pick(sent);
+        let ending = Ending { shared: shared.clone(), worker: worker.clone(), applied: AtomicBool::new(false) };
         let on_reply = move |reply: zenoh::query::Reply| {
+            let shared = &ending.shared;
             let latency_s = sent.elapsed().as_secs_f64();
             let decoded = match reply.result() {
                 Ok(sample) => protocol::decode_prediction(&sample.payload().to_bytes()).ok(),
@@ -240,7 +245,8 @@ impl Comm {
                 return; // the session is gone
             };
             let older = info.applied_window_seq.is_some_and(|newest| !seq_after(window_seq, newest));
-            if older || answered.swap(true, Ordering::AcqRel) {
+            // A reply older than the newest applied is of no use: to the pool its worker failed.
+            if older || ending.applied.swap(true, Ordering::AcqRel) {
                 shared.counters.model_ignored.fetch_add(1, Ordering::Relaxed);
                 return;
             }
@@ -250,7 +256,8 @@ impl Comm {
             if sent_cmd {
                 shared.counters.model_replies.fetch_add(1, Ordering::Relaxed);
                 // The guidance message leaves as the prediction is applied: now, not at the
-                // session's next tick (up to 1 ms away, more for a paused client).
+                // session's next tick (up to 1 ms away, more for a paused client). Why:
+                // docs/decisions/0009-model-reply-wakes-the-tick.md.
                 if let Some(t) = shared.tick_thread.get() {
                     t.unpark();
                 }
@@ -265,7 +272,19 @@ impl Comm {
                 m.model_id = p.model_id;
             }
         };
-        let sent_ok = self.querier.get().payload(payload).encoding(encoding("predict")).callback(on_reply).wait();
+        let sent_ok = match &worker {
+            Some(id) => self
+                .session
+                .get(format!("{}/model/workers/{id}/predict", self.shared.prefix))
+                .target(QueryTarget::All)
+                .consolidation(ConsolidationMode::None)
+                .timeout(Duration::from_secs_f64(self.shared.config.model_timeout_s))
+                .payload(payload)
+                .encoding(encoding("predict"))
+                .callback(on_reply)
+                .wait(),
+            None => self.querier.get().payload(payload).encoding(encoding("predict")).callback(on_reply).wait(),
+        };
         if sent_ok.is_err() {
             self.shared.counters.model_errors.fetch_add(1, Ordering::Relaxed);
         }
@@ -319,7 +338,8 @@ impl Comm {
 /// Handles every output in `outputs`, forces first: a state's model query or a guidance message
 /// takes tens of µs (up to ms), and a force queued behind it would wait for it. So every waiting
 /// force, including those that arrive meanwhile, goes out before each of the other outputs, which
-/// wait in `later` (kept across calls, so its capacity is reused).
+/// wait in `later` (kept across calls, so its capacity is reused). Why:
+/// `docs/decisions/0008-forces-first.md`.
 fn drain_forces_first(
     outputs: &mut rtrb::Consumer<Output>,
     later: &mut VecDeque<Output>,
@@ -343,6 +363,48 @@ fn seq_after(a: u32, b: u32) -> bool {
     (a.wrapping_sub(b) as i32) > 0
 }
 
+/// What a model query holds until it ends (Zenoh drops the reply callback, and this with it, once
+/// every reply is in or the query timed out): tells the pool how its worker did.
+struct Ending {
+    shared: Arc<Shared>,
+    worker: Option<String>,
+    /// Whether a reply was applied (the first valid one, if not older than the newest applied).
+    applied: AtomicBool,
+}
+
+impl Drop for Ending {
+    fn drop(&mut self) {
+        if let Some(id) = &self.worker {
+            let outcome = if self.applied.load(Ordering::Acquire) { Outcome::Answered } else { Outcome::Failed };
+            lock(&self.shared.pool).ended(id, outcome, Instant::now());
+        }
+    }
+}
+
+/// Follows the model workers' liveliness tokens (`<prefix>/model/workers/<id>`) into the pool,
+/// those alive before the engine started included.
+fn follow_workers(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResult<()> {
+    let s = shared.clone();
+    let prefix = format!("{}/model/workers/", shared.prefix);
+    session
+        .liveliness()
+        .declare_subscriber(format!("{prefix}*"))
+        .history(true)
+        .callback(move |sample| {
+            let Some(id) = sample.key_expr().as_str().strip_prefix(&prefix) else { return };
+            let mut pool = lock(&s.pool);
+            match sample.kind() {
+                SampleKind::Put => {
+                    pool.join(id);
+                }
+                SampleKind::Delete => pool.leave(id),
+            }
+        })
+        .background()
+        .wait()
+        .map_err(|e| SimError::Transport(format!("cannot follow the model workers: {e}")))
+}
+
 /// Starts the comm thread.
 pub(crate) fn spawn(
     session: zenoh::Session,
@@ -350,11 +412,12 @@ pub(crate) fn spawn(
     outputs: rtrb::Consumer<Output>,
     wait: WaitMode,
 ) -> SimResult<JoinHandle<()>> {
+    follow_workers(&session, &shared)?;
     let querier = session
         .declare_querier(format!("{}/model/predict", shared.prefix))
-        // Every model worker gets every query (the first valid reply is applied, the rest are
-        // counted as ignored): with BestMatching, Zenoh would pick one queryable per query, and a
-        // rogue or stalled one would get a share of the queries to itself.
+        // With no worker in the pool: every queryable on the shared key gets every query (the
+        // first valid reply is applied, the rest are counted as ignored); with BestMatching,
+        // Zenoh would pick one per query, and a stalled one would get a share to itself.
         .target(QueryTarget::All)
         .consolidation(ConsolidationMode::None)
         .timeout(Duration::from_secs_f64(shared.config.model_timeout_s))

@@ -3,6 +3,7 @@
 
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
+use std::time::Instant;
 
 use serde_json::{json, Value};
 use zenoh::bytes::Encoding;
@@ -357,6 +358,10 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
     let available = model.last_reply.is_some_and(|t| t.elapsed().as_secs_f64() < 1.0);
     let c = &shared.counters;
     let n = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
+    let (workers, workers_refused) = {
+        let pool = lock(&shared.pool);
+        (serde_json::to_value(pool.report(Instant::now())).unwrap_or_default(), pool.refused)
+    };
     let reg = lock(&shared.registry);
     json!({
         "uptime_s": shared.started.elapsed().as_secs_f64(),
@@ -404,6 +409,8 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
             "ignored": n(&c.model_ignored),
             "latency_p50_s": quantile(&lat, 0.5),
             "latency_p99_s": quantile(&lat, 0.99),
+            "workers": workers,
+            "workers_refused": workers_refused,
         },
     })
 }

@@ -8,11 +8,14 @@
 //! - `<prefix>/session/<id>/force`, `/guidance`, `/state`: out, at 1 kHz, 10 Hz, 10 Hz;
 //! - `<prefix>/session/<id>/control`, `/metrics`: JSON queryables;
 //! - `<prefix>/server/health`: JSON queryable;
-//! - `<prefix>/model/predict`: the model service, queried by the engine.
+//! - `<prefix>/model/workers/<id>` (liveliness) and `<prefix>/model/workers/<id>/predict`: the
+//!   model workers' pool, one worker queried per window ([`pool`]); `<prefix>/model/predict`: the
+//!   shared key, queried when the pool is empty.
 
 mod comm;
 mod control;
 pub mod metrics;
+mod pool;
 pub mod registry;
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -69,6 +72,8 @@ impl ServerConfig {
 
 /// Name prefixes of Zenoh's I/O threads (zenoh-runtime names its workers `<runtime>-<n>`):
 /// receive (the pose subscriber runs on them) and transmit (they write the forces to the sockets).
+///
+/// Why this value: `docs/decisions/0004-short-time-slices.md`.
 pub const ZENOH_IO_THREADS: [&str; 2] = ["rx-", "tx-"];
 
 /// Counts of refused input, by reason.
@@ -121,6 +126,8 @@ pub struct Shared {
     pub(crate) registry: Mutex<Registry>,
     pub(crate) counters: Counters,
     pub(crate) model: Mutex<ModelStats>,
+    /// The model workers whose liveliness tokens are alive.
+    pub(crate) pool: Mutex<pool::Pool>,
     pub(crate) stats: Arc<TickStats>,
     pub(crate) history: Mutex<comm::History>,
     pub(crate) snapshot: Mutex<triple_buffer::Output<Snapshot>>,
@@ -183,6 +190,7 @@ impl Server {
             registry: Mutex::new(registry),
             counters: Counters::default(),
             model: Mutex::new(ModelStats::default()),
+            pool: Mutex::new(pool::Pool::default()),
             stats: link.stats,
             history: Mutex::new(comm::History::default()),
             snapshot: Mutex::new(link.snapshot),

@@ -1,0 +1,66 @@
+"""Helpers the end-to-end tests share: servers in their own process, a session's entry pose, 1 kHz
+pose streams and waits on conditions (never on fixed times)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from dhg.client import TraineeClient
+from dhg.live_demo import ServerProcess, free_port
+
+PEAK_FORCE_N = 3.3
+"""The Touch profile's peak: nothing above it may reach a device."""
+
+
+def serve(*args: str, endpoint: str | None = None) -> tuple[ServerProcess, str]:
+    """``dhg-serve ARGS`` on the 1 mm phantom in its own process, listening on ``endpoint`` (or,
+    for ``--role model``, connecting to it); a free loopback port by default."""
+    endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
+    flag = "--connect" if "model" in args else "--listen"
+    return ServerProcess([flag, endpoint, "--voxel-mm", "1.0", "--status-every", "1", *args], echo=False), endpoint
+
+
+def tool_quaternion(d: np.ndarray) -> tuple[float, float, float, float]:
+    """The quaternion (w, x, y, z) that turns the tool's +z onto the unit direction ``d``."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, d)
+    s = np.linalg.norm(axis)
+    if s < 1e-9:
+        return (1.0, 0.0, 0.0, 0.0)
+    half = np.arctan2(s, z @ d) / 2
+    ax = axis / s * np.sin(half)
+    return (float(np.cos(half)), float(ax[0]), float(ax[1]), float(ax[2]))
+
+
+def entry(client: TraineeClient) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float]]:
+    """Creates the client's session; returns its entry point A (m), its unit drill direction, and
+    the quaternion that puts the burr in line with the path."""
+    info = client.create()
+    a, b = np.array(info["entry_m"]), np.array(info["target_m"])
+    d = (b - a) / np.linalg.norm(b - a)
+    return a, d, tool_quaternion(d)
+
+
+def stream(client: TraineeClient, positions: np.ndarray, q: tuple, drill_on: bool = True) -> float:
+    """Publishes one pose per 1 ms on absolute deadlines; returns the wall time it took (s)."""
+    t0 = time.monotonic_ns()
+    for k, p in enumerate(positions):
+        client.send_pose(p, q, drill_on, 1250.0)
+        pause = t0 + (k + 1) * 1_000_000 - time.monotonic_ns()
+        if pause > 0:
+            time.sleep(pause * 1e-9)
+    return (time.monotonic_ns() - t0) * 1e-9
+
+
+def wait_until(cond: Callable[[], object], timeout_s: float, what: str = "condition") -> None:
+    """Polls ``cond`` every 5 ms until it is true; fails the test after ``timeout_s`` (a generous
+    deadline, not a speed target)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return
+        time.sleep(0.005)
+    raise AssertionError(f"{what} not met within {timeout_s} s")

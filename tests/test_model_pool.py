@@ -1,0 +1,181 @@
+"""The model-worker pool, end to end over real Zenoh sessions (issue 21): workers share the
+queries and take over from one that leaves or freezes, and a rogue peer cannot steer guidance with
+extra or late replies. ``dhg-serve --role all`` (its own model service is one worker) runs in its
+own process; the test process adds workers, genuine or not."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from dhg import protocol
+from dhg.client import TraineeClient
+from dhg.export import load_model
+from dhg.live_demo import ServerProcess
+from dhg.models import default_model_path
+from dhg.serve import ModelService, open_zenoh, zenoh_config_json5
+from support import entry, serve, stream, wait_until
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model(default_model_path())
+
+
+@pytest.fixture
+def server() -> Iterator[tuple[ServerProcess, str]]:
+    """A fresh ``dhg-serve --role all`` per test: each test sees its own pool."""
+    proc, endpoint = serve()
+    yield proc, endpoint
+    assert proc.stop() == 0
+
+
+def _peer(endpoint: str):
+    return open_zenoh(zenoh_config_json5(connect=[endpoint], mode="client"))
+
+
+def _workers(c: TraineeClient) -> dict[str, dict]:
+    return {w["id"]: w for w in c.health(1.0)["model"]["workers"]}
+
+
+def _drill(c: TraineeClient, seconds: float) -> None:
+    """Creates the session and feeds the drill into the cortex for ``seconds`` at 1 kHz."""
+    a, d, q = entry(c)
+    n = int(seconds * 1000)
+    stream(c, a + d * np.linspace(-3e-3, 2e-3, n)[:, None], q)
+
+
+def test_two_workers_share_the_queries_and_one_takes_over_when_the_other_leaves(server, model):
+    _, endpoint = server
+    z = _peer(endpoint)
+    extra = ModelService(z, model, worker_id="extra-1")
+    try:
+        with TraineeClient(endpoint, "pool-1") as c:
+            wait_until(lambda: len(_workers(c)) == 2, 20.0, "both workers in the pool")
+            (own,) = set(_workers(c)) - {"extra-1"}
+            before = c.health(1.0)["model"]
+            _drill(c, 3.0)
+            wait_until(lambda: sum(w["in_flight"] for w in _workers(c).values()) == 0, 5.0, "no query in flight")
+            after = c.health(1.0)["model"]
+            workers = _workers(c)
+            # Both answered a share; each query went to one worker, so no reply was a duplicate.
+            assert workers["extra-1"]["answered"] == extra.stats()["answered"] >= 8, workers
+            assert workers[own]["answered"] >= 8, workers
+            assert after["ignored"] == before["ignored"], "a query was answered twice"
+            assert after["replies"] - before["replies"] >= 25
+            # The extra worker leaves: the server's own takes every query, and guidance never lapses.
+            extra.close()
+            wait_until(lambda: set(_workers(c)) == {own}, 10.0, "the extra worker left the pool")
+            n0 = len(c.guidance)
+            answered0 = _workers(c)[own]["answered"]
+            a, d, q = entry(c)
+            stream(c, a + d * np.linspace(-3e-3, 2e-3, 2000)[:, None], q)
+            later = list(c.guidance)[n0:]
+            assert len(later) >= 15
+            assert all(m["flags"] & protocol.FLAGS["model_available"] for m in later[2:])
+            assert _workers(c)[own]["answered"] - answered0 >= 15
+    finally:
+        extra.close()
+        z.close()
+
+
+def test_a_frozen_worker_costs_a_few_queries_not_a_share(server):
+    """A worker that takes queries and never answers (a frozen process whose link is still up):
+    after its first query times out it is left out, tried again after a doubling pause, and the
+    other worker answers the rest."""
+    _, endpoint = server
+    z = _peer(endpoint)
+    held: list = []
+    queryable = z.declare_queryable("dhg/model/workers/frozen-1/predict", held.append, complete=True)
+    token = z.liveliness().declare_token("dhg/model/workers/frozen-1")
+    try:
+        with TraineeClient(endpoint, "frozen-pool-1") as c:
+            wait_until(lambda: len(_workers(c)) == 2, 20.0, "both workers in the pool")
+            (own,) = set(_workers(c)) - {"frozen-1"}
+            _drill(c, 3.0)
+            wait_until(lambda: _workers(c)["frozen-1"]["in_flight"] == 0, 5.0, "the frozen worker's queries timed out")
+            workers = _workers(c)
+            guidance = list(c.guidance)
+        frozen = workers["frozen-1"]
+        assert frozen["answered"] == 0 and frozen["failed"] == len(held) >= 1, frozen
+        assert len(held) <= 6, f"the frozen worker was sent {len(held)} queries in 3 s"
+        assert workers[own]["answered"] >= 20, workers
+        assert len(guidance) >= 25
+        assert all(m["flags"] & protocol.FLAGS["model_available"] for m in guidance[3:])
+    finally:
+        for q in held:
+            q.drop()
+        token.undeclare()
+        queryable.undeclare()
+        z.close()
+
+
+def test_a_rogue_peer_cannot_steer_guidance_from_outside_the_pool_or_inside_it(server):
+    """Issue 21, item 4. Outside the pool, a peer serving the shared ``<p>/model/predict`` gets no
+    query while the pool has a worker. Inside it (open mode: anyone may join; the lab mode's
+    access control lets only worker identities), a rogue that answers each of its queries five
+    times, 150 ms late, with a 3 N "prediction": by then the next window, answered by the
+    genuine worker, is newer, so every rogue reply is ignored and counted, and the pool leaves
+    the rogue out as it would a failed worker."""
+    _, endpoint = server
+    rogue_n = (0.0, 0.0, 3.0)
+    z = _peer(endpoint)
+    outside: list = []
+    late: list[tuple[float, object, int]] = []
+    lock = threading.Lock()
+    sent = {"replies": 0}
+
+    def on_query(q):
+        seq, _ = protocol.decode_predict(q.payload.to_bytes())
+        with lock:
+            late.append((time.monotonic() + 0.15, q, seq))
+
+    stop = threading.Event()
+
+    def answer_late():
+        while not stop.is_set() or late:
+            with lock:
+                now = time.monotonic()
+                due = [x for x in late if x[0] <= now or stop.is_set()]
+                late[:] = [x for x in late if x not in due]
+            for _, q, seq in due:
+                for _ in range(5):
+                    q.reply(q.key_expr, protocol.encode_prediction(seq, rogue_n, 0.001, "rogue"))
+                    sent["replies"] += 1
+                q.drop()
+            time.sleep(0.002)
+
+    shared_key = z.declare_queryable("dhg/model/predict", outside.append, complete=True)
+    inside = z.declare_queryable("dhg/model/workers/rogue-1/predict", on_query, complete=True)
+    token = z.liveliness().declare_token("dhg/model/workers/rogue-1")
+    worker = threading.Thread(target=answer_late, daemon=True)
+    worker.start()
+    try:
+        with TraineeClient(endpoint, "guided-r1") as c:
+            wait_until(lambda: len(_workers(c)) == 2, 20.0, "the rogue in the pool")
+            before = c.health(1.0)["model"]
+            _drill(c, 3.0)
+            stop.set()
+            worker.join()
+            wait_until(lambda: _workers(c)["rogue-1"]["in_flight"] == 0, 5.0, "the rogue's queries ended")
+            after = c.health(1.0)["model"]
+            guidance = list(c.guidance)
+            rogue = _workers(c)["rogue-1"]
+    finally:
+        stop.set()
+        token.undeclare()
+        inside.undeclare()
+        shared_key.undeclare()
+        z.close()
+    assert outside == [], "a peer outside the pool was queried"
+    assert rogue["answered"] == 0 and 1 <= rogue["failed"] <= 6, rogue  # in the pool, and left out
+    predicted = np.array([g["predicted_force_n"] for g in guidance])
+    assert len(predicted) >= 20
+    assert not np.any(np.all(np.isclose(predicted, rogue_n, atol=1e-6), axis=1)), "a rogue reply was applied"
+    ignored = after["ignored"] - before["ignored"]
+    assert ignored >= 0.8 * sent["replies"] > 0, (ignored, sent)
+    assert after["replies"] - before["replies"] <= after["queries"] - before["queries"]
