@@ -11,7 +11,6 @@ from dhg.errors import (
     CTImportError,
     DhgError,
     InvalidInputError,
-    NotBuiltYetError,
     ShapeError,
     VolumeFileError,
 )
@@ -45,7 +44,6 @@ __all__ = [
     "HuMapping",
     "InvalidInputError",
     "Layer",
-    "NotBuiltYetError",
     "Phantom",
     "PlannedPath",
     "RemovalReport",

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dhg.errors import DhgError, NotBuiltYetError, TransportError
+from dhg.errors import DhgError, TransportError
 
 PRESET_NAMES = ("fusion-1x128", "fusion-2x256", "force-only-2x256", "all-2x256", "tiny")
 
@@ -23,11 +23,10 @@ EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_USAGE = 2
 EXIT_BAD_INPUT = 3
-EXIT_NOT_BUILT = 4
-EXIT_NETWORK = 5
+EXIT_NETWORK = 5  # 4 meant "not built yet" while features were stubs; it is not reused
 
 _EPILOG = """\
-exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input, 4 not built yet, 5 network trouble.
+exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input, 5 network trouble.
 units: SI throughout (m, s, kg); options ending in -mm take millimetres for convenience.
 """
 
@@ -667,9 +666,6 @@ def cmd_study(args: argparse.Namespace) -> int:
 def _run(func, args: argparse.Namespace) -> int:
     try:
         return int(func(args))
-    except NotBuiltYetError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_NOT_BUILT
     except TransportError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_NETWORK

@@ -13,7 +13,6 @@ __all__ = [
     "DhgError",
     "EngineError",
     "InvalidInputError",
-    "NotBuiltYetError",
     "ShapeError",
     "TransportError",
     "VolumeFileError",
@@ -38,10 +37,6 @@ class CTImportError(DhgError, ValueError):
 
 class VolumeFileError(DhgError, ValueError):
     """A prepared volume file that is missing, truncated, corrupt, or of another format/version."""
-
-
-class NotBuiltYetError(DhgError, NotImplementedError):
-    """A feature whose implementation has not landed yet (the message names the issue)."""
 
 
 class TransportError(DhgError, RuntimeError):

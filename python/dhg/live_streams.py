@@ -159,7 +159,7 @@ class RawParts:
     unchanged (:class:`dhg.dataset.RawPart`). :meth:`joined` makes the single ``raw.parquet``
     of a recording that ends cleanly."""
 
-    def __init__(self, part_rows: int = 10_000) -> None:
+    def __init__(self, part_rows: int = 10_000) -> None:  # why 10,000: docs/decisions/0013-raw-part-size.md
         self.part_rows = part_rows
         self._closed: list[RawPart] = []
         self._open: list[npt.NDArray[np.float64]] = []

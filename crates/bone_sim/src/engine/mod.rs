@@ -54,15 +54,21 @@ const OUTPUT_SLACK_PER_SLOT: usize = 128;
 /// Commands applied per tick at most (the rest wait for the next tick).
 const COMMANDS_PER_TICK: usize = 256;
 /// The tick period (1 kHz).
+///
+/// Why this value: `docs/decisions/0005-pose-locked-schedule.md`.
 pub const TICK_PERIOD: Duration = Duration::from_millis(1);
 /// How early (in periods) a fresh pose may start a slot's tick: the slot borrows it from its
 /// next period, so the rate still averages at most 1 kHz.
+///
+/// Why this value: `docs/decisions/0005-pose-locked-schedule.md`.
 pub const EARLY_PERIODS: f64 = 0.3;
 /// How long (in periods) a slot whose client has sent a pose waits past its deadline (its budget
 /// holding a period) for the next pose before ticking without one. A whole period: with 16
 /// clients on 2 cores, 3–5 % of poses came more than 0.55 ms after their predecessor's period
 /// (recorded traces; one is replayed in `tests/engine.rs`). With 0.3 periods the slot ticked
 /// without them, and the pose that followed found no budget and waited for a later deadline.
+///
+/// Why this value: `docs/decisions/0001-grace-period.md`.
 pub const GRACE_PERIODS: f64 = 1.0;
 /// How fast a slot's budget fills for a fresh pose that came before the budget could tick it
 /// (periods per period, over the whole time since the last tick): the 2 % that lets the slot's
@@ -70,20 +76,30 @@ pub const GRACE_PERIODS: f64 = 1.0;
 /// every tick banked the 2 %, the bank stayed full, each late wake-up of the thread dropped some
 /// of it, and the sessions ran slow. A client sending faster than 1 kHz does not get it (see
 /// [`FAST_CLIENT_POSES_PER_TICK`]).
+///
+/// Why this value: `docs/decisions/0002-lock-rate.md`.
 pub const LOCK_RATE: f64 = 1.02;
 /// Least time (in periods) between a slot's last tick and a waiting pose's arrival for that pose
 /// to get [`LOCK_RATE`]. A pose that comes sooner is most likely in a burst after a stall, not
 /// evidence of a phase ahead of the slot's: at 16 clients on 2 cores, counting such poses too
 /// made the sessions run 0.10–0.13 % fast, and without them 0.03–0.07 %.
+///
+/// Why this value: `docs/decisions/0002-lock-rate.md`.
 pub const LOCK_MIN_GAP_PERIODS: f64 = 0.5;
 /// Poses per tick (averaged) above which a client counts as sending faster than 1 kHz: its slot
 /// then ticks on the plain 1 kHz budget, since the 2 % catch-up would only make it run fast.
+///
+/// Why this value: `docs/decisions/0002-lock-rate.md`.
 pub const FAST_CLIENT_POSES_PER_TICK: f64 = 1.2;
 /// Weight of the newest tick in a slot's average of poses per tick (about the last 50 ticks).
+///
+/// Why this value: `docs/decisions/0002-lock-rate.md`.
 const POSE_RATE_WEIGHT: f64 = 0.02;
 /// Longest (in periods) a fresh pose waits for its slot's budget. Past it the slot is out of
 /// phase with its client, and it re-locks by waiting for the client's next pose (see
 /// [`TickCore::tick_due`]) instead of ticking every pose late while the 2 % catch up.
+///
+/// Why this value: `docs/decisions/0001-grace-period.md` and `docs/decisions/0006-relock-after-a-stall.md`.
 pub const MAX_POSE_WAIT_PERIODS: f64 = 0.5;
 /// A slot due within this many periods (1 ns) is due now: float rounding must not cost a wake-up.
 const DUE_SLACK_PERIODS: f64 = 1e-6;
@@ -91,6 +107,8 @@ const DUE_SLACK_PERIODS: f64 = 1e-6;
 /// lose no time: the budget banks this much past that point, and drops the rest (a stall buys
 /// no burst of ticks). Without it each late wake-up cost its lateness: a replay of two recorded
 /// clients waking 100 µs late ran 0.2 % slow (`tests/engine.rs`, `wake_up_latency_costs_no_ticks`).
+///
+/// Why this value: `docs/decisions/0002-lock-rate.md`.
 pub const WAKE_SLACK_PERIODS: f64 = 0.3;
 
 /// Periods of budget at which a slot ticks without a fresh pose: its deadline, or once its

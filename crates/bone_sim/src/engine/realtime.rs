@@ -12,11 +12,15 @@
 //! `SCHED_FIFO`), the thread that publishes the forces, and Zenoh's I/O threads.
 
 /// `SCHED_FIFO` priority: above ordinary real-time helpers, below the kernel's own (99).
+///
+/// Why this value: `docs/decisions/0007-realtime-priority.md`.
 #[cfg(target_os = "linux")]
 const FIFO_PRIORITY: i32 = 80;
 
 /// The slice asked for (ns): 0.1 ms, the shortest the kernel grants (the default is 0.7 ms
 /// times 1 + log2 of the core count, up to 2.8 ms).
+///
+/// Why this value: `docs/decisions/0004-short-time-slices.md`.
 pub const LATENCY_SLICE_NS: u64 = 100_000;
 
 /// Asks for `SCHED_FIFO` for the calling thread; returns whether it was granted.

@@ -5,6 +5,8 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 /// Buckets of a [`Histogram`]: [`LINEAR_BUCKETS`] of its width, then [`SUB_BUCKETS`] per
 /// doubling for 8 doublings (to 32,768 widths: 0.33 s at 10 µs). The last one also collects
 /// everything above the range.
+///
+/// Why this value: `docs/decisions/0012-histogram-buckets.md`.
 pub const BUCKETS: usize = 256;
 /// Buckets of one width each at the start of a [`Histogram`] (exact to a width: 1.28 ms at 10 µs).
 pub const LINEAR_BUCKETS: u64 = 128;

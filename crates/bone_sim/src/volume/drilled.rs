@@ -12,6 +12,8 @@ use crate::error::{SimError, SimResult};
 
 /// Bricks reserved up front for a new session (about 512 KiB); drilling the default planned path
 /// of the phantom with a 2.5 mm burr touches fewer, so the drilling loop does not allocate.
+///
+/// Why this value: `docs/decisions/0014-reserved-bricks.md`.
 pub const DEFAULT_RESERVED_BRICKS: usize = 512;
 
 /// The bone as one session has drilled it.
