@@ -51,3 +51,35 @@ def test_the_corridor_pulls_a_stylus_back_to_the_path_and_the_record_keeps_the_b
     np.testing.assert_allclose(st.force_n, st.feedback_n + st.guidance_n, atol=1e-12)
     assert record is not None
     np.testing.assert_allclose(record[1:4], st.feedback_n, atol=1e-12), "records hold the bone's force"
+
+
+def test_guidance_laws_are_settable_offline_and_change_what_the_corridor_renders(coarse_phantom):
+    """``set_guidance_params``: the core's laws by name (a study varies them, `dhg study
+    --guidance-param`); a stylus 0.4 mm off the line is inside the default 0.5 mm deadband, and
+    outside a 0.1 mm one."""
+    path = coarse_phantom.path
+    side = np.cross(path.direction, [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    q = _axis_quaternion(path.direction)
+    at = path.entry_m - 10e-3 * path.direction + 0.4e-3 * side
+
+    def pull(**laws) -> float:
+        s = DrillingSession(coarse_phantom.volume, path)
+        s.set_guidance("corridor", 1.0)
+        if laws:
+            s.set_guidance_params(**laws)
+        for tick in range(300):
+            if tick % 100 == 0:
+                s.set_prediction(s.state.feedback_n)
+            s.tick(at, q, True, 1200.0)
+        return float(-s.state.guidance_n @ side)
+
+    s = DrillingSession(coarse_phantom.volume, path)
+    assert s.guidance_params["corridor_deadband_m"] == 0.5e-3
+    assert pull() == 0.0
+    assert pull(corridor_deadband_m=0.1e-3) > 0.05  # 0.3 mm past the deadband at up to 400 N/m
+    with pytest.raises(InvalidInputError, match="unknown field `corridor_deadband`"):
+        s.set_guidance_params(corridor_deadband=0.1e-3)
+    with pytest.raises(InvalidInputError):
+        s.set_guidance_params(corridor_deadband_m=-1.0)
+    assert s.guidance_params["corridor_deadband_m"] == 0.5e-3, "a refused change leaves the laws as they were"

@@ -25,6 +25,7 @@ from support import serve as _serve
 from support import stream as _stream
 from support import wait_until as _wait
 
+
 @pytest.fixture(scope="module")
 def server() -> Iterator[tuple[ServerProcess, str]]:
     """One ``dhg-serve --role all`` with a 1 s idle timeout."""

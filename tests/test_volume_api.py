@@ -103,9 +103,12 @@ def test_layer_runs_along_a_path_through_the_block():
 
 
 def test_errors_are_dhg_and_value_errors():
-    with pytest.raises(ValueError):
+    with pytest.raises(dhg.InvalidInputError, match="finite") as info:
         block().layer_at([np.nan] * 3)
-    assert issubclass(ShapeError, dhg.DhgError) and issubclass(ShapeError, ValueError)
+    assert isinstance(info.value, ValueError)  # code that catches ValueError keeps working
+    with pytest.raises(ShapeError) as info:
+        block().layer_at(np.zeros((2, 2)))
+    assert isinstance(info.value, ValueError)
 
 
 def test_drilling_isolation_reset_and_memory():

@@ -575,6 +575,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="fading arms: every Nth training attempt is a guidance-free probe (default 3; 0: none)",
     )
+    p.add_argument(
+        "--guidance-param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="change one of the core's guidance laws for every attempt (SI units; repeatable), e.g. "
+        "corridor_deadband_m=0.25e-3 or brake_hold_n=1.8; the names are DrillingSession.guidance_params'",
+    )
     p.add_argument("--model", metavar="FILE.ts", help="TorchScript model (default: the bundled one)")
     p.add_argument("--duration", type=float, default=150.0, metavar="S", help="most seconds per attempt (default 150)")
     p.add_argument(
@@ -631,7 +639,18 @@ def cmd_study(args: argparse.Namespace) -> int:
     model = Path(args.model) if args.model else default_model_path()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    protocol = Protocol(train=args.train, duration_s=args.duration, probe_every=args.probe_every)
+    guidance = []
+    for item in args.guidance_param:
+        name, eq, value = item.partition("=")
+        try:
+            guidance.append((name.strip(), float(value)))
+        except ValueError:
+            eq = ""
+        if not eq:
+            raise ValueError(f"--guidance-param takes NAME=VALUE (a number in SI units), got {item!r}")
+    protocol = Protocol(
+        train=args.train, duration_s=args.duration, probe_every=args.probe_every, guidance=tuple(guidance)
+    )
     prog, update = _progress(f"{len(seeds)} novices x {len(arms)} arms x {args.train + 2} attempts")
     t0 = time.perf_counter()
     with prog:
@@ -652,8 +671,9 @@ def cmd_study(args: argparse.Namespace) -> int:
         f"{len(seeds)} virtual novices (seeds {seeds[0]}..{seeds[-1]}), {args.operator} operator, "
         + (f"live through the server at {args.live}" if args.live else f"offline, model {model.name}")
         + f"; per arm a guidance-free pre-test, {args.train} training attempts in the arm's guidance and a "
-        f"guidance-free post-test, each of at most {args.duration:g} s. Each guided cell: mean (paired difference "
-        "with 'none' [95 % interval]).\n\n"
+        f"guidance-free post-test, each of at most {args.duration:g} s"
+        + "".join(f", {n} = {v:g}" for n, v in guidance)
+        + ". Each guided cell: mean (paired difference with 'none' [95 % interval]).\n\n"
     )
     (out / "results.md").write_text(header + table)
     (out / "results.json").write_text(json.dumps(result.to_json(), indent=1))

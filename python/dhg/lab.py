@@ -231,7 +231,12 @@ def acl(lab: Lab) -> dict[str, Any]:
         grant(
             f"worker:{n}",
             [n],
-            _rule(f"{n}:serve", ["declare_queryable", "reply"], ["ingress"], [f"{p}/model/predict", f"{own}/predict"] + extra),
+            _rule(
+                f"{n}:serve",
+                ["declare_queryable", "reply"],
+                ["ingress"],
+                [f"{p}/model/predict", f"{own}/predict"] + extra,
+            ),
             _rule(f"{n}:join", ["liveliness_token"], ["ingress"], [own]),
             _rule(f"{n}:queries", ["query"], ["egress"], [f"{p}/model/predict", f"{own}/predict"] + extra),
         )

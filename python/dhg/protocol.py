@@ -39,16 +39,9 @@ VERSION: int = _bone_sim.PROTOCOL_VERSION
 WINDOW_RECORDS: int = _bone_sim.WINDOW_RECORDS
 MAX_PAYLOAD_BYTES: int = _bone_sim.MAX_PAYLOAD_BYTES
 
-FLAGS = {
-    "drill_on": 1 << 0,
-    "in_contact": 1 << 1,
-    "cutting": 1 << 2,
-    "plunging": 1 << 3,
-    "stale": 1 << 4,
-    "model_available": 1 << 5,
-    "guidance_active": 1 << 6,
-}
-"""Flag bits of the force and state headers (bit 0 of a pose: drill on)."""
+FLAGS: dict[str, int] = dict(_bone_sim.FLAGS)
+"""Flag bits of the force and state headers (bit 0 of a pose: drill on), as the core defines them
+(``protocol.rs``, ``flags``)."""
 
 _CODES = {"u8": "B", "u16": "H", "u32": "I", "u64": "Q", "f32": "f", "f64": "d"}
 

@@ -22,15 +22,15 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from dhg import protocol
-from dhg.protocol import check_session_id
+from dhg import _bone_sim, protocol
 from dhg.errors import InvalidInputError, TransportError
+from dhg.protocol import check_session_id
 
 __all__ = [
     "ROLES",
@@ -52,26 +52,30 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 """Where ``dhg-serve`` listens unless told otherwise (loopback; use ``tcp/0.0.0.0:7447`` for a lab)."""
 
 
+_SERVER: dict[str, Any] = _bone_sim.defaults()["server"]
+"""The core's ``ServerSettings::default()``: the one place the defaults below are defined."""
+
+
 @dataclass(frozen=True)
 class ServerSettings:
     """Engine and transport settings (SI units)."""
 
-    max_sessions: int = 16
+    max_sessions: int = _SERVER["max_sessions"]
     """Session slots, allocated at start (each reserves 1024 drilled bricks of 1 KiB plus a brick table)."""
-    idle_timeout_s: float = 5.0
+    idle_timeout_s: float = _SERVER["idle_timeout_s"]
     """A session without poses or control requests for this long is freed (s)."""
-    model_timeout_s: float = 0.25
+    model_timeout_s: float = _SERVER["model_timeout_s"]
     """Timeout of one model query (s)."""
-    guidance_mode: str = "shaped"
+    guidance_mode: str = _SERVER["guidance_mode"]
     """Guidance mode of new sessions: ``paper``, ``corridor``, ``brake`` or ``shaped`` (the default:
     corridor + brake + a warning before the planned breakthrough; ``docs/protocol.md``)."""
-    guidance_gain: float = 1.0
+    guidance_gain: float = _SERVER["guidance_gain"]
     """Guidance gain of new sessions (0 = computed and published, not rendered)."""
-    guidance_max_n: float = 0.88
+    guidance_max_n: float = _SERVER["guidance_max_n"]
     """Largest guidance share of the rendered force (N; the Touch's continuous force)."""
-    guidance_max_rate_n_per_s: float = 8.0
+    guidance_max_rate_n_per_s: float = _SERVER["guidance_max_rate_n_per_s"]
     """Fastest change of the guidance share (N/s): a lost model fades out over ~0.1 s."""
-    guidance_timeout_s: float = 0.35
+    guidance_timeout_s: float = _SERVER["guidance_timeout_s"]
     """A model answer older than this is dropped and guidance fades out (s)."""
     corridor_profile: tuple[float, tuple[float, ...]] | None = None
     """The corridor's stiffness along A→B: (bin width (m), stiffness per bin (N/m)), from a model's
@@ -79,23 +83,16 @@ class ServerSettings:
     session_owners: tuple[str, ...] = ()
     """Stations whose sessions (``S`` or ``S-<anything>``) are capped at ``max_sessions_per_owner``
     each (``dhg-serve --lab`` reads them from the lab file)."""
-    max_sessions_per_owner: int = 0
+    max_sessions_per_owner: int = _SERVER["max_sessions_per_owner"]
     """Most sessions one station may hold at once (0: no cap)."""
-    wait: str = "sleep"
+    wait: str = _SERVER["wait"]
     """How the 1 kHz tick thread and the force publisher wait: ``"sleep"`` (idle cores stay idle),
     or ``"spin"`` (while a session is open each keeps a core at 100 %, so no wake-up latency is added
     to a force; for hosts with cores to spare and no real-time scheduling)."""
 
-    def native(self) -> dict[str, float]:
-        """The flat dict ``dhg._bone_sim.Server`` takes."""
-        return {
-            "idle_timeout_s": self.idle_timeout_s,
-            "model_timeout_s": self.model_timeout_s,
-            "guidance_gain": self.guidance_gain,
-            "guidance.max_n": self.guidance_max_n,
-            "guidance.max_rate_n_per_s": self.guidance_max_rate_n_per_s,
-            "guidance.timeout_s": self.guidance_timeout_s,
-        }
+    def native(self) -> dict[str, Any]:
+        """The dict ``dhg._bone_sim.Server`` takes (the core's ``ServerSettings``)."""
+        return asdict(self)
 
 
 SERVER_MAX_MESSAGE_BYTES = 8 * 1024 * 1024
@@ -383,26 +380,16 @@ def start_engine(
     session_config: Any = None,
 ) -> Any:
     """Starts the native engine (``dhg._bone_sim.Server``) on ``volume`` with the default path."""
-    from dhg import _bone_sim
 
     s = settings or ServerSettings()
-    flat = session_config.to_flat_dict() if session_config is not None else None
     return _bone_sim.Server(
         volume._vol,
         [float(v) for v in path.entry_m],
         [float(v) for v in path.target_m],
         config_json5,
         prefix=prefix,
-        max_sessions=s.max_sessions,
-        server=s.native(),
-        session=flat,
-        wait=s.wait,
-        guidance_mode=s.guidance_mode,
-        corridor_profile=None
-        if s.corridor_profile is None
-        else (float(s.corridor_profile[0]), [float(k) for k in s.corridor_profile[1]]),
-        session_owners=list(s.session_owners),
-        max_sessions_per_owner=s.max_sessions_per_owner,
+        settings=s.native(),
+        session=session_config.to_native() if session_config is not None else None,
     )
 
 

@@ -49,6 +49,9 @@ cutting and thermal laws are fitted up to about 1800 rpm). Defined in the core."
 MAX_POSITION_M: float = float(_bone_sim.MAX_POSITION_M)
 """Largest coordinate (m) of a pose's position; a pose beyond it is refused and counted."""
 
+_DEFAULTS: dict[str, Any] = _bone_sim.defaults()["session"]
+"""The core's ``SessionConfig::default()`` (nested): the one place the defaults below are defined."""
+
 
 @dataclass(frozen=True)
 class DeviceProfile:
@@ -56,12 +59,12 @@ class DeviceProfile:
     0.88 N continuous, 0.4 N/mm stiffness); the motors' 20 s thermal time constant and the
     200 N/s rate limit are this project's choices (``docs/frames.md``, "Device limits")."""
 
-    peak_force_n: float = 3.3
-    continuous_force_n: float = 0.88
-    thermal_time_constant_s: float = 20.0
-    max_stiffness_n_per_m: float = 400.0
-    max_force_rate_n_per_s: float = 200.0
-    stale_after_s: float = 0.05
+    peak_force_n: float = _DEFAULTS["device"]["peak_force_n"]
+    continuous_force_n: float = _DEFAULTS["device"]["continuous_force_n"]
+    thermal_time_constant_s: float = _DEFAULTS["device"]["thermal_time_constant_s"]
+    max_stiffness_n_per_m: float = _DEFAULTS["device"]["max_stiffness_n_per_m"]
+    max_force_rate_n_per_s: float = _DEFAULTS["device"]["max_force_rate_n_per_s"]
+    stale_after_s: float = _DEFAULTS["device"]["stale_after_s"]
 
 
 @dataclass(frozen=True)
@@ -72,30 +75,30 @@ class CuttingLaw:
     ``cutting.rs`` and ``docs/fidelity.md``. The drill diameter ``d`` is the burr's; ``e`` is 0.8
     for thrust and 1.8 for torque (Shaw & Oxford 1957)."""
 
-    thrust_ref_n: float = 21.0
-    torque_ref_n_m: float = 0.032
-    reference_rpm: float = 1250.0
-    reference_feed_m_s: float = 1.5e-3
-    reference_density_kg_m3: float = 1850.0
-    thrust_speed_exponent: float = -1.2
-    torque_speed_exponent: float = -0.25
-    feed_exponent: float = 0.45
-    density_exponent: float = 1.5
-    max_feed_m_s: float = 0.05
-    reference_diameter_m: float = 2.5e-3
-    diameter_thrust_exponent: float = 0.8
-    diameter_torque_exponent: float = 1.8
+    thrust_ref_n: float = _DEFAULTS["cutting"]["thrust_ref_n"]
+    torque_ref_n_m: float = _DEFAULTS["cutting"]["torque_ref_n_m"]
+    reference_rpm: float = _DEFAULTS["cutting"]["reference_rpm"]
+    reference_feed_m_s: float = _DEFAULTS["cutting"]["reference_feed_m_s"]
+    reference_density_kg_m3: float = _DEFAULTS["cutting"]["reference_density_kg_m3"]
+    thrust_speed_exponent: float = _DEFAULTS["cutting"]["thrust_speed_exponent"]
+    torque_speed_exponent: float = _DEFAULTS["cutting"]["torque_speed_exponent"]
+    feed_exponent: float = _DEFAULTS["cutting"]["feed_exponent"]
+    density_exponent: float = _DEFAULTS["cutting"]["density_exponent"]
+    max_feed_m_s: float = _DEFAULTS["cutting"]["max_feed_m_s"]
+    reference_diameter_m: float = _DEFAULTS["cutting"]["reference_diameter_m"]
+    diameter_thrust_exponent: float = _DEFAULTS["cutting"]["diameter_thrust_exponent"]
+    diameter_torque_exponent: float = _DEFAULTS["cutting"]["diameter_torque_exponent"]
 
 
 @dataclass(frozen=True)
 class ThermalParams:
     """Lumped drill-tip thermal model ``C·dT/dt = η(M·ω + F·v) − (T − T_body)/R_th``."""
 
-    heat_capacity_j_per_k: float = 0.5
-    thermal_resistance_k_per_w: float = 30.0
-    heat_fraction: float = 0.16
-    body_temperature_c: float = 37.0
-    necrosis_threshold_c: float = 47.0
+    heat_capacity_j_per_k: float = _DEFAULTS["thermal"]["heat_capacity_j_per_k"]
+    thermal_resistance_k_per_w: float = _DEFAULTS["thermal"]["thermal_resistance_k_per_w"]
+    heat_fraction: float = _DEFAULTS["thermal"]["heat_fraction"]
+    body_temperature_c: float = _DEFAULTS["thermal"]["body_temperature_c"]
+    necrosis_threshold_c: float = _DEFAULTS["thermal"]["necrosis_threshold_c"]
 
 
 @dataclass(frozen=True)
@@ -103,18 +106,23 @@ class SessionConfig:
     """Everything configurable about a session (SI units). ``coupling_stiffness_n_per_m=None``
     uses the device's maximum stiffness."""
 
-    burr_radius_m: float = 1.25e-3
+    burr_radius_m: float = _DEFAULTS["burr_radius_m"]
     coupling_stiffness_n_per_m: float | None = None
-    coupling_damping_n_s_per_m: float = 1.0
-    physical_full_scale_n: float = 30.0
-    lateral_cut_reference_n: float = 10.0
-    max_proxy_speed_m_s: float = 1.0
+    coupling_damping_n_s_per_m: float = _DEFAULTS["coupling_damping_n_s_per_m"]
+    physical_full_scale_n: float = _DEFAULTS["physical_full_scale_n"]
+    lateral_cut_reference_n: float = _DEFAULTS["lateral_cut_reference_n"]
+    max_proxy_speed_m_s: float = _DEFAULTS["max_proxy_speed_m_s"]
     device: DeviceProfile = field(default_factory=DeviceProfile)
     cutting: CuttingLaw = field(default_factory=CuttingLaw)
     thermal: ThermalParams = field(default_factory=ThermalParams)
 
+    def to_native(self) -> dict[str, Any]:
+        """The nested dict the core takes (its ``SessionConfig``'s serde form)."""
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
     def to_flat_dict(self) -> dict[str, float]:
-        """``{"burr_radius_m": ..., "device.peak_force_n": ..., ...}``: what the core takes."""
+        """``{"burr_radius_m": ..., "device.peak_force_n": ..., ...}``: the flat form dataset cards
+        store (:meth:`to_native` is what the core takes)."""
         flat: dict[str, float] = {}
         for f in fields(self):
             value = getattr(self, f.name)
@@ -252,7 +260,7 @@ class DrillingSession:
         """The shared volume."""
         self._path = path
         self._s = _bone_sim.DrillingSession(
-            volume._vol, tuple(path.entry_m), tuple(path.target_m), self.config.to_flat_dict()
+            volume._vol, tuple(path.entry_m), tuple(path.target_m), self.config.to_native()
         )
 
     @property
@@ -325,6 +333,18 @@ class DrillingSession:
         empty sequence restores the fixed 400 N/m."""
         self._s.set_corridor_profile(float(bin_m), [float(k) for k in stiffness_n_per_m])
 
+    @property
+    def guidance_params(self) -> dict[str, Any]:
+        """Every guidance limit and force law of the core (``GuidanceParams`` in
+        ``crates/bone_sim/src/guidance.rs``: device newtons, SI units), e.g. ``corridor_deadband_m``,
+        ``brake_hold_n``, ``warning_n``."""
+        return self._s.guidance_params()
+
+    def set_guidance_params(self, **changes: Any) -> None:
+        """Changes guidance limits and force laws by name (the keys of :attr:`guidance_params`);
+        an unknown name or a value out of range is an :class:`InvalidInputError`."""
+        self._s.set_guidance_params(self.guidance_params | changes)
+
     def set_fading(self, params: dict[str, Any] | None = None, *, enabled: bool = True) -> None:
         """Fades the guidance gain over attempts, assisting as needed
         (``crates/bone_sim/src/guidance.rs``, ``Fading``): each :meth:`reset` after a drilled
@@ -332,18 +352,13 @@ class DrillingSession:
         every ``probe_every``-th attempt is guidance-free. ``params`` overrides the core's
         defaults (``start_gain``, ``max_gain``, ``forget``, ``learn``, ``plunge_tolerance_m``,
         ``deviation_tolerance_m`` (m), ``probe_every``); ``enabled=False`` stops fading."""
-        import json
-
-        self._s.set_fading(json.dumps(params or {}) if enabled else None)
+        self._s.set_fading(dict(params or {}) if enabled else None)
 
     @property
     def fading(self) -> dict[str, Any] | None:
         """The fading schedule (params, attempts, assistance, this attempt's gain, probe,
         last_error), or None when the gain does not fade."""
-        import json
-
-        text = self._s.fading()
-        return None if text is None else json.loads(text)
+        return self._s.fading()
 
     def set_prediction(self, predicted_n: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """A model reply: the predicted expert force (N, world frame). Returns the paper's guidance

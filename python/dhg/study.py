@@ -72,8 +72,18 @@ class Protocol:
     duration_s: float = 150.0
     probe_every: int = 3
     """For fading arms: every this many training attempts one is a guidance-free probe."""
+    guidance: tuple[tuple[str, float], ...] = ()
+    """Changes to the core's guidance laws for every attempt, as (name, value) pairs of
+    :attr:`dhg.DrillingSession.guidance_params` (e.g. ``("corridor_deadband_m", 0.25e-3)``); offline
+    only (a server's laws are its own)."""
 
     def validate(self) -> None:
+        from dhg import _bone_sim
+
+        known = _bone_sim.defaults()["guidance"]
+        for name, _ in self.guidance:
+            if name not in known:
+                raise InvalidInputError(f"unknown guidance parameter {name!r}; known: {', '.join(sorted(known))}")
         if self.train < 1:
             raise InvalidInputError(f"a protocol needs at least one training attempt, got {self.train}")
         if not (math.isfinite(self.duration_s) and self.duration_s > 0):
@@ -274,12 +284,14 @@ class _LocalStation:
     """A :class:`dhg.DrillingSession` in this process; its model queries are yielded to the
     caller, which answers many stations' at once (:func:`_lockstep`)."""
 
-    def __init__(self, phantom: Any, profiles: Any) -> None:
+    def __init__(self, phantom: Any, profiles: Any, guidance: tuple[tuple[str, float], ...] = ()) -> None:
         from dhg.session import DrillingSession
 
         self.session = DrillingSession(phantom.volume, phantom.path)
         if profiles is not None:  # the corridor follows the experts' spread, as dhg-serve --model does
             self.session.set_corridor_profile(profiles.bin_m, profiles.corridor_n_per_m)
+        if guidance:
+            self.session.set_guidance_params(**dict(guidance))
 
     def guide(self, mode: str | None, gain: float) -> None:
         self.session.set_guidance(mode or "paper", gain if mode else 0.0)
@@ -474,11 +486,15 @@ def _group(work: tuple[list[int], list[Arm], Operator, Protocol]) -> list[tuple[
     profiles = model.profiles
     predict = model.predict
     pre = _lockstep(
-        [_job(_LocalStation(phantom, profiles), s, None, operator, protocol, None, on_attempt) for s in seeds], predict
+        [
+            _job(_LocalStation(phantom, profiles, protocol.guidance), s, None, operator, protocol, None, on_attempt)
+            for s in seeds
+        ],
+        predict,
     )
     learned = {seed: atts[0]["learned"] for seed, _, atts in pre}
     jobs = [
-        _job(_LocalStation(phantom, profiles), s, a, operator, protocol, learned[s], on_attempt)
+        _job(_LocalStation(phantom, profiles, protocol.guidance), s, a, operator, protocol, learned[s], on_attempt)
         for s in seeds
         for a in arms
     ]
@@ -592,6 +608,10 @@ def run_study(
     ``model_path`` and ``voxel_m`` are then the server's business and unused."""
     protocol = protocol or Protocol()
     protocol.validate()
+    if live and protocol.guidance:
+        raise InvalidInputError(
+            "with live, the server's guidance laws apply: change them on dhg-serve, not in the protocol"
+        )
     if not seeds:
         raise InvalidInputError("a study needs at least one novice seed")
     if operator not in OPERATORS:

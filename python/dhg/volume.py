@@ -29,6 +29,10 @@ VOLUME_FILE_VERSION = 1
 Interp = Literal["nearest", "linear"]
 
 
+_MAPPING: dict[str, float] = _bone_sim.defaults()["hu_mapping"]
+"""The core's ``HuMapping::default()``: the one place the defaults below are defined."""
+
+
 @dataclass(frozen=True)
 class HuMapping:
     """HU → density → stiffness/erodibility/attenuation mapping (see the Rust ``HuMapping``).
@@ -39,22 +43,22 @@ class HuMapping:
     ρ = 1850 kg/m³ at 1000 rpm; water attenuation 19.3 /m (NIST XCOM, 70 keV).
     """
 
-    cortical_min_hu: float = 700.0
-    cancellous_min_hu: float = 150.0
-    density_intercept_kg_m3: float = 0.0
-    density_slope_kg_m3_per_hu: float = 1.0
-    min_bone_density_kg_m3: float = 50.0
-    marrow_density_kg_m3: float = 930.0
-    marrow_cutting_density_kg_m3: float = 100.0
-    modulus_coeff_pa: float = 6850e6
-    modulus_exponent: float = 1.49
-    erosion_reference_density_kg_m3: float = 1850.0
-    erosion_rate_ref_per_s: float = 2.5
-    erosion_reference_rpm: float = 1000.0
-    erosion_speed_exponent: float = 1.0
-    marrow_erosion_rate_per_s: float = 1000.0
-    max_erosion_rate_per_s: float = 1000.0
-    water_attenuation_per_m: float = 19.3
+    cortical_min_hu: float = _MAPPING["cortical_min_hu"]
+    cancellous_min_hu: float = _MAPPING["cancellous_min_hu"]
+    density_intercept_kg_m3: float = _MAPPING["density_intercept_kg_m3"]
+    density_slope_kg_m3_per_hu: float = _MAPPING["density_slope_kg_m3_per_hu"]
+    min_bone_density_kg_m3: float = _MAPPING["min_bone_density_kg_m3"]
+    marrow_density_kg_m3: float = _MAPPING["marrow_density_kg_m3"]
+    marrow_cutting_density_kg_m3: float = _MAPPING["marrow_cutting_density_kg_m3"]
+    modulus_coeff_pa: float = _MAPPING["modulus_coeff_pa"]
+    modulus_exponent: float = _MAPPING["modulus_exponent"]
+    erosion_reference_density_kg_m3: float = _MAPPING["erosion_reference_density_kg_m3"]
+    erosion_rate_ref_per_s: float = _MAPPING["erosion_rate_ref_per_s"]
+    erosion_reference_rpm: float = _MAPPING["erosion_reference_rpm"]
+    erosion_speed_exponent: float = _MAPPING["erosion_speed_exponent"]
+    marrow_erosion_rate_per_s: float = _MAPPING["marrow_erosion_rate_per_s"]
+    max_erosion_rate_per_s: float = _MAPPING["max_erosion_rate_per_s"]
+    water_attenuation_per_m: float = _MAPPING["water_attenuation_per_m"]
 
     def to_dict(self) -> dict[str, float]:
         """The mapping as a plain dict (what the native core and volume files take)."""

@@ -26,7 +26,10 @@
 use crate::error::{positive, SimError, SimResult};
 
 /// The thrust and torque laws.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+// Python and the wire name the fields as here; a missing field takes its default, an unknown one
+// is refused.
+#[serde(default, deny_unknown_fields)]
 pub struct CuttingLaw {
     /// Thrust at the reference conditions (N).
     pub thrust_ref_n: f64,

@@ -31,7 +31,10 @@ use crate::error::{positive, SimError, SimResult};
 const THERMAL_KNEE: f64 = 0.75;
 
 /// Force and rate limits of a haptic device.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+// Python and the wire name the fields as here; a missing field takes its default, an unknown one
+// is refused.
+#[serde(default, deny_unknown_fields)]
 pub struct DeviceProfile {
     /// Largest force the device may render, at any instant (N).
     pub peak_force_n: f64,

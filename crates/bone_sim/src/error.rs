@@ -75,6 +75,15 @@ pub enum SimError {
         /// The allowed values, as text.
         allowed: &'static str,
     },
+    /// A settings object that does not fit its definition: an unknown field, a value of the wrong
+    /// type (Python dicts and JSON bodies are read through the core types' serde definitions).
+    #[error("invalid {what}: {reason}")]
+    InvalidConfig {
+        /// What was being read (e.g. "session config").
+        what: &'static str,
+        /// What did not fit, as the reader says it.
+        reason: String,
+    },
     /// A grid whose geometry is unusable (orientation not a rotation, too many voxels...).
     #[error("invalid grid: {reason}")]
     InvalidGrid {
@@ -87,6 +96,10 @@ pub enum SimError {
 pub type SimResult<T> = Result<T, SimError>;
 
 impl SimError {
+    /// Every error kind [`kind`](Self::kind) returns: the Python layer has one exception class
+    /// for each (checked by a test on both sides).
+    pub const KINDS: [&'static str; 4] = ["invalid_input", "shape", "transport", "engine"];
+
     /// The error's category, as written in the `kind` field of error replies on the wire
     /// (`docs/protocol.md`): `invalid_input`, `shape`, `transport` or `engine`. Python maps each to
     /// one exception class (`dhg.errors.ERROR_KINDS`).
@@ -99,6 +112,7 @@ impl SimError {
             | Self::UnknownLayer { .. }
             | Self::InvalidOption { .. }
             | Self::InvalidGrid { .. }
+            | Self::InvalidConfig { .. }
             | Self::Payload { .. } => "invalid_input",
             Self::Transport(_) => "transport",
             Self::Engine(_) => "engine",
@@ -132,5 +146,46 @@ pub(crate) fn non_negative(name: &'static str, value: f64) -> SimResult<f64> {
         Ok(value)
     } else {
         Err(SimError::InvalidParameter { name, value, reason: "must be >= 0" })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_error_kind_is_one_of_the_kinds_python_maps() {
+        let one_of_each = [
+            SimError::NonFinite { what: "x", value: f64::NAN },
+            SimError::InvalidParameter { name: "x", value: 0.0, reason: "r" },
+            SimError::ShapeMismatch { what: "x", expected: "a".into(), got: "b".into() },
+            SimError::Empty { what: "x" },
+            SimError::UnknownLayer { id: 9, voxel: 0, max: 4 },
+            SimError::Payload { message: "pose", reason: "r".into() },
+            SimError::Transport("t".into()),
+            SimError::Engine("e".into()),
+            SimError::InvalidOption { name: "x", value: "v".into(), allowed: "a" },
+            SimError::InvalidConfig { what: "x", reason: "r".into() },
+            SimError::InvalidGrid { reason: "r".into() },
+        ];
+        // A new variant must be added above (this match fails to compile until it is).
+        for e in &one_of_each {
+            match e {
+                SimError::NonFinite { .. }
+                | SimError::InvalidParameter { .. }
+                | SimError::ShapeMismatch { .. }
+                | SimError::Empty { .. }
+                | SimError::UnknownLayer { .. }
+                | SimError::Payload { .. }
+                | SimError::Transport(_)
+                | SimError::Engine(_)
+                | SimError::InvalidOption { .. }
+                | SimError::InvalidConfig { .. }
+                | SimError::InvalidGrid { .. } => {}
+            }
+            assert!(SimError::KINDS.contains(&e.kind()), "{e:?}");
+        }
+        let used: std::collections::BTreeSet<_> = one_of_each.iter().map(SimError::kind).collect();
+        assert_eq!(used.len(), SimError::KINDS.len(), "a kind no error has");
     }
 }

@@ -43,7 +43,8 @@ use crate::path::PlannedPath;
 pub const MAX_GAIN: f64 = 4.0;
 
 /// What the guidance share renders.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum GuidanceMode {
     /// The paper's force-matching cue: predicted expert force − the trainee's force.
     Paper,
@@ -51,7 +52,8 @@ pub enum GuidanceMode {
     Corridor,
     /// A hold along the axis when the cortex gives, and the model's cue where it resists.
     Brake,
-    /// Corridor + brake + a warning ramp before the predicted breakthrough.
+    /// Corridor + brake + a warning ramp before the predicted breakthrough (the default).
+    #[default]
     Shaped,
 }
 
@@ -94,7 +96,8 @@ impl GuidanceMode {
 }
 
 /// Guidance limits and force laws (device newtons, SI units).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct GuidanceParams {
     /// Largest paper-cue and corridor share (N); the Touch's continuous force by default, so
     /// they can be held indefinitely.

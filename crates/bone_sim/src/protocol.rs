@@ -197,6 +197,17 @@ pub mod flags {
     pub const MODEL_AVAILABLE: u16 = 1 << 5;
     /// Guidance is mixed into the rendered force (gain > 0 and non-zero guidance).
     pub const GUIDANCE_ACTIVE: u16 = 1 << 6;
+
+    /// Every flag by its name in `docs/protocol.md` (Python's `dhg.protocol.FLAGS` is this).
+    pub const ALL: [(&str, u16); 7] = [
+        ("drill_on", DRILL_ON),
+        ("in_contact", IN_CONTACT),
+        ("cutting", CUTTING),
+        ("plunging", PLUNGING),
+        ("stale", STALE),
+        ("model_available", MODEL_AVAILABLE),
+        ("guidance_active", GUIDANCE_ACTIVE),
+    ];
 }
 
 /// A little-endian writer into a fixed buffer, at the offsets the layouts give.

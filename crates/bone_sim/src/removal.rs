@@ -41,7 +41,7 @@ pub struct Cut {
 }
 
 /// What one removal call did.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
 pub struct RemovalReport {
     /// Voxels inside the burr that held material and were eroded.
     pub voxels_eroded: u32,

@@ -97,7 +97,10 @@ const RELEASE_SLACK_M_S: f64 = 0.02;
 const OFFSET_BLEED: f64 = 0.25;
 
 /// Everything configurable about a session.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+// Python and the wire name the fields as here; a missing field takes its default, an unknown one
+// is refused.
+#[serde(default, deny_unknown_fields)]
 pub struct SessionConfig {
     /// Burr (drill tip) radius (m).
     pub burr_radius_m: f64,

@@ -19,7 +19,10 @@ use crate::error::{finite, positive, SimError, SimResult};
 /// only for the 4.5 mm drill at 1140 and 1820 rpm (at 56 mm/min through 5 mm of dense cortex), as
 /// they measured, and within their 31–56 °C; `C` and `R_th` make a stopped drill cool with a
 /// 15 s time constant. `docs/fidelity.md` tables the measured figures beside theirs.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+// Python and the wire name the fields as here; a missing field takes its default, an unknown one
+// is refused.
+#[serde(default, deny_unknown_fields)]
 pub struct ThermalParams {
     /// Lumped heat capacity of the tip region (J/K).
     pub heat_capacity_j_per_k: f64,

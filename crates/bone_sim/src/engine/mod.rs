@@ -164,7 +164,10 @@ impl Schedule {
 }
 
 /// How the tick and comm threads wait for their next event.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+///
+/// Why: `docs/decisions/0003-spin-or-sleep.md`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum WaitMode {
     /// Sleep until the next deadline or wake-up: idle cores stay idle (the default).
     #[default]
@@ -200,6 +203,9 @@ impl WaitMode {
     }
 }
 
+/// Session slots of an engine, by default.
+pub const DEFAULT_MAX_SESSIONS: usize = 16;
+
 /// Engine settings.
 #[derive(Debug, Clone)]
 pub struct EngineConfig {
@@ -226,14 +232,14 @@ impl EngineConfig {
     #[must_use]
     pub fn new(default_path: PlannedPath) -> Self {
         Self {
-            max_sessions: 16,
+            max_sessions: DEFAULT_MAX_SESSIONS,
             session: SessionConfig::default(),
             default_path,
             guidance: GuidanceParams::default(),
-            default_mode: GuidanceMode::Shaped,
+            default_mode: GuidanceMode::default(),
             default_gain: 1.0,
             reserve_bricks: 1024,
-            wait: WaitMode::Sleep,
+            wait: WaitMode::default(),
         }
     }
 

@@ -5,7 +5,10 @@ use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyArray2, PyReadonlyArray2};
 use pyo3::marker::Ungil;
 use pyo3::prelude::*;
+use serde::de::DeserializeOwned;
+use serde::Serialize;
 
+use super::errors::IntoPyResult;
 use crate::error::SimError;
 use crate::volume::sample::Interp;
 
@@ -43,4 +46,23 @@ pub(crate) fn image<'py>(py: Python<'py>, data: &[f64], shape: [usize; 2]) -> Bo
     Array2::from_shape_vec((shape[0], shape[1]), v)
         .unwrap_or_else(|_| Array2::zeros((shape[0], shape[1])))
         .into_pyarray(py)
+}
+
+/// A Python value (dicts, lists, numbers, strings) read as a core type through its serde
+/// definition; what does not fit (an unknown field, a wrong type) is an `InvalidConfig` naming
+/// `what`. The one way settings cross the boundary inwards: no field tables.
+pub(crate) fn from_python<T: DeserializeOwned>(value: &Bound<'_, PyAny>, what: &'static str) -> PyResult<T> {
+    let mut de = pythonize::Depythonizer::from_object(value);
+    serde_path_to_error::deserialize(&mut de)
+        .map_err(|e| {
+            let path = e.path().to_string();
+            let reason = if path == "." { e.inner().to_string() } else { format!("{path}: {}", e.inner()) };
+            SimError::InvalidConfig { what, reason }
+        })
+        .py()
+}
+
+/// A core value as Python dicts, lists and numbers, through its serde definition.
+pub(crate) fn to_python<'py, T: Serialize + ?Sized>(py: Python<'py>, value: &T) -> PyResult<Bound<'py, PyAny>> {
+    pythonize::pythonize(py, value).map_err(|e| SimError::Engine(format!("cannot hand a value to Python: {e}"))).py()
 }

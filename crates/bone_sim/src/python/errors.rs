@@ -4,7 +4,7 @@
 //! `DhgError` and the matching builtin (`ValueError`); this module looks them up by the error's
 //! kind in `dhg.errors.ERROR_KINDS`.
 
-use pyo3::exceptions::PyValueError;
+use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
 
 use crate::error::SimError;
@@ -16,10 +16,14 @@ pub(crate) fn to_py(err: SimError) -> PyErr {
     let message = err.to_string();
     Python::attach(|py| {
         let class = py.import("dhg.errors").and_then(|m| m.getattr("ERROR_KINDS")?.get_item(err.kind()));
-        match class {
-            Ok(cls) => PyErr::from_type(cls.cast_into().unwrap_or_else(|_| py.get_type::<PyValueError>()), message),
-            // dhg.errors always ships with the extension; fall back to ValueError rather than fail.
-            Err(_) => PyValueError::new_err(message),
+        // Every kind has its class (tests/test_errors.py checks SimError::KINDS against the
+        // table); a missing one is a bug, said as such rather than hidden behind a ValueError.
+        match class.and_then(|c| c.cast_into().map_err(PyErr::from)) {
+            Ok(cls) => PyErr::from_type(cls, message),
+            Err(_) => PyRuntimeError::new_err(format!(
+                "internal error: no Python class for error kind {:?} in dhg.errors.ERROR_KINDS: {message}",
+                err.kind()
+            )),
         }
     })
 }

@@ -27,6 +27,10 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<server::PyServer>()?;
     m.add_function(wrap_pyfunction!(server::protocol_layouts, m)?)?;
     m.add_function(wrap_pyfunction!(server::check_session_id, m)?)?;
+    m.add_function(wrap_pyfunction!(server::defaults, m)?)?;
+    m.add("ERROR_KINDS", crate::error::SimError::KINDS.to_vec())?;
+    let flags: Vec<(&str, u16)> = crate::protocol::flags::ALL.to_vec();
+    m.add("FLAGS", flags)?;
     m.add("PROTOCOL_VERSION", crate::protocol::VERSION)?;
     m.add("WINDOW_RECORDS", crate::protocol::WINDOW_RECORDS)?;
     m.add("MAX_PAYLOAD_BYTES", crate::protocol::MAX_PAYLOAD_BYTES)?;

@@ -5,7 +5,7 @@ use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::convert::detached;
+use super::convert::{detached, from_python, to_python};
 use super::errors::IntoPyResult;
 use super::volume::{xray_tuple, PyVolume, Views};
 use crate::error::SimError;
@@ -19,76 +19,12 @@ pub(crate) const POSE_COLUMNS: usize = 9;
 /// Columns of a record row: time (s), the nine features, `drill_on` (0/1).
 pub(crate) const RECORD_COLUMNS: usize = FEATURE_COUNT + 2;
 
-/// Every configurable number of a session, by its flat key (nested ones as `device.x`, ...): the
-/// one list both directions of the dict conversion use.
-fn config_fields(c: &mut SessionConfig) -> [(&'static str, &mut f64); 30] {
-    [
-        ("burr_radius_m", &mut c.burr_radius_m),
-        ("coupling_stiffness_n_per_m", &mut c.coupling_stiffness_n_per_m),
-        ("coupling_damping_n_s_per_m", &mut c.coupling_damping_n_s_per_m),
-        ("physical_full_scale_n", &mut c.physical_full_scale_n),
-        ("lateral_cut_reference_n", &mut c.lateral_cut_reference_n),
-        ("max_proxy_speed_m_s", &mut c.max_proxy_speed_m_s),
-        ("device.peak_force_n", &mut c.device.peak_force_n),
-        ("device.continuous_force_n", &mut c.device.continuous_force_n),
-        ("device.thermal_time_constant_s", &mut c.device.thermal_time_constant_s),
-        ("device.max_stiffness_n_per_m", &mut c.device.max_stiffness_n_per_m),
-        ("device.max_force_rate_n_per_s", &mut c.device.max_force_rate_n_per_s),
-        ("device.stale_after_s", &mut c.device.stale_after_s),
-        ("cutting.thrust_ref_n", &mut c.cutting.thrust_ref_n),
-        ("cutting.torque_ref_n_m", &mut c.cutting.torque_ref_n_m),
-        ("cutting.reference_rpm", &mut c.cutting.reference_rpm),
-        ("cutting.reference_feed_m_s", &mut c.cutting.reference_feed_m_s),
-        ("cutting.reference_density_kg_m3", &mut c.cutting.reference_density_kg_m3),
-        ("cutting.thrust_speed_exponent", &mut c.cutting.thrust_speed_exponent),
-        ("cutting.torque_speed_exponent", &mut c.cutting.torque_speed_exponent),
-        ("cutting.feed_exponent", &mut c.cutting.feed_exponent),
-        ("cutting.density_exponent", &mut c.cutting.density_exponent),
-        ("cutting.max_feed_m_s", &mut c.cutting.max_feed_m_s),
-        ("cutting.reference_diameter_m", &mut c.cutting.reference_diameter_m),
-        ("cutting.diameter_thrust_exponent", &mut c.cutting.diameter_thrust_exponent),
-        ("cutting.diameter_torque_exponent", &mut c.cutting.diameter_torque_exponent),
-        ("thermal.heat_capacity_j_per_k", &mut c.thermal.heat_capacity_j_per_k),
-        ("thermal.thermal_resistance_k_per_w", &mut c.thermal.thermal_resistance_k_per_w),
-        ("thermal.heat_fraction", &mut c.thermal.heat_fraction),
-        ("thermal.body_temperature_c", &mut c.thermal.body_temperature_c),
-        ("thermal.necrosis_threshold_c", &mut c.thermal.necrosis_threshold_c),
-    ]
-}
-
-/// Applies a flat `{key: number}` dict through `set` (which returns false for an unknown key);
-/// an unknown key or a non-number is refused with an error naming the allowed keys.
-pub(crate) fn set_flat_fields(
-    dict: &Bound<'_, PyDict>,
-    what: &'static str,
-    allowed: &'static str,
-    mut set: impl FnMut(&str, f64) -> bool,
-) -> PyResult<()> {
-    for (key, value) in dict.iter() {
-        let key: String = key.extract()?;
-        let value: f64 = value.extract()?;
-        if !set(&key, value) {
-            return Err(SimError::InvalidOption { name: what, value: key, allowed }).py();
-        }
-    }
-    Ok(())
-}
-
+/// A session's config from a (nested) dict of `dhg.SessionConfig`'s fields; missing fields take
+/// the core's defaults, and unless it is given the coupling is as stiff as the device allows.
 pub(crate) fn config_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<SessionConfig> {
-    let mut c = SessionConfig::default();
-    let Some(dict) = dict else { return Ok(c) };
-    let stiffness_given = dict.contains("coupling_stiffness_n_per_m")?;
-    set_flat_fields(
-        dict,
-        "session config key",
-        "the fields of dhg.SessionConfig (nested ones as 'device.x', 'cutting.x', 'thermal.x')",
-        |key, value| {
-            let mut fields = config_fields(&mut c);
-            fields.iter_mut().find(|(name, _)| *name == key).map(|(_, slot)| **slot = value).is_some()
-        },
-    )?;
-    if !stiffness_given {
-        // Unless given, the coupling is as stiff as the (possibly changed) device allows.
+    let Some(dict) = dict else { return Ok(SessionConfig::default()) };
+    let mut c: SessionConfig = from_python(dict.as_any(), "session config")?;
+    if !dict.contains("coupling_stiffness_n_per_m")? {
         c.coupling_stiffness_n_per_m = c.device.max_stiffness_n_per_m;
     }
     Ok(c)
@@ -159,7 +95,7 @@ pub struct PySession {
 #[pymethods]
 impl PySession {
     /// A session drilling `volume` along the path `entry_m` → `target_m` (m), with an optional
-    /// flat config dict.
+    /// (nested) config dict of `dhg.SessionConfig`'s fields.
     #[new]
     #[pyo3(signature = (volume, entry_m, target_m, config=None))]
     fn new(
@@ -282,25 +218,30 @@ impl PySession {
         self.inner.set_guidance_params(params).py()
     }
 
-    /// Fades the gain over attempts: the schedule's params as a JSON object (missing fields
-    /// take the core's defaults), or None to stop fading.
-    #[pyo3(signature = (params_json=None))]
-    fn set_fading(&mut self, params_json: Option<&str>) -> PyResult<()> {
-        let params = params_json
-            .map(|text| {
-                let v: serde_json::Value = serde_json::from_str(text)
-                    .map_err(|e| SimError::Payload { message: "fading", reason: e.to_string() })?;
-                crate::guidance::FadingParams::from_json(&v)
-            })
-            .transpose()
-            .py()?;
+    /// Fades the gain over attempts: the schedule's params as a dict (missing fields take the
+    /// core's defaults), or None to stop fading.
+    #[pyo3(signature = (params=None))]
+    fn set_fading(&mut self, params: Option<&Bound<'_, PyAny>>) -> PyResult<()> {
+        let params = params.map(|p| from_python(p, "fading params")).transpose()?;
         self.inner.set_fading(params).py()
     }
 
-    /// The fading schedule as JSON text (`params`, `attempts`, `assistance`, `gain`, `probe`,
-    /// `last_error`), or None.
-    fn fading(&self) -> Option<String> {
-        self.inner.fading().map(|f| f.to_json().to_string())
+    /// The fading schedule (`params`, `attempts`, `assistance`, `gain`, `probe`, `last_error`),
+    /// or None.
+    fn fading<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
+        self.inner.fading().map(|f| to_python(py, &f.to_json())).transpose()
+    }
+
+    /// Every guidance limit and force law (`crate::guidance::GuidanceParams`, SI units).
+    fn guidance_params<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_python(py, self.inner.guide().params())
+    }
+
+    /// Replaces the guidance limits and force laws: a dict of `guidance_params()`'s fields
+    /// (missing ones take the core's defaults).
+    fn set_guidance_params(&mut self, params: &Bound<'_, PyAny>) -> PyResult<()> {
+        let params: crate::guidance::GuidanceParams = from_python(params, "guidance params")?;
+        self.inner.set_guidance_params(params).py()
     }
 
     /// The guidance (mode, gain).
@@ -343,13 +284,8 @@ impl PySession {
         self.inner.bone().memory_bytes()
     }
 
-    /// The configuration in use, as a flat dict.
-    fn config<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let mut c = self.inner.config().clone();
-        let d = PyDict::new(py);
-        for (k, v) in config_fields(&mut c) {
-            d.set_item(k, *v)?;
-        }
-        Ok(d)
+    /// The configuration in use, as a nested dict of `dhg.SessionConfig`'s fields.
+    fn config<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_python(py, self.inner.config())
     }
 }

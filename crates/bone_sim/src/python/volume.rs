@@ -7,11 +7,11 @@ use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyReado
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::convert::{detached, image, points};
+use super::convert::{detached, from_python, image, points, to_python};
 use super::errors::IntoPyResult;
 use crate::error::SimError;
 use crate::path::PlannedPath;
-use crate::removal::{Burr, Cut, RemovalReport};
+use crate::removal::{Burr, Cut};
 use crate::volume::drilled::DrilledVolume;
 use crate::volume::grid::Grid;
 use crate::volume::material::HuMapping;
@@ -25,55 +25,8 @@ pub struct PyVolume {
     pub(crate) inner: Arc<Volume>,
 }
 
-/// Every field of the HU mapping by name: the one list both directions of the dict conversion use.
-fn mapping_fields(m: &mut HuMapping) -> [(&'static str, &mut f64); 16] {
-    [
-        ("cortical_min_hu", &mut m.cortical_min_hu),
-        ("cancellous_min_hu", &mut m.cancellous_min_hu),
-        ("density_intercept_kg_m3", &mut m.density_intercept_kg_m3),
-        ("density_slope_kg_m3_per_hu", &mut m.density_slope_kg_m3_per_hu),
-        ("min_bone_density_kg_m3", &mut m.min_bone_density_kg_m3),
-        ("marrow_density_kg_m3", &mut m.marrow_density_kg_m3),
-        ("marrow_cutting_density_kg_m3", &mut m.marrow_cutting_density_kg_m3),
-        ("modulus_coeff_pa", &mut m.modulus_coeff_pa),
-        ("modulus_exponent", &mut m.modulus_exponent),
-        ("erosion_reference_density_kg_m3", &mut m.erosion_reference_density_kg_m3),
-        ("erosion_rate_ref_per_s", &mut m.erosion_rate_ref_per_s),
-        ("erosion_reference_rpm", &mut m.erosion_reference_rpm),
-        ("erosion_speed_exponent", &mut m.erosion_speed_exponent),
-        ("marrow_erosion_rate_per_s", &mut m.marrow_erosion_rate_per_s),
-        ("max_erosion_rate_per_s", &mut m.max_erosion_rate_per_s),
-        ("water_attenuation_per_m", &mut m.water_attenuation_per_m),
-    ]
-}
-
 fn mapping_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<HuMapping> {
-    let mut m = HuMapping::default();
-    let Some(dict) = dict else { return Ok(m) };
-    for (key, value) in dict.iter() {
-        let key: String = key.extract()?;
-        let value: f64 = value.extract()?;
-        let mut fields = mapping_fields(&mut m);
-        let Some((_, slot)) = fields.iter_mut().find(|(name, _)| *name == key) else {
-            return Err(SimError::InvalidOption {
-                name: "mapping key",
-                value: key,
-                allowed: "the fields of dhg.HuMapping",
-            })
-            .py();
-        };
-        **slot = value;
-    }
-    Ok(m)
-}
-
-fn mapping_to_dict<'py>(py: Python<'py>, m: &HuMapping) -> PyResult<Bound<'py, PyDict>> {
-    let mut m = m.clone();
-    let d = PyDict::new(py);
-    for (k, v) in mapping_fields(&mut m) {
-        d.set_item(k, *v)?;
-    }
-    Ok(d)
+    dict.map_or_else(|| Ok(HuMapping::default()), |d| from_python(d.as_any(), "HU mapping"))
 }
 
 /// The (top, front, side) images handed to Python.
@@ -85,15 +38,6 @@ pub(crate) fn xray_tuple<'py>(py: Python<'py>, p: &Projections) -> Views<'py> {
         image(py, data, shape)
     });
     (top, front, side)
-}
-
-fn report_dict<'py>(py: Python<'py>, r: &RemovalReport) -> PyResult<Bound<'py, PyDict>> {
-    let d = PyDict::new(py);
-    d.set_item("voxels_eroded", r.voxels_eroded)?;
-    d.set_item("voxels_removed", r.voxels_removed)?;
-    d.set_item("mass_removed_kg", r.mass_removed_kg)?;
-    d.set_item("volume_removed_m3", r.volume_removed_m3)?;
-    Ok(d)
 }
 
 /// A k-major voxel array as a numpy array of shape (nz, ny, nx).
@@ -193,8 +137,8 @@ impl PyVolume {
 
     /// The HU mapping in use, as a dict.
     #[getter]
-    fn mapping<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        mapping_to_dict(py, self.inner.table().mapping())
+    fn mapping<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_python(py, self.inner.table().mapping())
     }
 
     /// Bytes held by the volume (shared by all sessions).
@@ -311,10 +255,10 @@ impl PyDrilledVolume {
         spindle_rpm: f64,
         dt_s: f64,
         contact: f64,
-    ) -> PyResult<Bound<'py, PyDict>> {
+    ) -> PyResult<Bound<'py, PyAny>> {
         let burr = Burr { center_m: center_m.into(), radius_m };
         let report = self.inner.remove(&burr, &Cut { spindle_rpm, dt_s, contact }).py()?;
-        report_dict(py, &report)
+        to_python(py, &report)
     }
 
     /// Erodes along a path of burr centres (N, 3) in metres, `dt_s` at each; returns the summed
@@ -328,7 +272,7 @@ impl PyDrilledVolume {
         spindle_rpm: f64,
         dt_s: f64,
         contact: f64,
-    ) -> PyResult<Bound<'py, PyDict>> {
+    ) -> PyResult<Bound<'py, PyAny>> {
         let centers = points(&centers_m, "centers_m").py()?;
         let cut = Cut { spindle_rpm, dt_s, contact };
         for c in &centers {
@@ -337,7 +281,7 @@ impl PyDrilledVolume {
         cut.validate().py()?;
         let inner = &mut self.inner;
         let report = detached(py, move || inner.remove_along(&centers, radius_m, &cut)).py()?;
-        report_dict(py, &report)
+        to_python(py, &report)
     }
 
     /// Material fraction left (0..1) at each world point (N, 3) in metres.

@@ -17,7 +17,6 @@ pub struct SessionMetrics {
     last_tip_m: Vector3<f64>,
     peak_temperature_c: f64,
     time_above_47_s: f64,
-    plunge_depth_m: f64,
     max_plunge_m: f64,
     breakthroughs: u16,
     removed_mass_kg: f64,
@@ -44,7 +43,6 @@ impl SessionMetrics {
         self.last_tip_m = Vector3::new(s.features[3], s.features[4], s.features[5]);
         self.peak_temperature_c = s.peak_temperature_c;
         self.time_above_47_s = s.time_above_47_s;
-        self.plunge_depth_m = s.plunge_depth_m;
         self.max_plunge_m = self.max_plunge_m.max(s.plunge_depth_m);
         self.breakthroughs = s.breakthroughs;
         self.removed_mass_kg = s.removed_mass_kg;
@@ -85,7 +83,9 @@ impl SessionMetrics {
             "target_distance_m": if self.records > 0 { (self.last_tip_m - target_m.coords).norm() } else { f64::NAN },
             "peak_temperature_c": self.peak_temperature_c,
             "time_above_47_s": self.time_above_47_s,
-            "plunge_depth_m": self.plunge_depth_m,
+            // The attempt's largest plunge, as `dhg.surgeons.skill_metrics` reports it (a later,
+            // smaller plunge after a second breakthrough must not hide the first).
+            "plunge_depth_m": self.max_plunge_m,
             "breakthroughs": self.breakthroughs,
             "removed_mass_kg": self.removed_mass_kg,
             "removed_volume_m3": self.removed_volume_m3,
@@ -95,5 +95,21 @@ impl SessionMetrics {
             "mean_model_latency_s": mean(self.latency_sum_s, self.guidance_count),
             "max_model_latency_s": self.latency_max_s,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_reported_plunge_is_the_attempts_largest_not_its_last() {
+        let mut m = SessionMetrics::default();
+        for plunge_m in [0.0, 3e-3, 2e-3, 0.0, 1e-3] {
+            m.add_state(&StateMsg { plunge_depth_m: plunge_m, ..StateMsg::default() });
+        }
+        let v = m.to_json(&Point3::origin());
+        assert!((v["plunge_depth_m"].as_f64().unwrap() - 3e-3).abs() < 1e-12);
+        assert!((m.worst_m().0 - 3e-3).abs() < 1e-12);
     }
 }

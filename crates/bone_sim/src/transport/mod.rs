@@ -23,6 +23,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use zenoh::Wait;
 
@@ -30,9 +31,106 @@ use crate::engine::handoff::Command;
 use crate::engine::stats::TickStats;
 use crate::engine::{self, EngineConfig, Snapshot, TickThread, WaitMode};
 use crate::error::{SimError, SimResult};
+use crate::guidance::{GuidanceMode, GuidanceParams};
+use crate::path::PlannedPath;
+use crate::session::SessionConfig;
 use crate::volume::drilled::DrilledVolume;
 use crate::volume::Volume;
 use registry::Registry;
+
+/// Seconds without poses or control requests after which a session is freed, by default.
+pub const DEFAULT_IDLE_TIMEOUT_S: f64 = 5.0;
+/// Timeout of one model query (s), by default: 2.5 windows of the 10 Hz stream.
+pub const DEFAULT_MODEL_TIMEOUT_S: f64 = 0.25;
+
+/// What `dhg-serve` sets, with the defaults: the one definition (`dhg.serve.ServerSettings` reads
+/// its fields and defaults from here, through `dhg._bone_sim.defaults()`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServerSettings {
+    /// Session slots, allocated at start.
+    pub max_sessions: usize,
+    /// A session without poses or control requests for this long is freed (s).
+    pub idle_timeout_s: f64,
+    /// Timeout of one model query (s).
+    pub model_timeout_s: f64,
+    /// Guidance mode of a new session.
+    pub guidance_mode: GuidanceMode,
+    /// Guidance gain of a new session (0: computed and published, not rendered).
+    pub guidance_gain: f64,
+    /// Largest paper-cue and corridor share of the rendered force (N).
+    pub guidance_max_n: f64,
+    /// Fastest change of the guidance share (N/s).
+    pub guidance_max_rate_n_per_s: f64,
+    /// A model answer older than this is dropped and guidance fades out (s).
+    pub guidance_timeout_s: f64,
+    /// The corridor's stiffness along A→B: (bin width (m), stiffness per bin (N/m)); none: fixed.
+    pub corridor_profile: Option<(f64, Vec<f64>)>,
+    /// Stations whose sessions (`S` or `S-<anything>`) are capped at `max_sessions_per_owner`.
+    pub session_owners: Vec<String>,
+    /// Most sessions one station may hold at once (0: no cap).
+    pub max_sessions_per_owner: usize,
+    /// How the tick and comm threads wait.
+    pub wait: WaitMode,
+}
+
+impl Default for ServerSettings {
+    fn default() -> Self {
+        let g = GuidanceParams::default();
+        Self {
+            max_sessions: engine::DEFAULT_MAX_SESSIONS,
+            idle_timeout_s: DEFAULT_IDLE_TIMEOUT_S,
+            model_timeout_s: DEFAULT_MODEL_TIMEOUT_S,
+            guidance_mode: GuidanceMode::default(),
+            guidance_gain: 1.0,
+            guidance_max_n: g.max_n,
+            guidance_max_rate_n_per_s: g.max_rate_n_per_s,
+            guidance_timeout_s: g.timeout_s,
+            corridor_profile: None,
+            session_owners: Vec::new(),
+            max_sessions_per_owner: 0,
+            wait: WaitMode::default(),
+        }
+    }
+}
+
+impl ServerSettings {
+    /// The engine's and the transport's configurations: sessions of `session` on the default
+    /// path `path`, keys under `prefix`, Zenoh configured by `zenoh_json5`.
+    ///
+    /// # Errors
+    /// An invalid guidance setting (the rest is checked as the server starts).
+    pub fn configs(
+        &self,
+        path: PlannedPath,
+        session: SessionConfig,
+        prefix: &str,
+        zenoh_json5: String,
+    ) -> SimResult<(EngineConfig, ServerConfig)> {
+        let mut engine = EngineConfig::new(path);
+        engine.max_sessions = self.max_sessions;
+        engine.session = session;
+        engine.default_mode = self.guidance_mode;
+        engine.default_gain = self.guidance_gain;
+        engine.wait = self.wait;
+        engine.guidance.max_n = self.guidance_max_n;
+        engine.guidance.max_rate_n_per_s = self.guidance_max_rate_n_per_s;
+        engine.guidance.timeout_s = self.guidance_timeout_s;
+        if let Some((bin_m, stiffness)) = &self.corridor_profile {
+            engine.guidance.corridor_profile_bin_m = *bin_m;
+            engine.guidance.corridor_profile_n_per_m.clone_from(stiffness);
+        }
+        engine.guidance.validate()?;
+        let server = ServerConfig {
+            prefix: prefix.to_owned(),
+            idle_timeout_s: self.idle_timeout_s,
+            model_timeout_s: self.model_timeout_s,
+            zenoh_json5,
+            owners: registry::Owners { names: self.session_owners.clone(), max_sessions: self.max_sessions_per_owner },
+        };
+        Ok((engine, server))
+    }
+}
 
 /// Server settings beyond the engine's.
 #[derive(Debug, Clone)]

@@ -28,7 +28,10 @@ const HU_LEVELS: usize = (HU_MAX as i32 - HU_MIN as i32 + 1) as usize;
 /// - Marrow is soft tissue (yellow marrow ≈ 930 kg/m³) that a burr clears almost at once.
 /// - X-ray attenuation `μ = μ_water·(1 + HU/1000)`, `μ_water = 19.3 m⁻¹` (water at 70 keV,
 ///   NIST XCOM, Hubbell & Seltzer 2004).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+// Python and the wire name the fields as here; a missing field takes its default, an unknown one
+// is refused.
+#[serde(default, deny_unknown_fields)]
 pub struct HuMapping {
     /// HU above which bone is labelled cortical when labels come from thresholds.
     pub cortical_min_hu: f64,
