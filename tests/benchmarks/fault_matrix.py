@@ -193,8 +193,12 @@ def frozen_subscriber(endpoint: str) -> Outcome:
 
 
 def rogue_worker(endpoint: str) -> Outcome:
+    """Two rogues. One serves the shared <p>/model/predict, outside the worker pool; the other
+    joins the pool (open mode lets anyone; the lab mode's ACL does not) and answers each of its
+    queries 200 times, 150 ms late, with 3 N: by then a newer window is applied."""
     rogue_n = (0.0, 0.0, 3.0)
     late: list = []
+    outside: list = []
     lock = threading.Lock()
     stop = threading.Event()
     with TraineeClient(endpoint, "guided") as c, TraineeClient(endpoint, "rogue3") as r:
@@ -203,9 +207,12 @@ def rogue_worker(endpoint: str) -> Outcome:
         def on_query(q):
             seq, _ = protocol.decode_predict(q.payload.to_bytes())
             with lock:
-                late.append((time.monotonic() + 0.04, q, seq))
+                late.append((time.monotonic() + 0.15, q, seq))
 
-        qa = r._z.declare_queryable("dhg/model/predict", on_query, complete=True)
+        shared = r._z.declare_queryable("dhg/model/predict", outside.append, complete=True)
+        qa = r._z.declare_queryable("dhg/model/workers/rogue3/predict", on_query, complete=True)
+        token = r._z.liveliness().declare_token("dhg/model/workers/rogue3")
+        wait_for(lambda: len(c.health(1.0)["model"]["workers"]) >= 2, 10.0, "the rogue in the pool")
 
         def answer():
             while not stop.is_set():
@@ -215,7 +222,7 @@ def rogue_worker(endpoint: str) -> Outcome:
                     late[:] = [x for x in late if x[0] > now]
                 for _, q, seq in due:
                     for _ in range(200):
-                        q.reply("dhg/model/predict", protocol.encode_prediction(seq, rogue_n, 0.0, "rogue"))
+                        q.reply(q.key_expr, protocol.encode_prediction(seq, rogue_n, 0.0, "rogue"))
                     q.drop()
                 time.sleep(0.002)
 
@@ -230,16 +237,23 @@ def rogue_worker(endpoint: str) -> Outcome:
         wait_for(answered, 10.0, "the rogue's late replies to the last queries")
         stop.set()
         th.join()
-        qa.undeclare()
+        wait_for(lambda: all(w["in_flight"] == 0 for w in c.health(1.0)["model"]["workers"]), 5.0, "queries ended")
         after = c.health(1.0)["model"]
+        token.undeclare()
+        qa.undeclare()
+        shared.undeclare()
         predicted = np.array([g["predicted_force_n"] for g in c.guidance])
+    rogue = next((w for w in after["workers"] if w["id"] == "rogue3"), None)
     applied = int(np.sum(np.all(np.isclose(predicted, rogue_n, atol=1e-6), axis=1))) if len(predicted) else 0
     ignored = after["ignored"] - before["ignored"]
+    asked = rogue["failed"] if rogue else -1
     return Outcome(
-        "a rogue model worker answering every query 200 times, 40 ms late, with 3 N",
-        "the genuine worker's first reply is applied; every rogue reply ignored and counted",
-        f"{len(predicted)} guidance messages, {applied} from the rogue; {ignored} replies ignored",
-        applied == 0 and ignored > 0 and len(predicted) > 10,
+        "rogue model workers: one outside the pool, one in it answering 200 times, 150 ms late, with 3 N",
+        "the outside one is never asked; no rogue reply is applied, each is ignored and counted, and the "
+        "pool leaves the rogue out",
+        f"{len(predicted)} guidance messages, {applied} from a rogue; outside one asked {len(outside)} times; "
+        f"pool rogue asked {asked} times in 3 s; {ignored} replies ignored",
+        applied == 0 and not outside and ignored > 0 and 1 <= asked <= 6 and len(predicted) > 20,
     )
 
 

@@ -346,15 +346,46 @@ fn records_every_100_ticks_in_the_documented_order() {
         }
     }
     assert_eq!(records.len() as u64, (start + 250) / 100 - start / 100);
-    assert_eq!(FEATURES.len(), 9);
     let (r, st) = &records[records.len() - 1];
     assert!((r.time_s - records[records.len() - 2].0.time_s - 0.1).abs() < 1e-12);
-    assert_eq!(&r.features[0..3], last_force.as_slice());
-    assert_eq!(&r.features[3..6], st.tip_m.coords.as_slice());
-    assert_eq!(r.features[6], f64::from(Layer::Cortical.id()), "the front of the resting burr touches cortical bone");
-    assert!((r.features[7] - s.path().depth_m(&st.tip_m)).abs() < 1e-12);
-    assert!(r.features[7] < 0.0, "resting on the surface, the burr centre is before A");
-    assert!((r.features[8] - 37.0).abs() < 1e-9, "°C, at body temperature");
+    // Each column of the record, looked up by its documented name (and unit), holds the quantity
+    // that name promises, taken from the session itself: so the order and units `FEATURES`
+    // publishes (and datasets and models rely on) are the ones the session writes.
+    let depth = s.path().depth_m(&st.tip_m);
+    let expected = |name: &str| -> (f64, &str) {
+        match name {
+            "force_x_n" => (last_force.x, "N"),
+            "force_y_n" => (last_force.y, "N"),
+            "force_z_n" => (last_force.z, "N"),
+            "tip_x_m" => (st.tip_m.x, "m"),
+            "tip_y_m" => (st.tip_m.y, "m"),
+            "tip_z_m" => (st.tip_m.z, "m"),
+            // The front of the resting burr touches cortical bone.
+            "layer" => (f64::from(Layer::Cortical.id()), "1"),
+            "depth_m" => (depth, "m"),
+            // At rest, the tip is at body temperature.
+            "temperature_c" => (37.0, "°C"),
+            other => panic!("the record has an undocumented feature {other}"),
+        }
+    };
+    let mut seen = Vec::new();
+    for (feature, &value) in FEATURES.iter().zip(&r.features) {
+        let (want, unit) = expected(feature.name);
+        assert_eq!(feature.unit, unit, "{} is in {unit}", feature.name);
+        assert!((value - want).abs() < 1e-12, "{}: recorded {value}, the session says {want}", feature.name);
+        assert!(!seen.contains(&feature.name), "{} twice", feature.name);
+        seen.push(feature.name);
+    }
+    assert_eq!(
+        seen,
+        ["force_x_n", "force_y_n", "force_z_n", "tip_x_m", "tip_y_m", "tip_z_m", "layer", "depth_m", "temperature_c"],
+        "the documented order (docs/dataset.md)"
+    );
+    // Values that follow from this drill: pressed into the surface, the force pushes back (−z);
+    // resting on the surface, the burr centre is on the path's axis and before A.
+    assert!(last_force.z < 0.0 && last_force.norm() > 0.0, "force {last_force:?}");
+    assert!((st.tip_m.x - CENTRE).abs() < 1e-9 && (st.tip_m.y - CENTRE).abs() < 1e-9);
+    assert!(depth < 0.0, "resting on the surface, the burr centre is before A");
     assert!(!r.drill_on);
 }
 
