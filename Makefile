@@ -18,7 +18,7 @@ export CARGO_TARGET_DIR ?= $(DHG_CACHE)/target
 export VIRTUAL_ENV := $(abspath $(VENV))
 PURELIB := import sysconfig; print(sysconfig.get_paths()["purelib"])
 
-.PHONY: help venv build demo test test-rust test-python lint bench clean fuzz
+.PHONY: help venv build demo test test-all test-rust test-python lint bench clean fuzz
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -53,9 +53,12 @@ build: venv ## build the Rust extension into .venv (maturin develop --release)
 demo: build ## dhg-serve on the phantom + bundled model, a guided and an unguided virtual novice
 	$(VENV)/bin/dhg live-demo --out out/demo
 
-test: build ## cargo test + pytest
+test: build ## cargo test + pytest (without the tests marked slow or gpu)
 	cargo test --workspace -q
 	$(VPY) -m pytest -q
+
+test-all: test ## make test, then the tests marked slow (and gpu, which skip without CUDA); CI runs this
+	$(VPY) -m pytest -q -m "slow or gpu"
 
 FUZZ_SECONDS ?= 20
 fuzz: ## build the libFuzzer targets on stable Rust and run each FUZZ_SECONDS (20) from its seed corpus

@@ -231,6 +231,7 @@ METRICS_LOWER_IS_BETTER = [
 ]
 
 
+@pytest.mark.slow  # make test-all (and CI) runs it; make test leaves it out
 def test_experts_beat_novices_on_every_metric(phantom):
     """Two dozen runs on the default phantom (0.5 mm): 12 expert and 12 novice attempts."""
     episodes, _ = synthesize(phantom.volume, phantom.path, subjects=4, attempts=3, novices=4, seed=11)

@@ -190,6 +190,7 @@ def _cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedP
     )
 
 
+@pytest.mark.slow  # make test-all (and CI) runs it; make test leaves it out
 def test_cli_train_evaluate_and_ablate(data, tmp_path):
     r = _cli("train", "--data", str(data), "--out", str(tmp_path / "r"), "--preset", "tiny", "--epochs", "1")
     assert r.returncode == 0, r.stderr
@@ -212,6 +213,7 @@ def test_cli_train_evaluate_and_ablate(data, tmp_path):
     assert results["tiny"][0]["train_config"]["seed"] == 0 and results["tiny"][1]["train_config"]["seed"] == 1
 
 
+@pytest.mark.slow  # make test-all (and CI) runs it; make test leaves it out
 def test_distributed_training_with_two_cpu_processes(data, tmp_path):
     """torchrun with 2 processes and the gloo backend on CPU (DistributedDataParallel)."""
     out = tmp_path / "ddp"

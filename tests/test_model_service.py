@@ -109,3 +109,101 @@ def test_queries_whose_asker_gave_up_are_refused_as_stale_not_computed():
         model.release.set()
         service.close()
         z.close()
+
+
+class _ScriptedModel:
+    """A model whose forward passes are scripted by the test: each call is recorded, and it raises
+    while ``failing`` is set."""
+
+    meta = {"preset": "scripted"}
+    path = None
+
+    def __init__(self, window: int = 20) -> None:
+        import threading
+
+        self.window = window
+        self.batches: list[int] = []
+        self.failing = False
+        self.gate = threading.Event()
+        self.gate.set()
+        self.entered = threading.Event()
+
+    def predict(self, windows, check_output: bool = True):
+        n = len(np.atleast_3d(windows))
+        self.batches.append(n)
+        self.entered.set()
+        assert self.gate.wait(timeout=30), "the test never opened the gate"
+        if self.failing:
+            raise RuntimeError("CUDA out of memory (scripted)")
+        return np.tile([0.1, 0.2, 0.3], (n, 1))
+
+
+def test_a_model_whose_window_is_not_the_engines_is_refused_at_start_up():
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    try:
+        with pytest.raises(InvalidInputError, match="windows of 10 records, but the engine sends 20"):
+            ModelService(z, _ScriptedModel(window=10), prefix="svc-window")
+    finally:
+        z.close()
+
+
+def test_queries_that_wait_behind_a_forward_pass_are_answered_in_one_batch_and_a_full_queue_refuses():
+    import threading
+    import time
+
+    model = _ScriptedModel()
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    service = ModelService(z, model, prefix="svc-batch", max_queue=3)
+    key = protocol.keys("svc-batch", "x")["predict"]
+    window = np.zeros((20, 9), dtype=np.float32)
+    results: dict[int, tuple[bool, bytes]] = {}
+    try:
+        warm = len(model.batches)
+        model.entered.clear()
+        model.gate.clear()
+        first = threading.Thread(target=lambda: results.__setitem__(1, _query(z, key, window, 1)))
+        first.start()
+        assert model.entered.wait(timeout=10), "the first query never reached the model"
+        later = [
+            threading.Thread(target=lambda s=s: results.__setitem__(s, _query(z, key, window, s))) for s in (2, 3, 4)
+        ]
+        for t in later:
+            t.start()
+        deadline = time.monotonic() + 10.0
+        while service._queue.qsize() < 3:  # all three wait behind the first pass: the queue is full
+            assert time.monotonic() < deadline, "the later queries never reached the service"
+            time.sleep(0.001)
+        ok, body = _query(z, key, window, 5)  # one more: refused at once, not queued
+        assert not ok and "busy" in json.loads(body)["error"]
+        model.gate.set()
+        for t in [first, *later]:
+            t.join(timeout=20)
+        assert model.batches[warm:] == [1, 3], "the three waiting queries were not one forward pass"
+        for seq in (1, 2, 3, 4):
+            ok, body = results[seq]
+            assert ok and protocol.decode("prediction", body[:32])["window_seq"] == seq
+        stats = service.stats()
+        assert (stats["answered"], stats["busy"], stats["refused"], stats["batches"]) == (4, 1, 1, 2), stats
+    finally:
+        model.gate.set()
+        service.close()
+        z.close()
+
+
+def test_a_model_that_raises_gets_error_replies_and_the_service_answers_again_after():
+    model = _ScriptedModel()
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    service = ModelService(z, model, prefix="svc-raise")
+    key = protocol.keys("svc-raise", "x")["predict"]
+    window = np.zeros((20, 9), dtype=np.float32)
+    try:
+        model.failing = True
+        ok, body = _query(z, key, window, 1)
+        assert not ok and "model failed: CUDA out of memory" in json.loads(body)["error"]
+        model.failing = False
+        ok, body = _query(z, key, window, 2)
+        assert ok and protocol.decode("prediction", body[:32])["window_seq"] == 2
+        assert service.stats()["answered"] == 1 and service.stats()["refused"] == 1
+    finally:
+        service.close()
+        z.close()

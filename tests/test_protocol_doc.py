@@ -59,3 +59,24 @@ def test_python_encodes_what_the_layouts_say():
     assert protocol.decode("pose", b)["flags"] & protocol.FLAGS["drill_on"]
     with pytest.raises(ValueError):
         protocol.decode("pose", b[:-1])
+
+
+def _doc_control_ops() -> list[tuple[str, set[str]]]:
+    text = DOC.read_text()
+    table = text[text.index("**control**") :].split("\n\n")[1]
+    out = []
+    for line in table.splitlines()[2:]:
+        op, fields, _ = (c.strip() for c in line.strip("|").split("|"))
+        while re.search(r"\([^()]*\)", fields):  # what is in parentheses describes a field's values
+            fields = re.sub(r"\([^()]*\)", "", fields)
+        names = {n for n in re.findall(r"`([a-z_]+)`", fields) if n != "null"}
+        out.append((op.strip("`"), names))
+    return out
+
+
+def test_the_control_table_names_exactly_the_ops_and_fields_the_server_takes():
+    """The JSON of control requests against the core's ``ControlRequest`` (serde): every op, in
+    order, and for each the fields it accepts; a field the doc names that the server would
+    refuse as unknown, or one it takes that the doc leaves out, fails here."""
+    code = [(op, set(fields)) for op, fields in _bone_sim.control_ops()]
+    assert _doc_control_ops() == code

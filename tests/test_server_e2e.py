@@ -47,6 +47,19 @@ def _record(endpoint: str, *args: str) -> subprocess.Popen[str]:
     )
 
 
+def _read_until(proc: subprocess.Popen[str], text: str, max_lines: int = 100) -> list[str]:
+    """Reads ``proc``'s output line by line until a line holds ``text``; returns the lines read."""
+    assert proc.stdout is not None
+    lines: list[str] = []
+    while len(lines) < max_lines:
+        line = proc.stdout.readline()
+        assert line, f"the process ended before saying {text!r}: {''.join(lines)}"
+        lines.append(line)
+        if text in line:
+            return lines
+    raise AssertionError(f"{text!r} not in the first {max_lines} lines: {''.join(lines)}")
+
+
 def _ctrl_c(rec: subprocess.Popen[str]) -> str:
     """Stops a recorder as Ctrl-C does; asserts it exits 0 and returns its output."""
     rec.send_signal(signal.SIGINT)
@@ -414,7 +427,7 @@ def test_xray_views_metrics_and_an_own_path_over_zenoh(server):
 
 def test_control_refusals_say_what_was_wrong(server):
     _, endpoint = server
-    from dhg.errors import EngineError, InvalidInputError
+    from dhg.errors import EngineError, InvalidInputError, ShapeError
 
     with TraineeClient(endpoint, "ctl-1") as c:
         with pytest.raises(EngineError, match="create it first") as refused:
@@ -438,6 +451,11 @@ def test_control_refusals_say_what_was_wrong(server):
             c._json(c.keys["control"], [1, 2])  # type: ignore[arg-type]
         with pytest.raises(InvalidInputError, match="must be a string"):
             c._json(c.keys["control"], {"op": 7})
+        # A misspelt field is refused (the core's ControlRequest), not silently ignored.
+        with pytest.raises(InvalidInputError, match="unknown field `gian`"):
+            c._json(c.keys["control"], {"op": "set_guidance", "gian": 0.1})
+        with pytest.raises(ShapeError, match="entry_m"):
+            c.control("set_path", entry_m=[0.0, 0.0], target_m=[0.0, 0.0, 0.05])
         assert c.control("info")["burr_radius_m"] == pytest.approx(1.25e-3), "a refusal changed the burr"
         assert c.set_drill(2e-3)["burr_radius_m"] == 2e-3
         assert c.metrics()["burr_radius_m"] == 2e-3
@@ -458,7 +476,7 @@ def test_guidance_mode_and_gain_round_trip_through_control(server):
         assert (info["guidance_mode"], info["guidance_gain"]) == ("corridor", 2.0), "setting the gain keeps the mode"
         assert c.set_guidance(1.0, "paper")["guidance_mode"] == "paper"
         assert c.metrics()["guidance_mode"] == "paper"
-        with pytest.raises(InvalidInputError, match="paper, corridor, brake, shaped"):
+        with pytest.raises(InvalidInputError, match="unknown variant `stiff`, expected one of `paper`, `corridor`"):
             c.set_guidance(mode="stiff")
         with pytest.raises(InvalidInputError, match="needs a"):
             c.control("set_guidance")
@@ -498,7 +516,7 @@ def test_fading_sets_each_attempts_gain_through_control(server):
             c.set_fading({"forget": 1.5})
         with pytest.raises(InvalidInputError, match="unknown field"):
             c.set_fading({"speed": 1})
-        with pytest.raises(InvalidInputError, match="needs"):
+        with pytest.raises(InvalidInputError, match="missing field `fading`"):
             c.control("set_fading")
         assert c.control("info")["fading"]["attempts"] == 2, "a refusal changed the schedule"
         info = c.set_fading(enabled=False)
@@ -690,7 +708,7 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
     root = tmp_path / "class"
     rec = _record(endpoint, "--all", "--raw", "--out", str(root))
     try:
-        assert rec.stdout is not None and "recording every session" in rec.stdout.readline()
+        _read_until(rec, "recording every session")  # earlier tests' sessions may be listed first
         for session_id in ("class-a", "class-b"):
             with TraineeClient(endpoint, session_id) as c:
                 a, d, q = _entry(c)
@@ -722,7 +740,7 @@ def test_record_all_writes_only_sessions_the_server_has_and_survives_impossible_
     (root / "keep" / "data.txt").write_text("another class's recording")
     rec = _record(endpoint, "--all", "--out", str(root), "--status-every", "0")
     try:
-        assert rec.stdout is not None and "recording every session" in rec.stdout.readline()
+        _read_until(rec, "recording every session")  # earlier tests' sessions may be listed first
         with TraineeClient(endpoint, "real-1") as c, TraineeClient(endpoint, "rogue-2") as rogue:
             for bad_id in (".", "..", ".hidden", "-rf"):
                 with pytest.raises(InvalidInputError, match="first a letter or digit"):  # the server refuses
@@ -759,6 +777,7 @@ def test_record_all_writes_only_sessions_the_server_has_and_survives_impossible_
     assert refused and int(refused.group(2)) >= 300, output  # every fake message counted, none written
 
 
+@pytest.mark.slow  # make test-all (and CI) runs it; make test leaves it out
 def test_a_recorded_session_trains_a_model_that_the_server_then_serves(server, tmp_path):
     """The loop a lab runs with people: record an expert at the server, train on the recording,
     serve the new model, and guide the next trainee with it."""
@@ -786,7 +805,8 @@ def test_a_recorded_session_trains_a_model_that_the_server_then_serves(server, t
             rec.wait()
     ds = load_dataset(data)
     assert [e.skill for e in ds.episodes] == ["expert"] and ds.n_records >= 70
-    assert load_raw(ds).num_rows >= 7000
+    # 7 s at 1 kHz, less what the transport may drop (counted in the card) and the recorder's start.
+    assert load_raw(ds).num_rows >= 0.95 * 7000
     r = subprocess.run(
         [sys.executable, "-m", "dhg.cli", "train", "--data", str(data), "--out", str(run)]
         + ["--preset", "tiny", "--epochs", "1"],

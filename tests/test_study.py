@@ -141,6 +141,7 @@ def test_a_novices_result_does_not_depend_on_who_shares_its_model_batches():
     assert together.attempts["shaped"][1][1]["gain"] == 1.0
 
 
+@pytest.mark.slow  # make test-all (and CI) runs it; make test leaves it out
 def test_a_live_study_drills_through_a_running_server(tmp_path):
     """``dhg study --live``: every attempt is drilled in real time through dhg-serve, which guides
     with its own model; the fading arm's schedule (gain, probe) is the server's, read over control."""

@@ -31,6 +31,7 @@ __all__ = [
     "protocol_layouts",
     "check_session_id",
     "defaults",
+    "control_ops",
     "ERROR_KINDS",
     "FLAGS",
     "__version__",
@@ -176,6 +177,7 @@ _Field = tuple[str, str, int, int, str]
 def protocol_layouts() -> dict[str, dict[str, Any]]: ...
 def check_session_id(session_id: str) -> str: ...
 def defaults() -> dict[str, dict[str, Any]]: ...
+def control_ops() -> list[tuple[str, list[str]]]: ...
 
 @final
 class Server:

@@ -16,8 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from dhg.errors import DhgError, TransportError
-
-PRESET_NAMES = ("fusion-1x128", "fusion-2x256", "force-only-2x256", "all-2x256", "tiny")
+from dhg.presets import PRESETS
 
 EXIT_OK = 0
 EXIT_INTERNAL = 1
@@ -424,7 +423,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_training(p)
     p.add_argument("--out", required=True, metavar="RUN", help="run folder to write")
-    p.add_argument("--preset", default="fusion-2x256", choices=sorted(PRESET_NAMES), help="model preset")
+    p.add_argument("--preset", default="fusion-2x256", choices=sorted(PRESETS), help="model preset")
     p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
     p.set_defaults(func=cmd_train)
 

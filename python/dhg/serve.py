@@ -193,6 +193,11 @@ class ModelService:
         clock: Callable[[], float] = time.perf_counter,
         worker_id: str | None = None,
     ):
+        if model.window != protocol.WINDOW_RECORDS:
+            raise InvalidInputError(
+                f"the model takes windows of {model.window} records, but the engine sends "
+                f"{protocol.WINDOW_RECORDS} (docs/protocol.md, predict): train it with window {protocol.WINDOW_RECORDS}"
+            )
         self.model = model
         self.model_id = str(model.meta.get("id") or model.meta.get("preset") or model.path.name)
         self.key = f"{prefix}/model/predict"

@@ -28,6 +28,7 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(server::protocol_layouts, m)?)?;
     m.add_function(wrap_pyfunction!(server::check_session_id, m)?)?;
     m.add_function(wrap_pyfunction!(server::defaults, m)?)?;
+    m.add_function(wrap_pyfunction!(server::control_ops, m)?)?;
     m.add("ERROR_KINDS", crate::error::SimError::KINDS.to_vec())?;
     let flags: Vec<(&str, u16)> = crate::protocol::flags::ALL.to_vec();
     m.add("FLAGS", flags)?;

@@ -145,3 +145,9 @@ pub(crate) fn defaults(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
     });
     to_python(py, &all)
 }
+
+/// Each control operation with the fields it takes (`ControlRequest`), for the docs' test.
+#[pyfunction]
+pub(crate) fn control_ops() -> Vec<(String, Vec<String>)> {
+    crate::transport::control_fields()
+}

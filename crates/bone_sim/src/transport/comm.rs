@@ -182,13 +182,7 @@ impl Comm {
                 o.window.push_back(record.features.map(|x| x as f32));
                 o.window_seq = o.window_seq.wrapping_add(1);
                 let (seq, pose_time_ns) = (o.window_seq, o.pose_time_ns);
-                // Until 20 records exist, the window is padded with copies of the first record.
-                let mut window = [[0f32; FEATURE_COUNT]; WINDOW_RECORDS];
-                let pad = WINDOW_RECORDS - o.window.len();
-                for (r, row) in window.iter_mut().enumerate() {
-                    *row = o.window[r.saturating_sub(pad)];
-                }
-                let payload = protocol::encode_predict(seq, &window);
+                let payload = protocol::encode_predict(seq, &model_window(&o.window));
                 if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
                     if info.generation == generation {
                         info.metrics.add_state(&msg);
@@ -358,6 +352,20 @@ fn drain_forces_first(
     }
 }
 
+/// The model's input from a session's last records (oldest first, at least one): the last
+/// `WINDOW_RECORDS`; until that many exist, padded at the front with copies of the first record
+/// (`docs/protocol.md`, predict).
+fn model_window(records: &VecDeque<[f32; FEATURE_COUNT]>) -> [[f32; FEATURE_COUNT]; WINDOW_RECORDS] {
+    let mut window = [[0f32; FEATURE_COUNT]; WINDOW_RECORDS];
+    let n = records.len().min(WINDOW_RECORDS);
+    let skip = records.len() - n;
+    let pad = WINDOW_RECORDS - n;
+    for (r, row) in window.iter_mut().enumerate() {
+        *row = records[skip + r.saturating_sub(pad)];
+    }
+    window
+}
+
 /// Whether window sequence number `a` comes after `b` (they wrap at 2³²).
 fn seq_after(a: u32, b: u32) -> bool {
     (a.wrapping_sub(b) as i32) > 0
@@ -450,6 +458,33 @@ mod tests {
             Output::Snapshot { slot, .. } => format!("S{slot}"),
             _ => "?".into(),
         }
+    }
+
+    fn record(k: usize) -> [f32; FEATURE_COUNT] {
+        [k as f32; FEATURE_COUNT]
+    }
+
+    #[test]
+    fn the_model_window_is_the_last_records_padded_at_the_front_with_the_first() {
+        let first: Vec<f32> = model_window(&VecDeque::from([record(7)])).iter().map(|r| r[0]).collect();
+        assert_eq!(first, vec![7.0; WINDOW_RECORDS]);
+        let three: VecDeque<_> = (1..=3).map(record).collect();
+        let w = model_window(&three);
+        let col: Vec<f32> = w.iter().map(|r| r[0]).collect();
+        let mut expected = vec![1.0; WINDOW_RECORDS - 3];
+        expected.extend([1.0, 2.0, 3.0]);
+        assert_eq!(col, expected);
+        let full: VecDeque<_> = (1..=WINDOW_RECORDS + 5).map(record).collect();
+        let col: Vec<f32> = model_window(&full).iter().map(|r| r[8]).collect();
+        let expected: Vec<f32> = (6..=WINDOW_RECORDS + 5).map(|k| k as f32).collect();
+        assert_eq!(col, expected, "the newest WINDOW_RECORDS, oldest first");
+    }
+
+    #[test]
+    fn a_reply_is_newer_only_if_its_window_comes_after_across_the_wrap() {
+        assert!(seq_after(2, 1) && !seq_after(1, 2) && !seq_after(5, 5));
+        assert!(seq_after(0, u32::MAX) && seq_after(3, u32::MAX - 3), "sequence numbers wrap at 2^32");
+        assert!(!seq_after(u32::MAX, 0));
     }
 
     #[test]

@@ -5,6 +5,7 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
 
+use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use zenoh::bytes::Encoding;
 use zenoh::query::Query;
@@ -102,21 +103,142 @@ fn reply(query: &Query, result: SimResult<Value>) {
     };
 }
 
-fn point(v: &Value, name: &'static str) -> SimResult<nalgebra::Point3<f64>> {
-    let arr = v.get(name).and_then(Value::as_array).filter(|a| a.len() == 3);
-    let xs: Option<Vec<f64>> = arr.map(|a| a.iter().filter_map(Value::as_f64).collect());
+/// A control request (`docs/protocol.md`, control): a JSON object whose `op` names the variant
+/// (`info` when it has none). Unknown fields are refused, so a misspelt one is not silently
+/// ignored.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "op", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ControlRequest {
+    /// Opens the session (or returns the open one), on its own path if given.
+    Create {
+        /// Entry point A (m); with `target_m`.
+        #[serde(default)]
+        entry_m: Option<Vec<f64>>,
+        /// Target point B (m); with `entry_m`.
+        #[serde(default)]
+        target_m: Option<Vec<f64>>,
+        /// Guidance mode of the new session.
+        #[serde(default)]
+        guidance_mode: Option<GuidanceMode>,
+        /// Guidance gain of the new session (0–4).
+        #[serde(default)]
+        guidance_gain: Option<f64>,
+        /// Burr radius (m).
+        #[serde(default)]
+        burr_radius_m: Option<f64>,
+    },
+    /// A new attempt on fresh bone (the fading schedule counts the one that ended).
+    Reset,
+    /// A new planned path.
+    SetPath {
+        /// Entry point A (m).
+        entry_m: Vec<f64>,
+        /// Target point B (m).
+        target_m: Vec<f64>,
+    },
+    /// The guidance mode, the gain, or both.
+    SetGuidance {
+        /// Guidance mode.
+        #[serde(default)]
+        mode: Option<GuidanceMode>,
+        /// Guidance gain (0–4).
+        #[serde(default)]
+        gain: Option<f64>,
+    },
+    /// Starts (an object of schedule params, `{}` for the defaults) or stops (null) fading.
+    SetFading {
+        /// The schedule's params, or null; required.
+        #[serde(deserialize_with = "Option::deserialize")]
+        fading: Option<FadingParams>,
+    },
+    /// Another burr.
+    SetDrill {
+        /// Burr radius (m).
+        burr_radius_m: f64,
+    },
+    /// Frees the session.
+    Close,
+    /// The session's info.
+    Info,
+}
+
+impl ControlRequest {
+    /// Reads a request body.
+    ///
+    /// # Errors
+    /// Not an object, an `op` that is not a string or not an operation, a missing or unknown
+    /// field, a value of the wrong type.
+    pub fn from_json(body: &Value) -> SimResult<Self> {
+        let bad = |reason: String| SimError::Payload { message: "control", reason };
+        let Some(obj) = body.as_object() else {
+            return Err(bad("the body must be a JSON object, {\"op\": ...}".into()));
+        };
+        match obj.get("op") {
+            None => {
+                let mut with_op = obj.clone();
+                with_op.insert("op".into(), json!("info"));
+                return Self::from_json(&Value::Object(with_op));
+            }
+            Some(Value::String(op)) if !OPS.contains(&op.as_str()) => {
+                return Err(SimError::InvalidOption { name: "op", value: op.clone(), allowed: OPS_TEXT });
+            }
+            Some(Value::String(_)) => {}
+            Some(_) => return Err(bad(format!("\"op\" must be a string: {OPS_TEXT}"))),
+        }
+        serde_json::from_value(body.clone()).map_err(|e| bad(e.to_string()))
+    }
+}
+
+impl ControlRequest {
+    /// Each operation with the fields it takes, in the order `docs/protocol.md` lists them (read
+    /// from the serde definition: every field of a fully given request).
+    #[must_use]
+    pub fn fields() -> Vec<(String, Vec<String>)> {
+        let v = Some(vec![0.0; 3]);
+        let every = [
+            Self::Create {
+                entry_m: v.clone(),
+                target_m: v.clone(),
+                guidance_mode: Some(GuidanceMode::default()),
+                guidance_gain: Some(1.0),
+                burr_radius_m: Some(1e-3),
+            },
+            Self::Reset,
+            Self::SetPath { entry_m: vec![0.0; 3], target_m: vec![0.0; 3] },
+            Self::SetGuidance { mode: Some(GuidanceMode::default()), gain: Some(1.0) },
+            Self::SetFading { fading: Some(FadingParams::default()) },
+            Self::SetDrill { burr_radius_m: 1e-3 },
+            Self::Close,
+            Self::Info,
+        ];
+        every
+            .iter()
+            .filter_map(|r| {
+                let Value::Object(m) = serde_json::to_value(r).ok()? else { return None };
+                let op = m.get("op")?.as_str()?.to_owned();
+                Some((op, m.keys().filter(|k| *k != "op").cloned().collect()))
+            })
+            .collect()
+    }
+}
+
+/// Every operation's name.
+const OPS: [&str; 8] = ["create", "reset", "set_path", "set_guidance", "set_fading", "set_drill", "close", "info"];
+const OPS_TEXT: &str = "create, reset, set_path, set_guidance, set_fading, set_drill, close, info";
+
+fn point(xs: &[f64], name: &'static str) -> SimResult<nalgebra::Point3<f64>> {
     match xs {
-        Some(x) if x.len() == 3 => Ok(nalgebra::Point3::new(x[0], x[1], x[2])),
+        [x, y, z] => Ok(nalgebra::Point3::new(*x, *y, *z)),
         _ => Err(SimError::ShapeMismatch {
             what: name,
             expected: "a list of 3 numbers (m)".into(),
-            got: v.get(name).map_or("nothing".into(), Value::to_string),
+            got: format!("{xs:?}"),
         }),
     }
 }
 
-fn path_of(v: &Value) -> SimResult<PlannedPath> {
-    PlannedPath::new(point(v, "entry_m")?, point(v, "target_m")?)
+fn path_of(entry_m: &[f64], target_m: &[f64]) -> SimResult<PlannedPath> {
+    PlannedPath::new(point(entry_m, "entry_m")?, point(target_m, "target_m")?)
 }
 
 /// The step (m) at which a session's info samples the pristine layers along its path.
@@ -150,19 +272,6 @@ fn session_info(shared: &Shared, id: &str) -> SimResult<Value> {
     info["path_layers"] =
         runs.iter().map(|r| json!({ "layer": r.layer.name(), "start_m": r.start_m, "end_m": r.end_m })).collect();
     Ok(info)
-}
-
-/// Swaps the burr of `slot`; `value` must be a radius (m) in (0, 0.02].
-fn set_burr(reg: &mut super::registry::Registry, slot: u16, value: &Value) -> SimResult<()> {
-    let radius_m = check_burr_radius(value.as_f64().unwrap_or(f64::NAN))?;
-    reg.send(Command::SetBurr { slot, radius_m })?;
-    reg.slots[slot as usize].burr_radius_m = radius_m;
-    Ok(())
-}
-
-/// A guidance mode named by a JSON string.
-fn mode_of(v: &Value) -> SimResult<GuidanceMode> {
-    GuidanceMode::from_name(v.as_str().unwrap_or("(not a string)"))
 }
 
 /// Sets the guidance of `slot`, keeping what is not given.
@@ -201,20 +310,9 @@ fn reset(reg: &mut super::registry::Registry, slot: u16) -> SimResult<()> {
     }
 }
 
-/// Starts (an object of params) or stops (null) the fading schedule of `slot`.
-fn set_fading(reg: &mut super::registry::Registry, slot: u16, fading: Option<&Value>) -> SimResult<()> {
-    let fading = match fading {
-        None => {
-            return Err(SimError::Payload {
-                message: "control",
-                reason: "set_fading needs \"fading\": an object of schedule params ({} for the defaults) \
-                         or null to stop fading"
-                    .into(),
-            })
-        }
-        Some(Value::Null) => None,
-        Some(v) => Some(Fading::new(FadingParams::from_json(v)?)?),
-    };
+/// Starts (`Some` params) or stops (`None`) the fading schedule of `slot`.
+fn set_fading(reg: &mut super::registry::Registry, slot: u16, params: Option<FadingParams>) -> SimResult<()> {
+    let fading = params.map(Fading::new).transpose()?;
     if let Some(f) = &fading {
         set_guidance(reg, slot, None, Some(f.gain()))?;
     }
@@ -222,36 +320,26 @@ fn set_fading(reg: &mut super::registry::Registry, slot: u16, fading: Option<&Va
     Ok(())
 }
 
-/// Applies one control request to session `id`.
-pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> {
-    let bad = |reason: &str| SimError::Payload { message: "control", reason: reason.into() };
-    if !req.is_object() {
-        return Err(bad("the body must be a JSON object, {\"op\": ...}"));
-    }
-    let op =
-        match req.get("op") {
-            None => "info",
-            Some(Value::String(op)) => op.as_str(),
-            Some(_) => return Err(bad(
-                "\"op\" must be a string: create, reset, set_path, set_guidance, set_fading, set_drill, close or info",
-            )),
-        };
+/// Applies one control request (its JSON body) to session `id`.
+pub(crate) fn apply(shared: &Shared, id: &str, body: &Value) -> SimResult<Value> {
+    let req = ControlRequest::from_json(body)?;
     {
         let mut reg = lock(&shared.registry);
         let slot = |reg: &super::registry::Registry| {
             reg.slot_of(id).ok_or_else(|| SimError::Engine(format!("no session {id:?}; create it first")))
         };
-        match op {
-            "create" => {
+        match req {
+            ControlRequest::Create { entry_m, target_m, guidance_mode, guidance_gain, burr_radius_m } => {
                 // Everything is checked before the session exists: a refused create creates nothing.
-                let path = if req.get("entry_m").is_some() { Some(path_of(req)?) } else { None };
-                let gain = req.get("guidance_gain").map(|g| check_gain(g.as_f64().unwrap_or(f64::NAN))).transpose()?;
-                let mode = req.get("guidance_mode").map(mode_of).transpose()?;
-                let burr =
-                    req.get("burr_radius_m").map(|r| check_burr_radius(r.as_f64().unwrap_or(f64::NAN))).transpose()?;
+                let path = match (entry_m, target_m) {
+                    (None, None) => None,
+                    (a, b) => Some(path_of(a.as_deref().unwrap_or(&[]), b.as_deref().unwrap_or(&[]))?),
+                };
+                let gain = guidance_gain.map(check_gain).transpose()?;
+                let burr = burr_radius_m.map(check_burr_radius).transpose()?;
                 let (s, created) = reg.open(id, path)?;
-                if mode.is_some() || gain.is_some() {
-                    set_guidance(&mut reg, s, mode, gain)?;
+                if guidance_mode.is_some() || gain.is_some() {
+                    set_guidance(&mut reg, s, guidance_mode, gain)?;
                 }
                 if let Some(radius_m) = burr {
                     reg.send(Command::SetBurr { slot: s, radius_m })?;
@@ -262,24 +350,23 @@ pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> 
                 info["created"] = json!(created);
                 return Ok(info);
             }
-            "reset" => {
+            ControlRequest::Reset => {
                 let s = slot(&reg)?;
                 reset(&mut reg, s)?;
             }
-            "set_fading" => {
+            ControlRequest::SetFading { fading } => {
                 let s = slot(&reg)?;
-                set_fading(&mut reg, s, req.get("fading"))?;
+                set_fading(&mut reg, s, fading)?;
             }
-            "set_path" => {
+            ControlRequest::SetPath { entry_m, target_m } => {
                 let s = slot(&reg)?;
-                let path = path_of(req)?;
+                let path = path_of(&entry_m, &target_m)?;
                 reg.send(Command::SetPath { slot: s, path: path.clone() })?;
                 reg.slots[s as usize].path = path;
             }
-            "set_guidance" => {
+            ControlRequest::SetGuidance { mode, gain } => {
                 let s = slot(&reg)?;
-                let gain = req.get("gain").map(|g| check_gain(g.as_f64().unwrap_or(f64::NAN))).transpose()?;
-                let mode = req.get("mode").map(mode_of).transpose()?;
+                let gain = gain.map(check_gain).transpose()?;
                 if mode.is_none() && gain.is_none() {
                     return Err(SimError::Payload {
                         message: "control",
@@ -290,22 +377,17 @@ pub(crate) fn apply(shared: &Shared, id: &str, req: &Value) -> SimResult<Value> 
                 }
                 set_guidance(&mut reg, s, mode, gain)?;
             }
-            "set_drill" => {
+            ControlRequest::SetDrill { burr_radius_m } => {
                 let s = slot(&reg)?;
-                set_burr(&mut reg, s, req.get("burr_radius_m").unwrap_or(&Value::Null))?;
+                let radius_m = check_burr_radius(burr_radius_m)?;
+                reg.send(Command::SetBurr { slot: s, radius_m })?;
+                reg.slots[s as usize].burr_radius_m = radius_m;
             }
-            "close" => {
+            ControlRequest::Close => {
                 reg.close(id)?;
                 return Ok(json!({ "session": id, "closed": true }));
             }
-            "info" => {}
-            other => {
-                return Err(SimError::InvalidOption {
-                    name: "op",
-                    value: other.to_owned(),
-                    allowed: "create, reset, set_path, set_guidance, set_fading, set_drill, close, info",
-                })
-            }
+            ControlRequest::Info => {}
         }
         if let Some(s) = reg.slot_of(id) {
             reg.slots[s as usize].last_seen = std::time::Instant::now();
@@ -471,4 +553,50 @@ pub(crate) fn declare(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResu
         .wait()
         .map_err(err("the health queryable"))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[allow(clippy::needless_pass_by_value)] // the tests read better with json!(...) by value
+    fn parse(v: Value) -> SimResult<ControlRequest> {
+        ControlRequest::from_json(&v)
+    }
+
+    #[test]
+    fn every_op_parses_and_a_body_without_op_is_info() {
+        assert_eq!(parse(json!({})).unwrap(), ControlRequest::Info);
+        assert_eq!(parse(json!({"op": "reset"})).unwrap(), ControlRequest::Reset);
+        assert_eq!(
+            parse(json!({"op": "set_guidance", "mode": "brake"})).unwrap(),
+            ControlRequest::SetGuidance { mode: Some(GuidanceMode::Brake), gain: None }
+        );
+        assert_eq!(
+            parse(json!({"op": "set_fading", "fading": null})).unwrap(),
+            ControlRequest::SetFading { fading: None }
+        );
+        let ops: Vec<String> = ControlRequest::fields().into_iter().map(|(op, _)| op).collect();
+        assert_eq!(ops, OPS, "fields() covers every op, in order");
+    }
+
+    #[test]
+    fn bad_requests_are_refused_saying_what_was_wrong() {
+        let err = |v: Value| parse(v).unwrap_err().to_string();
+        assert!(err(json!([1, 2])).contains("JSON object"));
+        assert!(err(json!({"op": 7})).contains("must be a string"));
+        assert!(err(json!({"op": "dance"})).contains("create, reset"));
+        assert!(err(json!({"op": "set_guidance", "gian": 0.5})).contains("unknown field `gian`"));
+        assert!(err(json!({"op": "set_fading"})).contains("missing field `fading`"));
+        assert!(err(json!({"op": "set_drill", "burr_radius_m": "big"})).contains("invalid type"));
+        assert!(err(json!({"op": "set_guidance", "mode": "stiff"})).contains("unknown variant `stiff`"));
+        assert!(err(json!({"op": "set_fading", "fading": {"forgett": 0.5}})).contains("unknown field `forgett`"));
+    }
+
+    #[test]
+    fn a_point_of_the_wrong_length_is_a_shape_error() {
+        let e = path_of(&[0.0, 1.0], &[0.0, 0.0, 1.0]).unwrap_err();
+        assert_eq!(e.kind(), "shape");
+        assert!(e.to_string().contains("entry_m"));
+    }
 }

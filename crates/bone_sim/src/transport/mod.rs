@@ -38,6 +38,12 @@ use crate::volume::drilled::DrilledVolume;
 use crate::volume::Volume;
 use registry::Registry;
 
+/// Each control operation with the fields it takes, in the order of `docs/protocol.md`.
+#[must_use]
+pub fn control_fields() -> Vec<(String, Vec<String>)> {
+    control::ControlRequest::fields()
+}
+
 /// Seconds without poses or control requests after which a session is freed, by default.
 pub const DEFAULT_IDLE_TIMEOUT_S: f64 = 5.0;
 /// Timeout of one model query (s), by default: 2.5 windows of the 10 Hz stream.
