@@ -17,7 +17,8 @@ from dhg.client import TraineeClient
 from dhg.export import load_model
 from dhg.live_demo import ServerProcess
 from dhg.models import default_model_path
-from dhg.serve import ModelService, open_zenoh, zenoh_config_json5
+from dhg.serve import ModelService
+from dhg.zenoh_config import open_zenoh, zenoh_config_json5
 from support import entry, serve, stream, wait_until
 
 

@@ -11,7 +11,8 @@ from dhg import protocol
 from dhg.errors import InvalidInputError
 from dhg.export import load_model
 from dhg.models import default_model_path
-from dhg.serve import ModelService, open_zenoh, zenoh_config_json5
+from dhg.serve import ModelService
+from dhg.zenoh_config import open_zenoh, zenoh_config_json5
 
 
 @pytest.fixture(scope="module")

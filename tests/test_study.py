@@ -117,6 +117,24 @@ def test_a_protocol_needs_training_and_an_operator_it_knows(tmp_path):
         run_study([1], arms, tmp_path / "m.ts", operator="robot")  # type: ignore[arg-type]
 
 
+def test_a_protocols_drill_and_guidance_laws_reach_every_attempts_session(coarse_phantom, tmp_path):
+    from dhg.study import _LocalStation
+
+    protocol = Protocol(burr_radius_m=2.25e-3, guidance=(("corridor_deadband_m", 0.1e-3),))
+    protocol.validate()
+    station = _LocalStation(coarse_phantom, None, protocol.guidance, protocol.burr_radius_m)
+    assert station.session.config.burr_radius_m == 2.25e-3  # a 4.5 mm drill
+    assert station.session._s.config()["burr_radius_m"] == 2.25e-3
+    assert station.session.guidance_params["corridor_deadband_m"] == 0.1e-3
+    arms = parse_arms("none,shaped")
+    with pytest.raises(InvalidInputError, match="burr radius"):
+        run_study([1], arms, tmp_path / "m.ts", Protocol(burr_radius_m=0.1))
+    with pytest.raises(InvalidInputError, match="unknown guidance parameter 'deadband'"):
+        run_study([1], arms, tmp_path / "m.ts", Protocol(guidance=(("deadband", 1e-4),)))
+    with pytest.raises(InvalidInputError, match="server's guidance laws"):
+        run_study([1], arms, tmp_path / "m.ts", Protocol(guidance=(("corridor_deadband_m", 1e-4),)), live="tcp/x:1")
+
+
 def test_study_refuses_bad_arguments_with_exit_code_3(tmp_path):
     done = subprocess.run(
         [sys.executable, "-m", "dhg.cli", "study", "--out", str(tmp_path), "--arms", "shaped"],

@@ -16,6 +16,7 @@ from dhg.errors import (
 )
 from dhg.layers import Layer
 from dhg.phantom import Phantom, default_phantom, femur
+from dhg.serve import Server, ServerSettings, start_engine
 from dhg.session import (
     CuttingLaw,
     DeviceProfile,
@@ -47,6 +48,8 @@ __all__ = [
     "Phantom",
     "PlannedPath",
     "RemovalReport",
+    "Server",
+    "ServerSettings",
     "ShapeError",
     "Volume",
     "VolumeFileError",
@@ -54,4 +57,5 @@ __all__ = [
     "__version__",
     "default_phantom",
     "femur",
+    "start_engine",
 ]

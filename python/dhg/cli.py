@@ -15,14 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dhg.errors import DhgError, TransportError
+from dhg.cli_common import EXIT_BAD_INPUT, EXIT_OK, EXIT_USAGE, run_command
+from dhg.cli_common import load_volume as _load_volume
+from dhg.cli_common import progress as _progress
 from dhg.presets import PRESETS
-
-EXIT_OK = 0
-EXIT_INTERNAL = 1
-EXIT_USAGE = 2
-EXIT_BAD_INPUT = 3
-EXIT_NETWORK = 5  # 4 meant "not built yet" while features were stubs; it is not reused
 
 _EPILOG = """\
 exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input, 5 network trouble.
@@ -30,48 +26,8 @@ units: SI throughout (m, s, kg); options ending in -mm take millimetres for conv
 """
 
 
-def _load_volume(ct: str | None, voxel_mm: float):  # -> tuple[Volume, PlannedPath | None]
-    """The phantom (default), a prepared volume file (.npz), or a CT to import."""
-    from dhg import phantom
-    from dhg.task import PlannedPath
-    from dhg.volume import Volume
-
-    if ct is None:
-        p = phantom.default_phantom(0, voxel_mm * 1e-3)
-        return p.volume, p.path
-    path = Path(ct)
-    if path.suffix == ".npz":
-        vol = Volume.load(path)
-    else:
-        from dhg import ct as ct_mod
-
-        vol = ct_mod.prepare(path, voxel_m=voxel_mm * 1e-3)
-    planned = vol.meta.get("planned_path")
-    return vol, (PlannedPath.from_dict(planned) if planned else None)
-
-
 def _mm(point_m) -> str:
     return "(" + ", ".join(f"{float(v) * 1e3:.1f}" for v in point_m) + ")"
-
-
-def _progress(description: str):
-    """A rich progress bar as a context manager with an ``update(done, total)`` callback."""
-    from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
-
-    prog = Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        TaskProgressColumn(),
-        TimeRemainingColumn(),
-        transient=False,
-        disable=not sys.stderr.isatty(),
-    )
-    task = prog.add_task(description, total=None)
-
-    def update(done: int, total: int) -> None:
-        prog.update(task, completed=done, total=total)
-
-    return prog, update
 
 
 def cmd_xray(args: argparse.Namespace) -> int:
@@ -575,6 +531,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="fading arms: every Nth training attempt is a guidance-free probe (default 3; 0: none)",
     )
     p.add_argument(
+        "--drill-mm",
+        type=float,
+        metavar="MM",
+        help="drill diameter for every attempt (default 2.5 mm); 4.5 mm heats the bone enough to test 47 °C",
+    )
+    p.add_argument(
         "--guidance-param",
         action="append",
         default=[],
@@ -648,7 +610,11 @@ def cmd_study(args: argparse.Namespace) -> int:
         if not eq:
             raise ValueError(f"--guidance-param takes NAME=VALUE (a number in SI units), got {item!r}")
     protocol = Protocol(
-        train=args.train, duration_s=args.duration, probe_every=args.probe_every, guidance=tuple(guidance)
+        train=args.train,
+        duration_s=args.duration,
+        probe_every=args.probe_every,
+        guidance=tuple(guidance),
+        burr_radius_m=None if args.drill_mm is None else args.drill_mm / 2 * 1e-3,
     )
     prog, update = _progress(f"{len(seeds)} novices x {len(arms)} arms x {args.train + 2} attempts")
     t0 = time.perf_counter()
@@ -671,6 +637,7 @@ def cmd_study(args: argparse.Namespace) -> int:
         + (f"live through the server at {args.live}" if args.live else f"offline, model {model.name}")
         + f"; per arm a guidance-free pre-test, {args.train} training attempts in the arm's guidance and a "
         f"guidance-free post-test, each of at most {args.duration:g} s"
+        + (f", a {args.drill_mm:g} mm drill" if args.drill_mm is not None else "")
         + "".join(f", {n} = {v:g}" for n, v in guidance)
         + ". Each guided cell: mean (paired difference with 'none' [95 % interval]).\n\n"
     )
@@ -682,24 +649,10 @@ def cmd_study(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _run(func, args: argparse.Namespace) -> int:
-    try:
-        return int(func(args))
-    except TransportError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_NETWORK
-    except (DhgError, ValueError, TypeError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``dhg``."""
     args = build_parser().parse_args(argv)
-    return _run(args.func, args)
+    return run_command(args.func, args)
 
 
 def serve_main(argv: Sequence[str] | None = None) -> int:

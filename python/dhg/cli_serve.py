@@ -20,7 +20,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from dhg.cli import EXIT_INTERNAL, EXIT_OK, _run
+from dhg.cli_common import EXIT_INTERNAL, EXIT_OK, load_volume
+from dhg.cli_common import run_command as _run
 from dhg.session import GUIDANCE_MODES
 
 EPILOG = """\
@@ -238,9 +239,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             options = dataclasses.replace(options, settings=dataclasses.replace(settings, corridor_profile=profile))
             described.append(f"corridor from {profiles.episodes} expert demonstrations")
     if args.role in ("all", "sim"):
-        from dhg.cli import _load_volume
-
-        volume, path = _load_volume(args.ct, args.voxel_mm)
+        volume, path = load_volume(args.ct, args.voxel_mm)
         if (args.entry_mm is None) != (args.target_mm is None):
             raise ValueError("give both --entry-mm and --target-mm, or neither")
         if args.entry_mm is not None:

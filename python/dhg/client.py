@@ -152,7 +152,7 @@ class TraineeClient:
         zenoh_config_file: str | None = None,
         device: Any = None,
     ) -> None:
-        from dhg.serve import open_zenoh, zenoh_config_json5
+        from dhg.zenoh_config import open_zenoh, zenoh_config_json5
 
         endpoints = [connect] if isinstance(connect, str) else list(connect)
         self.session_id = protocol.check_session_id(session_id or f"trainee-{uuid.uuid4().hex[:8]}")

@@ -145,7 +145,7 @@ class SessionRecorder(_FlushLoop):
     ) -> None:
         """``zenoh_session``: share an open Zenoh session instead of opening one; the recorder then
         neither subscribes (its owner feeds :meth:`on_sample`) nor closes it."""
-        from dhg.serve import open_zenoh, zenoh_config_json5
+        from dhg.zenoh_config import open_zenoh, zenoh_config_json5
 
         protocol.check_session_id(session_id)
         self.session_id = session_id
@@ -427,7 +427,7 @@ class AllSessionsRecorder(_FlushLoop):
         on_new_session: Callable[[str, Path], None] | None = None,
         confirm_every_s: float = 0.25,
     ) -> None:
-        from dhg.serve import open_zenoh, zenoh_config_json5
+        from dhg.zenoh_config import open_zenoh, zenoh_config_json5
 
         self.out_root = Path(out_root)
         self.prefix, self.skill, self.raw = prefix, skill, raw

@@ -31,11 +31,18 @@ import numpy as np
 from dhg import _bone_sim, protocol
 from dhg.errors import InvalidInputError, TransportError
 from dhg.protocol import check_session_id
+from dhg.zenoh_config import (
+    SERVER_MAX_MESSAGE_BYTES,
+    open_zenoh,
+    zenoh_config_json5,
+    zenoh_user,
+)
 
 __all__ = [
     "ROLES",
     "ModelService",
     "RunningServer",
+    "Server",
     "ServeOptions",
     "ServerSettings",
     "XRayService",
@@ -93,71 +100,6 @@ class ServerSettings:
     def native(self) -> dict[str, Any]:
         """The dict ``dhg._bone_sim.Server`` takes (the core's ``ServerSettings``)."""
         return asdict(self)
-
-
-SERVER_MAX_MESSAGE_BYTES = 8 * 1024 * 1024
-"""What a server process (engine, model and X-ray services) accepts as one Zenoh message, at the
-transport, so that a 100 MB put is dropped as it arrives instead of being reassembled first
-(Zenoh's default cap is 1 GiB). The largest messages a server handles are the X-ray PNGs it
-sends, which pass through the engine when it routes them: 40–80 KB each for the phantom, about 1 MB
-for an incompressible 1024 × 1024 view; every other message is under 4 KB."""
-CLIENT_MAX_MESSAGE_BYTES = 16 * 1024 * 1024
-"""The same cap for clients (the X-ray PNGs are the largest replies they receive)."""
-_ZENOH_DEFAULT_MAX_MESSAGE = 2**30
-
-
-def zenoh_config_json5(
-    listen: Sequence[str] = (),
-    connect: Sequence[str] = (),
-    config_file: str | Path | None = None,
-    mode: str = "peer",
-    max_message_bytes: int = CLIENT_MAX_MESSAGE_BYTES,
-) -> str:
-    """A Zenoh configuration (JSON5 text) for both the Rust and the Python sessions.
-
-    Zenoh's default transport, not the low-latency one: ``docs/decisions/0011-default-zenoh-transport.md``.
-    Without ``config_file``, multicast scouting is off, so that only the given endpoints connect
-    (several servers on one host or network never join each other by accident). Endpoints look like
-    ``tcp/127.0.0.1:7447``. Messages larger than ``max_message_bytes`` are dropped by the
-    transport before they are reassembled (``transport/link/rx/max_message_size``), unless the
-    file sets its own cap.
-    """
-    cap = json.dumps(int(max_message_bytes))
-    if config_file is not None:
-        import zenoh
-
-        try:
-            cfg = zenoh.Config.from_file(str(config_file))
-            cfg.insert_json5("mode", json.dumps(mode))
-            if listen or mode == "client":  # a client never listens (the file may name the server's port)
-                cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
-            if connect:
-                cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
-            if json.loads(cfg.get_json("transport/link/rx/max_message_size")) == _ZENOH_DEFAULT_MAX_MESSAGE:
-                cfg.insert_json5("transport/link/rx/max_message_size", cap)
-        except Exception as exc:  # zenoh raises its own ZError
-            raise InvalidInputError(f"cannot read the zenoh config {config_file}: {exc}") from None
-        return str(cfg)  # the whole configuration, as JSON
-    conf: dict[str, Any] = {
-        "scouting": {"multicast": {"enabled": False}},
-        "mode": mode,
-        "transport": {"link": {"rx": {"max_message_size": int(max_message_bytes)}}},
-    }
-    if listen:
-        conf["listen"] = {"endpoints": list(listen)}
-    if connect:
-        conf["connect"] = {"endpoints": list(connect)}
-    return json.dumps(conf)
-
-
-def open_zenoh(config_json5: str) -> Any:
-    """Opens a Python Zenoh session from :func:`zenoh_config_json5` text."""
-    import zenoh
-
-    try:
-        return zenoh.open(zenoh.Config.from_json5(config_json5))
-    except Exception as exc:  # zenoh.ZError
-        raise TransportError(f"cannot open a zenoh session: {exc}") from None
 
 
 class ModelService:
@@ -376,6 +318,44 @@ class XRayService:
             pass
 
 
+class Server:
+    """The real-time engine on Zenoh (the native ``dhg._bone_sim.Server``): the 1 kHz tick thread,
+    the comm thread, and the keys of ``docs/protocol.md``. Start one with :func:`start_engine`
+    (or ``dhg-serve``); every reply is a plain dict in SI units."""
+
+    def __init__(self, native: Any) -> None:
+        self._native = native
+
+    def health(self, window_s: float = 10.0) -> dict[str, Any]:
+        """The health report (``docs/protocol.md``, health), tick quantiles over the last ``window_s`` s."""
+        return self._native.health(window_s)
+
+    def sessions(self) -> list[str]:
+        """Ids of the open sessions."""
+        return self._native.sessions()
+
+    def metrics(self, session_id: str) -> dict[str, Any]:
+        """A session's metrics; an unknown session is an :class:`~dhg.errors.EngineError`."""
+        return self._native.metrics(session_id)
+
+    def control(self, session_id: str, request: dict[str, Any]) -> dict[str, Any]:
+        """Applies a control request (``{"op": ...}``, ``docs/protocol.md``); returns the session info."""
+        return self._native.control(session_id, request)
+
+    def xray(self, session_id: str, timeout_s: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The (top, front, side) X-ray line integrals of a session's bone as drilled now."""
+        return self._native.xray(session_id, timeout_s)
+
+    def stop(self) -> None:
+        """Stops the threads and closes the engine's Zenoh session (idempotent)."""
+        self._native.stop()
+
+    @property
+    def running(self) -> bool:
+        """Whether the engine runs."""
+        return self._native.running
+
+
 def start_engine(
     volume: Any,
     path: Any,
@@ -383,18 +363,20 @@ def start_engine(
     settings: ServerSettings | None = None,
     prefix: str = "dhg",
     session_config: Any = None,
-) -> Any:
-    """Starts the native engine (``dhg._bone_sim.Server``) on ``volume`` with the default path."""
-
+) -> Server:
+    """Starts the engine on ``volume`` with ``path`` as new sessions' planned path, Zenoh
+    configured by ``config_json5`` (:func:`dhg.zenoh_config.zenoh_config_json5`)."""
     s = settings or ServerSettings()
-    return _bone_sim.Server(
-        volume._vol,
-        [float(v) for v in path.entry_m],
-        [float(v) for v in path.target_m],
-        config_json5,
-        prefix=prefix,
-        settings=s.native(),
-        session=session_config.to_native() if session_config is not None else None,
+    return Server(
+        _bone_sim.Server(
+            volume._vol,
+            [float(v) for v in path.entry_m],
+            [float(v) for v in path.target_m],
+            config_json5,
+            prefix=prefix,
+            settings=s.native(),
+            session=session_config.to_native() if session_config is not None else None,
+        )
     )
 
 
@@ -467,7 +449,7 @@ class RunningServer:
 
     def __init__(self, options: ServeOptions):
         self.options = options
-        self.engine: Any = None
+        self.engine: Server | None = None
         self.zenoh: Any = None
         self.model_service: ModelService | None = None
         self.xray_service: XRayService | None = None
@@ -537,19 +519,6 @@ class RunningServer:
         self.close()
 
 
-def _zenoh_user(config: str | Path | None) -> str | None:
-    """The user name of a Zenoh config's user/password authentication, if it has one."""
-    if config is None:
-        return None
-    import zenoh
-
-    try:
-        user = json.loads(zenoh.Config.from_file(str(config)).get_json("transport/auth/usrpwd/user"))
-    except Exception:  # unreadable files are reported when the session opens
-        return None
-    return user if isinstance(user, str) and user else None
-
-
 def _friendly(exc: Exception, endpoints: Sequence[str]) -> TransportError:
     text = str(exc)
     if "Address already in use" in text:
@@ -607,7 +576,7 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
                 model,
                 options.prefix,
                 max_age_s=options.settings.model_timeout_s,
-                worker_id=options.worker_id or _zenoh_user(options.zenoh_config),
+                worker_id=options.worker_id or zenoh_user(options.zenoh_config),
             )
         if engine_role:
             run.xray_service = XRayService(run.zenoh, run.engine, volume, options.prefix)

@@ -25,7 +25,10 @@ from dhg.task import PlannedPath
 from dhg.volume import Volume, XRayViews, as_points
 
 __all__ = [
+    "GUIDANCE_DEFAULTS",
     "GUIDANCE_MODES",
+    "MAX_BURR_RADIUS_M",
+    "MIN_BURR_RADIUS_M",
     "MAX_POSITION_M",
     "MAX_SPINDLE_RPM",
     "CuttingLaw",
@@ -48,6 +51,13 @@ MAX_SPINDLE_RPM: float = float(_bone_sim.MAX_SPINDLE_RPM)
 cutting and thermal laws are fitted up to about 1800 rpm). Defined in the core."""
 MAX_POSITION_M: float = float(_bone_sim.MAX_POSITION_M)
 """Largest coordinate (m) of a pose's position; a pose beyond it is refused and counted."""
+
+MIN_BURR_RADIUS_M: float = float(_bone_sim.MIN_BURR_RADIUS_M)
+"""Smallest burr radius (m) a session takes (a 0.5 mm drill); defined in the core."""
+MAX_BURR_RADIUS_M: float = float(_bone_sim.MAX_BURR_RADIUS_M)
+"""Largest burr radius (m) a session takes (a 40 mm drill); defined in the core."""
+GUIDANCE_DEFAULTS: dict[str, Any] = _bone_sim.defaults()["guidance"]
+"""The core's guidance laws and their defaults (``GuidanceParams``; :meth:`DrillingSession.set_guidance_params`)."""
 
 _DEFAULTS: dict[str, Any] = _bone_sim.defaults()["session"]
 """The core's ``SessionConfig::default()`` (nested): the one place the defaults below are defined."""

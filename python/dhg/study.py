@@ -72,15 +72,22 @@ class Protocol:
     duration_s: float = 150.0
     probe_every: int = 3
     """For fading arms: every this many training attempts one is a guidance-free probe."""
+    burr_radius_m: float | None = None
+    """The drill's burr radius (m) for every attempt; None: the core's default (1.25 mm, a 2.5 mm
+    drill). A 4.5 mm drill (2.25 mm) heats the bone enough to test the 47 °C target."""
     guidance: tuple[tuple[str, float], ...] = ()
     """Changes to the core's guidance laws for every attempt, as (name, value) pairs of
     :attr:`dhg.DrillingSession.guidance_params` (e.g. ``("corridor_deadband_m", 0.25e-3)``); offline
     only (a server's laws are its own)."""
 
     def validate(self) -> None:
-        from dhg import _bone_sim
+        from dhg.session import GUIDANCE_DEFAULTS, MAX_BURR_RADIUS_M, MIN_BURR_RADIUS_M
 
-        known = _bone_sim.defaults()["guidance"]
+        if self.burr_radius_m is not None and not (MIN_BURR_RADIUS_M <= self.burr_radius_m <= MAX_BURR_RADIUS_M):
+            raise InvalidInputError(
+                f"burr radius {self.burr_radius_m} m outside [{MIN_BURR_RADIUS_M}, {MAX_BURR_RADIUS_M}] m"
+            )
+        known = GUIDANCE_DEFAULTS
         for name, _ in self.guidance:
             if name not in known:
                 raise InvalidInputError(f"unknown guidance parameter {name!r}; known: {', '.join(sorted(known))}")
@@ -284,10 +291,17 @@ class _LocalStation:
     """A :class:`dhg.DrillingSession` in this process; its model queries are yielded to the
     caller, which answers many stations' at once (:func:`_lockstep`)."""
 
-    def __init__(self, phantom: Any, profiles: Any, guidance: tuple[tuple[str, float], ...] = ()) -> None:
-        from dhg.session import DrillingSession
+    def __init__(
+        self,
+        phantom: Any,
+        profiles: Any,
+        guidance: tuple[tuple[str, float], ...] = (),
+        burr_radius_m: float | None = None,
+    ) -> None:
+        from dhg.session import DrillingSession, SessionConfig
 
-        self.session = DrillingSession(phantom.volume, phantom.path)
+        config = SessionConfig() if burr_radius_m is None else SessionConfig(burr_radius_m=burr_radius_m)
+        self.session = DrillingSession(phantom.volume, phantom.path, config)
         if profiles is not None:  # the corridor follows the experts' spread, as dhg-serve --model does
             self.session.set_corridor_profile(profiles.bin_m, profiles.corridor_n_per_m)
         if guidance:
@@ -319,11 +333,13 @@ class _LiveStation:
     """A session on a running ``dhg-serve`` (``--live``): drilled in real time through the
     network, guided by the server's own model service."""
 
-    def __init__(self, connect: str, session_id: str, zenoh_config_file: str | None) -> None:
+    def __init__(
+        self, connect: str, session_id: str, zenoh_config_file: str | None, burr_radius_m: float | None = None
+    ) -> None:
         from dhg.client import TraineeClient
 
         self.client = TraineeClient(connect, session_id, zenoh_config_file=zenoh_config_file)
-        self.info = self.client.create()
+        self.info = self.client.create(burr_radius_m=burr_radius_m)
 
     def guide(self, mode: str | None, gain: float) -> None:
         if mode is None:
@@ -485,19 +501,13 @@ def _group(work: tuple[list[int], list[Arm], Operator, Protocol]) -> list[tuple[
     on_attempt = (lambda: events.put(1)) if events is not None else _WORKER["on_attempt"]
     profiles = model.profiles
     predict = model.predict
-    pre = _lockstep(
-        [
-            _job(_LocalStation(phantom, profiles, protocol.guidance), s, None, operator, protocol, None, on_attempt)
-            for s in seeds
-        ],
-        predict,
-    )
+
+    def station() -> _LocalStation:
+        return _LocalStation(phantom, profiles, protocol.guidance, protocol.burr_radius_m)
+
+    pre = _lockstep([_job(station(), s, None, operator, protocol, None, on_attempt) for s in seeds], predict)
     learned = {seed: atts[0]["learned"] for seed, _, atts in pre}
-    jobs = [
-        _job(_LocalStation(phantom, profiles, protocol.guidance), s, a, operator, protocol, learned[s], on_attempt)
-        for s in seeds
-        for a in arms
-    ]
+    jobs = [_job(station(), s, a, operator, protocol, learned[s], on_attempt) for s in seeds for a in arms]
     return pre + _lockstep(jobs, predict)
 
 
@@ -571,7 +581,7 @@ def _run_live(
 
     def run(seed: int, arm: Arm | None, learned: dict[str, float] | None) -> tuple[int, str, list[Attempt]]:
         sid = f"study-{tag}-{seed}-{'pre' if arm is None else ''.join(c if c.isalnum() else '_' for c in arm.name)}"
-        station = _LiveStation(connect, sid, zenoh_config_file)
+        station = _LiveStation(connect, sid, zenoh_config_file, protocol.burr_radius_m)
         try:
             job = _job(station, seed, arm, operator, protocol, learned, counted)
             try:  # a live station never queries (the server's model guides it): one step runs the job
