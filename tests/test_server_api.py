@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dhg import _bone_sim, serve
+from dhg import _bone_sim, protocol, serve
 from dhg.client import TraineeClient
 from dhg.errors import EngineError, InvalidInputError
 from dhg.layers import Layer
@@ -295,3 +295,27 @@ def test_the_scheduling_hint_suggests_spinning_only_where_it_helps():
     assert few is not None and "spin" not in few and "CAP_SYS_NICE" in few and "slice" not in few
     sliced = serve.scheduling_hint({**sleeping, "short_slices": {"tick": True, "comm": True, "zenoh_io": 4}}, 2)
     assert sliced is not None and sliced.startswith(few) and "0.1 ms slice" in sliced
+
+
+def test_sessions_beyond_the_slots_and_bad_ids_are_refused_and_counted(coarse_phantom):
+    """``refused.sessions`` counts every pose that could not get a session: all slots taken, or an
+    id the engine refuses; the session that holds the slot is not disturbed."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    conf = serve.zenoh_config_json5([endpoint], mode="router")
+    srv = serve.start_engine(coarse_phantom.volume, coarse_phantom.path, conf, serve.ServerSettings(max_sessions=1))
+    try:
+        with TraineeClient(endpoint, "holder") as a, TraineeClient(endpoint, "latecomer") as b:
+            entry = np.array(a.create()["entry_m"])
+            pose = (entry - [0.0, 0.0, 5e-3], (1.0, 0.0, 0.0, 0.0), False, 0.0)
+            a.send_pose(*pose)
+            wait_until(lambda: srv.sessions() == ["holder"], 10.0, "the holder's session")
+            before = srv.health()["refused"]["sessions"]
+            for _ in range(20):
+                b.send_pose(*pose)
+            b._z.put("dhg/session/.hidden/pose", protocol.encode_pose(1, 1, pose[0], pose[1], False, 0.0))
+            wait_until(lambda: srv.health()["refused"]["sessions"] - before == 21, 10.0, "21 refusals counted")
+            a.send_pose(*pose)
+            wait_until(lambda: a.force is not None, 10.0, "the holder's force")
+            assert srv.sessions() == ["holder"]
+    finally:
+        srv.stop()

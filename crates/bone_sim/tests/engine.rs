@@ -710,3 +710,27 @@ fn set_burr_swaps_the_drill_of_one_slot_and_a_new_session_gets_the_default_again
     core.tick();
     assert_eq!(core.session(1).unwrap().config().burr_radius_m, r0);
 }
+
+#[test]
+fn outputs_the_comm_side_cannot_take_are_dropped_and_counted_and_the_tick_goes_on() {
+    let (mut core, mut link, surface) = engine(1);
+    activate(&mut link, 0, 1, 1.0);
+    let capacity = link.outputs.buffer().capacity();
+    // Nobody drains the outputs: one force a tick (and a state every 100) fill the ring.
+    let ticks = capacity + 500;
+    for seq in 1..=ticks {
+        send(&mut link, 0, 1, seq as u32, surface - 1e-3);
+        core.tick();
+    }
+    let produced = ticks + ticks / 100;
+    let dropped = link.stats.dropped_outputs.load(Ordering::Relaxed) as usize;
+    assert_eq!(dropped, produced - capacity, "every output beyond the ring's capacity is counted");
+    assert_eq!(core.session(0).unwrap().state().ticks as usize, ticks, "the tick never waited for the ring");
+    // Once the comm side drains, outputs flow again and none is lost.
+    let kept = drain(&mut link).len();
+    assert_eq!(kept, capacity);
+    send(&mut link, 0, 1, ticks as u32 + 1, surface - 1e-3);
+    core.tick();
+    assert_eq!(forces(&drain(&mut link)).len(), 1);
+    assert_eq!(link.stats.dropped_outputs.load(Ordering::Relaxed) as usize, dropped);
+}
