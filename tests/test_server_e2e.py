@@ -279,7 +279,9 @@ def test_a_recorder_behind_a_full_link_recovers_the_states_it_missed():
 
     import zenoh
 
-    proc, endpoint = _serve("--idle-timeout", "3.0")
+    # The session (and with it the publisher's cache the recorder recovers from) must outlive the
+    # recovery, which a loaded machine can delay past the end of the stream: a long idle timeout.
+    proc, endpoint = _serve("--idle-timeout", "30.0")
     key = "dhg/session/lossy-1/state"
     helper = subprocess.Popen(
         [sys.executable, "-c", _TWO_SUBSCRIBERS, endpoint, key],
