@@ -24,15 +24,13 @@ def serve(*args: str, endpoint: str | None = None) -> tuple[ServerProcess, str]:
 
 
 def tool_quaternion(d: np.ndarray) -> tuple[float, float, float, float]:
-    """The quaternion (w, x, y, z) that turns the tool's +z onto the unit direction ``d``."""
+    """The quaternion (w, x, y, z) that turns the tool's +z onto the unit direction ``d`` (the
+    half-way rotation; a half turn about x when ``d`` is -z)."""
     z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(z, d)
-    s = np.linalg.norm(axis)
-    if s < 1e-9:
-        return (1.0, 0.0, 0.0, 0.0)
-    half = np.arctan2(s, z @ d) / 2
-    ax = axis / s * np.sin(half)
-    return (float(np.cos(half)), float(ax[0]), float(ax[1]), float(ax[2]))
+    q = np.array([1.0 + z @ d, *np.cross(z, d)])
+    n = np.linalg.norm(q)
+    q = q / n if n > 1e-9 else np.array([0.0, 1.0, 0.0, 0.0])
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
 def entry(client: TraineeClient) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float]]:

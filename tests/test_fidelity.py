@@ -9,6 +9,7 @@ import pytest
 import dhg
 from dhg.session import MAX_POSITION_M, MAX_SPINDLE_RPM, DrillingSession
 from dhg.surgeons import SurgeonController, planned_breakthrough_depth_m, sample_style
+from support import tool_quaternion
 
 BREAKTHROUGHS, PLUNGE = 8, 10  # indices in the session's feedback tuple
 
@@ -89,7 +90,7 @@ def test_a_long_press_settles_at_the_continuous_force(coarse_phantom):
     never above it for long."""
     s = DrillingSession(coarse_phantom.volume, coarse_phantom.path)
     path = coarse_phantom.path
-    q = dhg.surgeons._axis_quaternion(path.direction)
+    q = tool_quaternion(path.direction)
     approach = path.point_at(np.linspace(-6e-3, 10e-3, 800))
     rows = dhg.session.poses(np.vstack([approach, np.repeat(approach[-1:], 30_000, axis=0)]), q, False, 0.0)
     forces = np.linalg.norm(s.step(rows).forces_n, axis=1)

@@ -7,7 +7,7 @@ import pytest
 
 from dhg.errors import InvalidInputError, ShapeError
 from dhg.session import GUIDANCE_MODES, DrillingSession
-from dhg.surgeons import _axis_quaternion
+from support import tool_quaternion as _axis_quaternion
 
 
 def test_modes_gain_and_predictions_are_checked(coarse_phantom):

@@ -13,6 +13,7 @@ from dhg.export import load_model
 from dhg.models import default_model_path
 from dhg.serve import ModelService
 from dhg.zenoh_config import open_zenoh, zenoh_config_json5
+from support import wait_until
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +78,6 @@ def test_queries_whose_asker_gave_up_are_refused_as_stale_not_computed():
     """Issue 21, item 10: the service computed queries the engine had long given up on. The
     service's clock is the test's, so the queries age by exactly what the test says."""
     import threading
-    import time
 
     model = _BlockingModel()
     now = [0.0]
@@ -93,10 +93,8 @@ def test_queries_whose_asker_gave_up_are_refused_as_stale_not_computed():
         later = [threading.Thread(target=lambda s=s: results.append(_query(z, key, window, s))) for s in (2, 3)]
         for t in later:
             t.start()
-        deadline = time.monotonic() + 10.0
-        while service._queue.qsize() < 2:  # both wait behind the first forward pass
-            assert time.monotonic() < deadline, "the later queries never reached the service"
-            time.sleep(0.001)
+        # Both wait behind the first forward pass.
+        wait_until(lambda: service._queue.qsize() >= 2, 10.0, "the later queries reaching the service")
         now[0] = 1.0  # a second passes on the service's clock: the two queued queries are stale
         model.release.set()
         for t in [first, *later]:
@@ -150,7 +148,6 @@ def test_a_model_whose_window_is_not_the_engines_is_refused_at_start_up():
 
 def test_queries_that_wait_behind_a_forward_pass_are_answered_in_one_batch_and_a_full_queue_refuses():
     import threading
-    import time
 
     model = _ScriptedModel()
     z = open_zenoh(zenoh_config_json5(mode="peer"))
@@ -170,10 +167,8 @@ def test_queries_that_wait_behind_a_forward_pass_are_answered_in_one_batch_and_a
         ]
         for t in later:
             t.start()
-        deadline = time.monotonic() + 10.0
-        while service._queue.qsize() < 3:  # all three wait behind the first pass: the queue is full
-            assert time.monotonic() < deadline, "the later queries never reached the service"
-            time.sleep(0.001)
+        # All three wait behind the first pass: the queue is full.
+        wait_until(lambda: service._queue.qsize() >= 3, 10.0, "the later queries reaching the service")
         ok, body = _query(z, key, window, 5)  # one more: refused at once, not queued
         assert not ok and "busy" in json.loads(body)["error"]
         model.gate.set()

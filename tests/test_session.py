@@ -9,13 +9,7 @@ import dhg
 from dhg import InvalidInputError, Layer, SessionConfig, ShapeError
 from dhg.features import FEATURE_NAMES, FEATURE_UNITS, POSE_COLUMNS, RECORD_COLUMNS
 from dhg.session import poses
-
-
-def axis_quaternion(d):
-    """Quaternion (w, x, y, z) turning the tool's +z onto the unit vector d."""
-    z = np.array([0.0, 0.0, 1.0])
-    q = np.array([1.0 + z @ d, *np.cross(z, d)])
-    return q / np.linalg.norm(q)
+from support import tool_quaternion as axis_quaternion
 
 
 def drive(path, seconds, lead_m=4e-3, feed_m_s=1.5e-3, start_before_m=5e-3):

@@ -185,7 +185,7 @@ impl ControlRequest {
             Some(Value::String(_)) => {}
             Some(_) => return Err(bad(format!("\"op\" must be a string: {OPS_TEXT}"))),
         }
-        serde_json::from_value(body.clone()).map_err(|e| bad(e.to_string()))
+        Self::deserialize(body).map_err(|e| bad(e.to_string()))
     }
 }
 
