@@ -857,6 +857,47 @@ def test_cli_trainee_drills_and_reports(server, tmp_path):
     assert report["latency"]["guidance"] >= 15
 
 
+def test_cli_trainee_fades_its_guidance_over_attempts(server, tmp_path):
+    import json
+
+    _, endpoint = server
+    out = tmp_path / "course.json"
+    r = subprocess.run(
+        [sys.executable, "-m", "dhg.cli", "trainee", "--connect", endpoint, "--duration", "2", "--seed", "4"]
+        + ["--attempts", "3", "--fading", "--probe-every", "3", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    report = json.loads(out.read_text())
+    first, second, third = report["attempts"]
+    assert [a["attempt"] for a in report["attempts"]] == [0, 1, 2]
+    assert all(a["poses"] >= 1900 for a in report["attempts"])
+    # The first attempt is guided at the start gain; the server's schedule sets the second's from the
+    # first's errors (forget 0.7, learn 0.2, at most 1), and the third is the guidance-free probe.
+    assert first["guidance_gain"] == 1.0 and not first["probe"] and first["fading"]["attempts"] == 0
+    error = second["fading"]["last_error"]  # 0 when 2 s end the attempt before the bone
+    assert error is not None and error >= 0
+    assert second["fading"]["attempts"] == 1
+    assert second["guidance_gain"] == pytest.approx(min(1.0, 0.7 * 1.0 + 0.2 * error))
+    assert third["probe"] and third["guidance_gain"] == 0.0 and third["fading"]["attempts"] == 2
+    assert "attempt 3: gain 0.00 (probe)" in r.stdout, r.stdout
+    assert "fading" in r.stdout.splitlines()[0]
+
+
+def test_trainee_course_refuses_bad_flags():
+    for flags, needle in (
+        (["--attempts", "0"], "--attempts"),
+        (["--probe-every", "2"], "--probe-every needs --fading"),
+        (["--fading", "--guidance", "off"], "--fading"),
+    ):
+        r = subprocess.run(
+            [sys.executable, "-m", "dhg.cli", "trainee", *flags], capture_output=True, text=True, timeout=60
+        )
+        assert r.returncode == 3 and needle in r.stderr and "Traceback" not in r.stderr, (flags, r.stderr)
+
+
 def test_trainee_without_a_server_fails_clearly():
     r = subprocess.run(
         [sys.executable, "-m", "dhg.cli", "trainee", "--connect", f"tcp/127.0.0.1:{free_port()}", "--duration", "1"],

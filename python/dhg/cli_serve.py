@@ -294,7 +294,13 @@ def add_commands(sub: Any, epilog: str) -> None:
         "first cortex. Prints the skill metrics and the "
         "pose→force and pose→guidance latencies at the end.\n\n"
         "  dhg trainee --skill novice --guidance on  --seed 3\n"
-        "  dhg trainee --skill novice --guidance off --seed 3   # the same hand, unguided",
+        "  dhg trainee --skill novice --guidance off --seed 3   # the same hand, unguided\n"
+        "  dhg trainee --attempts 6 --fading --probe-every 3    # faded training, every 3rd attempt unguided\n\n"
+        "With --attempts N the trainee drills N attempts, the session reset between them (a recorder "
+        "starts a new episode for each), and learns from the plunge and deviation it felt in each, as the "
+        "novices of 'dhg study' do. With --fading the server's fading schedule sets each attempt's gain "
+        "from the last attempt's errors (assistance as needed) and makes every --probe-every-th attempt "
+        "guidance-free.",
         epilog=EPILOG + epilog,
         formatter_class=fmt,
     )
@@ -318,8 +324,20 @@ def add_commands(sub: Any, epilog: str) -> None:
         help="drill (burr) diameter in mm, e.g. 3.2 for a large guide wire (default: the server's, 2.5 mm)",
     )
     p.add_argument("--seed", type=int, default=0, help="the surgeon's style and tremor (default 0)")
+    p.add_argument("--attempts", type=int, default=1, metavar="N", help="attempts, the bone reset between (default 1)")
+    p.add_argument(
+        "--fading",
+        action="store_true",
+        help="let the server fade the gain over the attempts (starting from --gain; docs/protocol.md, set_fading)",
+    )
+    p.add_argument(
+        "--probe-every",
+        type=int,
+        metavar="K",
+        help="with --fading, every Kth attempt is guidance-free (default: the server's, 4; 0: none)",
+    )
     p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
-    p.add_argument("--json", metavar="FILE", help="also write metrics and latencies as JSON")
+    p.add_argument("--json", metavar="FILE", help="also write metrics and latencies (of every attempt) as JSON")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (TLS, credentials, ...)")
     p.set_defaults(func=_cmd_trainee)
 
@@ -385,29 +403,56 @@ def add_commands(sub: Any, epilog: str) -> None:
 
 def _cmd_trainee(args: argparse.Namespace) -> int:
     from dhg.client import TraineeClient
-    from dhg.trainee import run_trainee
+    from dhg.trainee import TraineeRun, run_course
 
     if args.duration <= 0:
         raise ValueError("--duration must be positive")
+    if args.attempts < 1:
+        raise ValueError(f"--attempts must be at least 1, got {args.attempts}")
+    if args.probe_every is not None and (not args.fading or args.probe_every < 0):
+        raise ValueError("--probe-every needs --fading and is 0 (no probes) or a positive count")
+    if args.fading and args.guidance == "off":
+        raise ValueError("--fading fades the guidance: it needs --guidance on")
     if args.drill_mm is not None and not 0.0 < args.drill_mm <= 40.0:
         raise ValueError(f"--drill-mm must be a diameter in (0, 40] mm, got {args.drill_mm}")
     burr_radius_m = None if args.drill_mm is None else args.drill_mm / 2 * 1e-3
     gain = args.gain if args.guidance == "on" else 0.0
     with TraineeClient(args.connect, args.session, prefix=args.prefix, zenoh_config_file=args.zenoh_config) as client:
         client.health(1.0)  # fails fast, with a clear message, when no server answers
-        run = run_trainee(
+        fading = None
+        if args.fading:
+            fading = {} if args.probe_every is None else {"probe_every": args.probe_every}
+
+        def finished(run: TraineeRun) -> None:
+            if args.attempts > 1:
+                m = run.metrics
+                print(
+                    f"  attempt {run.attempt + 1}: gain {run.guidance_gain:.2f}{' (probe)' if run.probe else ''}, "
+                    f"plunge {m['plunge_depth_m'] * 1e3:.2f} mm, max deviation {m['max_deviation_m'] * 1e3:.2f} mm, "
+                    f"reached B {'yes' if m['reached_target'] else 'no'}",
+                    flush=True,
+                )
+
+        runs = run_course(
             client,
+            args.attempts,
             args.skill,
             gain,
             args.duration,
             args.seed,
+            fading=fading,
             burr_radius_m=burr_radius_m,
             guidance_mode=args.guidance_mode,
             on_start=lambda mode: print(
-                f"session {client.session_id}: {args.skill}, guidance {args.guidance} ({mode}, gain {gain:g}), "
-                f"seed {args.seed}"
+                f"session {client.session_id}: {args.skill}, guidance {args.guidance} ({mode}, gain {gain:g}"
+                f"{', fading' if args.fading else ''}), seed {args.seed}",
+                flush=True,
             ),
+            on_attempt=finished,
         )
+    run = runs[-1]
+    if args.attempts > 1:
+        print(f"last attempt ({args.attempts}):")
     print(f"  drill diameter         {run.burr_radius_m * 2e3:g} mm")
     planned = run.planned_breakthrough_depth_m
     print(
@@ -421,6 +466,17 @@ def _cmd_trainee(args: argparse.Namespace) -> int:
         "metrics": run.metrics,
         "latency": run.latency,
         "poses": run.poses_sent,
+        "attempts": [
+            {
+                "attempt": r.attempt,
+                "guidance_gain": r.guidance_gain,
+                "probe": r.probe,
+                "fading": r.fading,
+                "metrics": r.metrics,
+                "poses": r.poses_sent,
+            }
+            for r in runs
+        ],
     }
     for k, v in run.metrics.items():
         print(f"  {k:22s} {v}")

@@ -22,7 +22,15 @@ from dhg.errors import InvalidInputError
 from dhg.surgeons import SurgeonController, breakthrough_depth_from_runs, sample_style, skill_metrics
 from dhg.task import PlannedPath, TaskRules
 
-__all__ = ["TraineeRun", "drive_surgeon", "live_metrics", "planned_depth_from_info", "run_trainee", "state_records"]
+__all__ = [
+    "TraineeRun",
+    "drive_surgeon",
+    "live_metrics",
+    "planned_depth_from_info",
+    "run_course",
+    "run_trainee",
+    "state_records",
+]
 
 
 @dataclass
@@ -53,6 +61,13 @@ class TraineeRun:
     generic 2.2 mm, for lack of a cortex on the path or of layers in the session info)."""
     guidance_mode: str = "paper"
     """The session's guidance mode."""
+    attempt: int = 0
+    """Which of the trainee's attempts this was (0: the first)."""
+    probe: bool = False
+    """Whether the server's fading schedule made this attempt a guidance-free probe."""
+    fading: dict[str, Any] | None = None
+    """The session's fading schedule as it stood when the attempt began (``docs/protocol.md``),
+    or ``None`` without one."""
 
 
 def state_records(states: list[dict[str, Any]]) -> npt.NDArray[np.float64]:
@@ -162,10 +177,58 @@ def run_trainee(
     (:func:`dhg.surgeons.planned_breakthrough_depth_m`); ``None`` reads it off the planned layers
     the server reports for the session (``path_layers``), or, where it reports none, uses the
     surgeons' generic 2.2 mm."""
+    return run_course(
+        client,
+        1,
+        skill,
+        guidance_gain,
+        duration_s,
+        seed,
+        rules=rules,
+        burr_radius_m=burr_radius_m,
+        cue_follow_per_s=cue_follow_per_s,
+        breakthrough_depth_m=breakthrough_depth_m,
+        guidance_mode=guidance_mode,
+        on_start=on_start,
+    )[0]
+
+
+def run_course(
+    client: TraineeClient,
+    attempts: int,
+    skill: Literal["expert", "novice"] = "novice",
+    guidance_gain: float = 1.0,
+    duration_s: float = 20.0,
+    seed: int = 0,
+    fading: dict[str, Any] | None = None,
+    rules: TaskRules | None = None,
+    burr_radius_m: float | None = None,
+    cue_follow_per_s: float | None = None,
+    breakthrough_depth_m: float | None = None,
+    guidance_mode: str | None = None,
+    on_start: Callable[[str], None] | None = None,
+    on_attempt: Callable[[TraineeRun], None] | None = None,
+) -> list[TraineeRun]:
+    """``attempts`` attempts of one trainee at the client's session, as :func:`run_trainee` drills
+    one: the session is created for the first and reset before each next (a recorder starts a new
+    episode for each). The trainee learns between attempts from the plunge and deviation it
+    experienced (:class:`dhg.operators.Learner`, as the novices of ``dhg study`` do), so later
+    attempts are not repeats of the first.
+
+    With ``fading`` (the schedule params of ``set_fading``; ``{}`` for the server's defaults) the
+    server sets each attempt's gain from the last attempt's errors, and every ``probe_every``-th
+    attempt is guidance-free (``TraineeRun.probe``); ``guidance_gain`` is then the first
+    attempt's. ``on_attempt`` is called with each finished attempt."""
+    from dhg.operators import Learner
+
+    if attempts < 1:
+        raise InvalidInputError(f"attempts must be at least 1, got {attempts}")
     rules = rules or TaskRules()
     if cue_follow_per_s is not None and not (math.isfinite(cue_follow_per_s) and cue_follow_per_s >= 0):
         raise InvalidInputError(f"cue_follow_per_s must be a finite rate >= 0 (1/s), got {cue_follow_per_s!r}")
     info = client.create(guidance_gain=guidance_gain, burr_radius_m=burr_radius_m, guidance_mode=guidance_mode)
+    if fading is not None:
+        info = client.set_fading({"start_gain": guidance_gain, **fading})
     mode = str(info.get("guidance_mode", "paper"))
     if on_start is not None:
         on_start(mode)
@@ -178,24 +241,46 @@ def run_trainee(
         style = dataclasses.replace(style, cue_follow_per_s=float(cue_follow_per_s))
     # Told what the cue means: match the expert's force (the paper's cue) or yield to it (the others).
     cue = "match" if mode == "paper" else "yield"
-    surgeon = SurgeonController(path, style, rng, rules, breakthrough_depth_m=breakthrough_depth_m, cue_meaning=cue)
-    sent, wall_s = drive_surgeon(client, surgeon, duration_s)
-    time.sleep(0.25)  # let the last state and guidance messages arrive
-    states = list(client.states)
-    records = state_records(states)
-    metrics = live_metrics(client, surgeon, states)
-    return TraineeRun(
-        session_id=client.session_id,
-        skill=skill,
-        guidance_gain=guidance_gain,
-        metrics=metrics,
-        latency=client.latency_summary(),
-        records=records,
-        guidance=list(client.guidance),
-        states=states,
-        poses_sent=sent,
-        wall_s=wall_s,
-        burr_radius_m=float(info["burr_radius_m"]),
-        planned_breakthrough_depth_m=breakthrough_depth_m,
-        guidance_mode=mode,
-    )
+    learner = Learner()
+    runs: list[TraineeRun] = []
+    for attempt in range(attempts):
+        if attempt > 0:
+            info = client.control("reset")  # ends the last attempt: a fading schedule sets this one's gain
+            rng = np.random.default_rng([seed, attempt])
+        schedule = info.get("fading")
+        gain = float(info.get("guidance_gain", guidance_gain))
+        client.states.clear()
+        client.guidance.clear()
+        surgeon = SurgeonController(
+            path, learner.style(style), rng, rules, breakthrough_depth_m=breakthrough_depth_m, cue_meaning=cue
+        )
+        sent, wall_s = drive_surgeon(client, surgeon, duration_s)
+        time.sleep(0.25)  # let the last state and guidance messages arrive
+        states = list(client.states)
+        # A state published before the reset can arrive after it: keep the run since the clock restarted.
+        times = [st["time_s"] for st in states]
+        states = states[max((i for i in range(1, len(times)) if times[i] < times[i - 1]), default=0) :]
+        metrics = live_metrics(client, surgeon, states)
+        learner.update(float(metrics["plunge_depth_m"]), float(metrics["max_deviation_m"]))
+        run = TraineeRun(
+            session_id=client.session_id,
+            skill=skill,
+            guidance_gain=gain,
+            metrics=metrics,
+            latency=client.latency_summary(),
+            records=state_records(states),
+            guidance=list(client.guidance),
+            states=states,
+            poses_sent=sent,
+            wall_s=wall_s,
+            burr_radius_m=float(info["burr_radius_m"]),
+            planned_breakthrough_depth_m=breakthrough_depth_m,
+            guidance_mode=mode,
+            attempt=attempt,
+            probe=bool(schedule and schedule.get("probe")),
+            fading=schedule,
+        )
+        runs.append(run)
+        if on_attempt is not None:
+            on_attempt(run)
+    return runs
