@@ -8,6 +8,15 @@ many trainees. Prints one JSON line per run (latencies in ms, server CPU in core
 
 ``--record-all`` also runs ``dhg record --all --raw`` (in this process) over the load and adds what
 it kept: each session's 1 kHz ticks written against the ticks it ran, and the recorder's CPU.
+
+``--against-echo`` sets the server beside the transport's floor (issue 24): for each client count it
+alternates, ``--rounds`` times, a fresh ``dhg-serve`` and a fresh bare Zenoh echo with the same key
+space and QoS (``crates/bone_sim/examples/echo.rs``), runs the same load against each, and prints
+the medians and their ratios (dhg / echo) of pose → force p50 and p99 and of server CPU per
+session. On a shared VM the absolute figures move from run to run; the ratios far less.
+
+    cargo build --release -p bone_sim --example load --example echo
+    python tests/benchmarks/bench_server.py --against-echo --seconds 20 --clients 1,4,16 --rounds 2
 """
 
 from __future__ import annotations
@@ -15,9 +24,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import socket
+import statistics
 import subprocess
 import tempfile
+import time
 from pathlib import Path
+from typing import Any
 
 from dhg.live_demo import ServerProcess, free_port
 
@@ -45,7 +58,13 @@ def main() -> None:
         help="Zenoh's low-latency transport (no QoS) on both sides: a put is written by the calling thread",
     )
     p.add_argument("--record-all", action="store_true", help="record every session with its 1 kHz stream meanwhile")
+    p.add_argument("--against-echo", action="store_true", help="alternate dhg-serve with the bare echo; print ratios")
+    p.add_argument("--rounds", type=int, default=2, help="with --against-echo: rounds of each (default 2)")
+    p.add_argument("--echo", default=str(target / "release/examples/echo"), help="the echo binary")
     args = p.parse_args()
+    if args.against_echo:
+        _against_echo(args)
+        return
     conf_dir = tempfile.TemporaryDirectory()
     conf = Path(conf_dir.name) / "lowlatency.json5"
     conf.write_text(json.dumps({"scouting": {"multicast": {"enabled": False}}, "transport": LOWLATENCY}))
@@ -88,6 +107,91 @@ def main() -> None:
             with open(args.out, "a") as fh:
                 fh.write(line + "\n")
     conf_dir.cleanup()
+
+
+def _wait_for_port(endpoint: str, proc: subprocess.Popen[Any], deadline_s: float = 60.0) -> None:
+    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+    end = time.monotonic() + deadline_s
+    while time.monotonic() < end:
+        if proc.poll() is not None:
+            raise SystemExit(f"the echo exited ({proc.returncode}): {proc.stderr.read() if proc.stderr else ''}")
+        try:
+            socket.create_connection((host, int(port)), timeout=0.5).close()
+            return
+        except OSError:
+            time.sleep(0.05)
+    raise SystemExit(f"the echo did not listen on {endpoint} within {deadline_s} s")
+
+
+def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
+    """One round: a fresh ``target`` (``dhg`` or ``echo``) and the load tool with ``n`` clients."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    server: Any = None
+    echo: subprocess.Popen[str] | None = None
+    if target == "dhg":
+        server = ServerProcess(
+            ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30"], echo=False
+        )
+        pid = server.proc.pid
+    else:
+        echo = subprocess.Popen([args.echo, "--listen", endpoint], stderr=subprocess.PIPE, text=True)
+        _wait_for_port(endpoint, echo)
+        pid = echo.pid
+    try:
+        r = subprocess.run(
+            [args.load, "--connect", endpoint, "--clients", str(n), "--seconds", str(args.seconds),
+             "--server-pid", str(pid)],
+            capture_output=True, text=True, timeout=args.seconds + 120,
+        )  # fmt: skip
+    finally:
+        if server is not None:
+            server.stop()
+        if echo is not None:
+            echo.terminate()
+            echo.wait(timeout=30)
+    if r.returncode != 0:
+        raise SystemExit(f"load tool against {target} failed ({r.returncode}): {r.stderr}")
+    out = json.loads(r.stdout)
+    return {
+        "target": target,
+        "clients": n,
+        "p50_ms": out["pose_to_force_ms"]["p50"],
+        "p99_ms": out["pose_to_force_ms"]["p99"],
+        "cpu_cores": out["server_cpu_cores"],
+        "cpu_per_session": out["server_cpu_cores"] / n,
+        "forces_per_pose": out["forces_per_pose"],
+    }
+
+
+def _against_echo(args: argparse.Namespace) -> None:
+    rows = []
+    for n in (int(c) for c in args.clients.split(",")):
+        runs: dict[str, list[dict[str, Any]]] = {"dhg": [], "echo": []}
+        for _ in range(args.rounds):
+            for target in ("dhg", "echo"):
+                run = _one_load(args, target, n)
+                runs[target].append(run)
+                print(json.dumps({"cpus": os.cpu_count(), "seconds": args.seconds, **run}), flush=True)
+                if args.out:
+                    with open(args.out, "a") as fh:
+                        fh.write(json.dumps({"cpus": os.cpu_count(), "seconds": args.seconds, **run}) + "\n")
+
+        def med(target: str, key: str, runs: dict[str, list[dict[str, Any]]] = runs) -> float:
+            return statistics.median(r[key] for r in runs[target])
+
+        rows.append(
+            (n, *(med(t, k) for k in ("p50_ms", "p99_ms", "cpu_per_session") for t in ("dhg", "echo")),
+             med("dhg", "forces_per_pose"))
+        )  # fmt: skip
+    print(f"\n{args.rounds} rounds of {args.seconds:g} s each, alternating; medians; {os.cpu_count()} CPUs\n")
+    print("| clients | pose → force p50, dhg / echo (ms) | ratio | p99, dhg / echo (ms) | ratio "
+          "| server CPU per session, dhg / echo (cores) | ratio | dhg forces per pose |")  # fmt: skip
+    print("|---:|---|---:|---|---:|---|---:|---:|")
+    for n, p50d, p50e, p99d, p99e, cpud, cpue, fpp in rows:
+        print(
+            f"| {n} | {p50d:.3f} / {p50e:.3f} | {p50d / p50e:.2f} | {p99d:.3f} / {p99e:.3f} | {p99d / p99e:.2f} "
+            f"| {cpud:.4f} / {cpue:.4f} | {cpud / cpue:.2f} | {fpp:.3f} |"
+        )
 
 
 class _Recording:
