@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from dhg.layers import Layer
 from dhg.surgeons import SurgeonController, layer_runs, planned_breakthrough_depth_m, sample_style
@@ -118,3 +119,20 @@ def test_the_planned_breakthrough_is_where_the_first_cortex_ends_less_the_burr(c
     # A path through air crosses no cortex.
     far = np.array([1.0, 1.0, 1.0])
     assert planned_breakthrough_depth_m(coarse_phantom.volume, PlannedPath(far, far + 0.01), 1.25e-3) is None
+
+
+def test_the_offset_across_the_path_leaves_out_the_overshoot_past_b():
+    from dhg.surgeons import skill_metrics
+    from dhg.task import TaskRules
+
+    path = PlannedPath(np.zeros(3), np.array([0.0, 0.0, 0.08]))
+    # Tips: before A (not counted), 1 mm off inside, on the line past B by 3 mm, 0.5 mm off past B.
+    tips = np.array([[2e-3, 0, -1e-3], [1e-3, 0, 0.04], [0, 0, 0.083], [0.5e-3, 0, 0.082]])
+    np.testing.assert_allclose(path.offset_from_line(tips), [2e-3, 1e-3, 0.0, 0.5e-3], atol=1e-15)
+    np.testing.assert_allclose(path.lateral_deviation(tips)[2], 3e-3, rtol=1e-9)  # the segment's distance
+    records = np.zeros((len(tips), 11))
+    records[:, 4:7] = tips
+    records[:, 8] = tips[:, 2]  # depth along A→B (the path is along z)
+    m = skill_metrics(records, path, TaskRules(), tips[-1], 10.0, 0.0, 40.0, 0.0)
+    assert m["max_deviation_m"] == pytest.approx(3e-3)
+    assert m["max_lateral_deviation_m"] == pytest.approx(1e-3)

@@ -102,6 +102,7 @@ class Protocol:
 METRICS: tuple[tuple[str, str, float, bool], ...] = (
     ("plunge_depth_m", "plunge (mm)", 1e3, True),
     ("max_deviation_m", "max deviation (mm)", 1e3, True),
+    ("max_lateral_deviation_m", "max across (mm)", 1e3, True),
     ("mean_deviation_m", "mean deviation (mm)", 1e3, True),
     ("target_distance_m", "to B (mm)", 1e3, True),
     ("completion_time_s", "time (s)", 1.0, True),

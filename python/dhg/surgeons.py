@@ -617,6 +617,7 @@ def skill_metrics(
     depth = records[:, 8] if len(records) else np.empty(0)
     inside = depth > 0
     dev = path.lateral_deviation(tips[inside]) if inside.any() else np.zeros(1)
+    across = path.offset_from_line(tips[inside]) if inside.any() else np.zeros(1)
     target_dist = float(np.linalg.norm(np.asarray(final_tip_m, float) - path.target_m))
     if forces_n is not None and len(forces_n) > 1:
         dF = np.diff(forces_n, axis=0) / 1e-3
@@ -628,6 +629,7 @@ def skill_metrics(
         "completion_time_s": float(drilling_s),
         "mean_deviation_m": float(dev.mean()),
         "max_deviation_m": float(dev.max()),
+        "max_lateral_deviation_m": float(across.max()),
         "target_distance_m": target_dist,
         "plunge_depth_m": float(plunge_depth_m),
         "peak_temperature_c": float(peak_temperature_c),

@@ -75,6 +75,14 @@ class PlannedPath:
         t = np.clip(rel @ self.direction, 0.0, self.length_m)
         return np.linalg.norm(rel - np.outer(t, self.direction), axis=1)
 
+    def offset_from_line(self, points_m: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """Distance (m) of points from the line through A and B: how far across the path a tip is,
+        wherever along it, so a tip past B counts its offset across the path but not its overshoot
+        along it (which :meth:`lateral_deviation` adds, and the target distance measures)."""
+        p = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
+        rel = p - self.entry_m
+        return np.linalg.norm(rel - np.outer(rel @ self.direction, self.direction), axis=1)
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form (m)."""
         return {"entry_m": self.entry_m.tolist(), "target_m": self.target_m.tolist()}

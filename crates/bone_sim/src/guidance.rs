@@ -132,6 +132,13 @@ pub struct GuidanceParams {
     pub warning_n: f64,
     /// How far before the predicted breakthrough the warning ramp starts (m).
     pub warning_span_m: f64,
+    /// `shaped`: the heat hold engages when the tip is within this of the session's necrosis
+    /// threshold (°C below it).
+    pub heat_margin_c: f64,
+    /// `shaped`: the heat hold lets go once the tip has cooled this far below where it engaged (°C).
+    pub heat_release_c: f64,
+    /// `shaped`: most the heat hold resists advance with (N).
+    pub heat_hold_n: f64,
 }
 
 impl Default for GuidanceParams {
@@ -158,6 +165,17 @@ impl Default for GuidanceParams {
             brake_damping_n_s_per_m: 20.0,
             warning_n: 0.35,
             warning_span_m: 1.0e-3,
+            // The expert of `dhg synth` pauses with the drill off 2 °C short of 47 °C and goes on
+            // once 2 °C cooler (surgeons.py, caution_temp_c), as intermittent drilling lets the bone
+            // cool (Pandey & Panda 2013 review the effect of drilling pauses); at a stop the tip
+            // cools with the thermal model's 15 s time constant (about 5 s for those 2 °C).
+            heat_margin_c: 2.0,
+            heat_release_c: 2.0,
+            // Off by default: at 1.5 N (under the 1.6–2.7 N a hand pushes through cortex) it slowed
+            // the feed instead of pausing it, and a slower feed heats each millimetre more; with a
+            // 4.5 mm drill it cost completion and, for the instructed trainee, time above 47 °C
+            // (docs/results.md, "A heat hold"). Settable per session for studies.
+            heat_hold_n: 0.0,
         }
     }
 }
@@ -184,7 +202,10 @@ impl GuidanceParams {
         non_negative("guidance brake_stiffness_n_per_m", self.brake_stiffness_n_per_m)?;
         non_negative("guidance brake_damping_n_s_per_m", self.brake_damping_n_s_per_m)?;
         non_negative("guidance warning_n", self.warning_n)?;
-        positive("guidance warning_span_m", self.warning_span_m).map(|_| ())
+        positive("guidance warning_span_m", self.warning_span_m)?;
+        non_negative("guidance heat_margin_c", self.heat_margin_c)?;
+        positive("guidance heat_release_c", self.heat_release_c)?;
+        non_negative("guidance heat_hold_n", self.heat_hold_n).map(|_| ())
     }
 }
 
@@ -217,6 +238,10 @@ pub struct GuideInput<'a> {
     pub broken_through: bool,
     /// Whether a cortex began to give way this tick (the session's breakthrough watcher).
     pub giving: bool,
+    /// The drill-tip temperature (°C).
+    pub temperature_c: f64,
+    /// The session's necrosis threshold (°C; 47 by default).
+    pub necrosis_threshold_c: f64,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -238,7 +263,15 @@ pub struct Guide {
     fade: f64,
     hold: Option<Hold>,
     was_giving: bool,
+    heat: Option<HeatHold>,
     share_n: Vector3<f64>,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct HeatHold {
+    from_m: Point3<f64>,
+    axis: Vector3<f64>,
+    engaged_c: f64,
 }
 
 impl Guide {
@@ -255,6 +288,7 @@ impl Guide {
             fade: 0.0,
             hold: None,
             was_giving: false,
+            heat: None,
             share_n: Vector3::zeros(),
         }
     }
@@ -269,6 +303,7 @@ impl Guide {
         self.fade = 0.0;
         self.hold = None;
         self.was_giving = false;
+        self.heat = None;
         self.share_n = Vector3::zeros();
     }
 
@@ -339,6 +374,12 @@ impl Guide {
         self.hold.is_some()
     }
 
+    /// Whether the heat hold is holding (`shaped`: the tip is hot and has not cooled yet).
+    #[must_use]
+    pub fn is_heat_holding(&self) -> bool {
+        self.heat.is_some()
+    }
+
     fn clamped(&self, v: Vector3<f64>) -> Vector3<f64> {
         let n = v.norm();
         if n > self.params.max_n {
@@ -390,6 +431,7 @@ impl Guide {
                 }
                 if mode == GuidanceMode::Shaped {
                     f += self.warning(input);
+                    f += self.heat_hold(input);
                 }
                 f * self.fade
             }
@@ -436,6 +478,30 @@ impl Guide {
         let v_fwd = input.tip_velocity_m_s.dot(&hold.axis).max(0.0);
         let resist = (p.brake_stiffness_n_per_m * past + p.brake_damping_n_s_per_m * v_fwd) * self.gain;
         -hold.axis * resist.min(cap)
+    }
+
+    /// The heat hold: once the tip comes within `heat_margin_c` of the necrosis threshold, a
+    /// resistance against advance past where it was then (the brake's spring and damper, capped
+    /// at `heat_hold_n`), until the tip has cooled `heat_release_c` below where it engaged. It asks
+    /// for the pause that lets the bone cool; it never pushes the drill forward.
+    fn heat_hold(&mut self, input: &GuideInput<'_>) -> Vector3<f64> {
+        let p = &self.params;
+        let t = input.temperature_c;
+        if !t.is_finite() {
+            return Vector3::zeros();
+        }
+        match self.heat {
+            None if t >= input.necrosis_threshold_c - p.heat_margin_c => {
+                self.heat = Some(HeatHold { from_m: input.tip_m, axis: input.axis, engaged_c: t });
+            }
+            Some(h) if t <= h.engaged_c - p.heat_release_c => self.heat = None,
+            _ => {}
+        }
+        let Some(h) = self.heat else { return Vector3::zeros() };
+        let past = (input.tip_m - h.from_m).dot(&h.axis).max(0.0);
+        let v_fwd = input.tip_velocity_m_s.dot(&h.axis).max(0.0);
+        let resist = (p.brake_stiffness_n_per_m * past + p.brake_damping_n_s_per_m * v_fwd) * self.gain;
+        -h.axis * resist.min(p.heat_hold_n * self.gain)
     }
 
     /// Whether the tip is within `warning_span_m` before the predicted breakthrough, the cortex
@@ -647,6 +713,8 @@ mod tests {
             breakthrough_depth_m: Some(0.01),
             broken_through: false,
             giving: false,
+            temperature_c: 37.0,
+            necrosis_threshold_c: 47.0,
         }
     }
 
@@ -811,6 +879,43 @@ mod tests {
         assert!((half + 0.5 * p.warning_n).abs() < 1e-9, "{half}");
         assert!((at(&mut g, 0.0101, false) + p.warning_n).abs() < 1e-9);
         assert_eq!(at(&mut g, 0.0101, true), 0.0, "once through, no warning");
+    }
+
+    #[test]
+    fn the_heat_hold_resists_advance_while_hot_until_the_tip_has_cooled() {
+        let path = path();
+        let mut g = live(GuidanceMode::Shaped);
+        assert_eq!(g.params().heat_hold_n, 0.0, "off by default");
+        g.set_params(GuidanceParams { heat_hold_n: 1.5, ..GuidanceParams::default() }).unwrap();
+        let p = g.params().clone();
+        // Tip at 5 mm (no warning there), advancing at 1 mm/s.
+        let at = |g: &mut Guide, z: f64, vz: f64, t: f64| {
+            let mut i = input(&path, Point3::new(0.0, 0.0, z), Vector3::new(0.0, 0.0, vz));
+            i.temperature_c = t;
+            let f = g.step(&i, 1e-3);
+            g.set_target(Vector3::zeros());
+            f
+        };
+        assert_eq!(at(&mut g, 0.005, 1e-3, 44.9), Vector3::zeros(), "cooler than 45 °C: nothing");
+        assert!(!g.is_heat_holding());
+        let f = at(&mut g, 0.005, 1e-3, 45.0);
+        assert!(g.is_heat_holding(), "engages 2 °C short of 47 °C");
+        assert!((f.z + p.brake_damping_n_s_per_m * 1e-3).abs() < 1e-12 && f.x == 0.0 && f.y == 0.0, "{f}");
+        // Pushed on past where it engaged: the spring, capped; backing off: nothing (never forward).
+        let far = at(&mut g, 0.009, 0.0, 46.0);
+        assert!((far.z + p.heat_hold_n).abs() < 1e-12, "{far}");
+        assert_eq!(at(&mut g, 0.004, -1e-3, 46.0), Vector3::zeros());
+        // Still holding at 43.1 °C (engaged at 45); released at 43.
+        assert!(at(&mut g, 0.006, 0.0, 43.1).z < 0.0);
+        assert_eq!(at(&mut g, 0.006, 0.0, 43.0), Vector3::zeros());
+        assert!(!g.is_heat_holding());
+        // The other modes have no heat hold; a reset drops it.
+        let mut c = live(GuidanceMode::Brake);
+        c.set_params(p.clone()).unwrap();
+        assert_eq!(at(&mut c, 0.006, 1e-3, 50.0), Vector3::zeros());
+        at(&mut g, 0.006, 1e-3, 46.0);
+        g.reset();
+        assert!(!g.is_heat_holding());
     }
 
     #[test]

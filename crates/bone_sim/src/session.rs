@@ -662,6 +662,8 @@ impl DrillingSession {
             breakthrough_depth_m: self.planned_breakthrough_m,
             broken_through: self.state.breakthroughs > 0,
             giving: self.giving,
+            temperature_c: self.thermal.temperature_c,
+            necrosis_threshold_c: self.thermal.params().necrosis_threshold_c,
         };
         let share_n = self.guide.step(&input, dt);
         let force_n = self.limiter.step(desired + share_n, dt);
