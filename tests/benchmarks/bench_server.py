@@ -123,6 +123,19 @@ def _wait_for_port(endpoint: str, proc: subprocess.Popen[Any], deadline_s: float
     raise SystemExit(f"the echo did not listen on {endpoint} within {deadline_s} s")
 
 
+def _context_switches(pid: int) -> int:
+    """Context switches (voluntary and not) of every thread of ``pid`` so far (Linux ``/proc``)."""
+    total = 0
+    for status in Path(f"/proc/{pid}/task").glob("*/status"):
+        try:
+            for line in status.read_text().splitlines():
+                if "ctxt_switches:" in line:
+                    total += int(line.split()[1])
+        except (OSError, ValueError):  # a thread that ended meanwhile
+            continue
+    return total
+
+
 def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
     """One round: a fresh ``target`` (``dhg`` or ``echo``) and the load tool with ``n`` clients."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -138,11 +151,13 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         _wait_for_port(endpoint, echo)
         pid = echo.pid
     try:
+        switches0 = _context_switches(pid)
         r = subprocess.run(
             [args.load, "--connect", endpoint, "--clients", str(n), "--seconds", str(args.seconds),
              "--server-pid", str(pid)],
             capture_output=True, text=True, timeout=args.seconds + 120,
         )  # fmt: skip
+        switches = _context_switches(pid) - switches0
     finally:
         if server is not None:
             server.stop()
@@ -160,6 +175,8 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         "cpu_cores": out["server_cpu_cores"],
         "cpu_per_session": out["server_cpu_cores"] / n,
         "forces_per_pose": out["forces_per_pose"],
+        # Over the whole load run (its 2 s warm-up and the connects included): per pose sent.
+        "context_switches_per_pose": switches / (n * (args.seconds + 2.0) * 1000.0),
     }
 
 
@@ -180,17 +197,18 @@ def _against_echo(args: argparse.Namespace) -> None:
             return statistics.median(r[key] for r in runs[target])
 
         rows.append(
-            (n, *(med(t, k) for k in ("p50_ms", "p99_ms", "cpu_per_session") for t in ("dhg", "echo")),
-             med("dhg", "forces_per_pose"))
+            (n, *(med(t, k) for k in ("p50_ms", "p99_ms", "cpu_per_session", "context_switches_per_pose")
+                  for t in ("dhg", "echo")), med("dhg", "forces_per_pose"))
         )  # fmt: skip
     print(f"\n{args.rounds} rounds of {args.seconds:g} s each, alternating; medians; {os.cpu_count()} CPUs\n")
     print("| clients | pose → force p50, dhg / echo (ms) | ratio | p99, dhg / echo (ms) | ratio "
-          "| server CPU per session, dhg / echo (cores) | ratio | dhg forces per pose |")  # fmt: skip
-    print("|---:|---|---:|---|---:|---|---:|---:|")
-    for n, p50d, p50e, p99d, p99e, cpud, cpue, fpp in rows:
+          "| server CPU per session, dhg / echo (cores) | ratio | context switches per pose, dhg / echo "
+          "| dhg forces per pose |")  # fmt: skip
+    print("|---:|---|---:|---|---:|---|---:|---|---:|")
+    for n, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp in rows:
         print(
             f"| {n} | {p50d:.3f} / {p50e:.3f} | {p50d / p50e:.2f} | {p99d:.3f} / {p99e:.3f} | {p99d / p99e:.2f} "
-            f"| {cpud:.4f} / {cpue:.4f} | {cpud / cpue:.2f} | {fpp:.3f} |"
+            f"| {cpud:.4f} / {cpue:.4f} | {cpud / cpue:.2f} | {swd:.2f} / {swe:.2f} | {fpp:.3f} |"
         )
 
 

@@ -41,9 +41,29 @@ fn count_refusal(shared: &Shared, r: Refusal) {
     .fetch_add(1, Ordering::Relaxed);
 }
 
-fn on_pose(shared: &Shared, sample: &Sample) {
+/// Every put from another Zenoh session under the prefix, in one subscriber so that a pose is
+/// delivered once (a second, catch-all subscriber cost every pose a second delivery). The only
+/// key a client may put on is a session's `pose`; a put anywhere else (an output key such as
+/// `force`, a leaf below `pose`, the model's or the server's namespace, an unknown leaf) is
+/// counted as `unknown_key`.
+fn on_put(shared: &Shared, sample: &Sample) {
     let received = std::time::Instant::now();
-    let Some((id, _)) = session_key(&shared.prefix, sample.key_expr().as_str()) else { return };
+    let pose_of = sample
+        .key_expr()
+        .as_str()
+        .strip_prefix(shared.prefix.as_str())
+        .and_then(|rest| rest.strip_prefix("/session/"))
+        .and_then(|rest| rest.split_once('/'))
+        .and_then(|(id, leaf)| (leaf == CLIENT_PUT_LEAF).then_some(id));
+    match pose_of {
+        Some(id) => on_pose(shared, id, sample, received),
+        None => {
+            shared.counters.unknown_key.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+}
+
+fn on_pose(shared: &Shared, id: &str, sample: &Sample, received: std::time::Instant) {
     if sample.payload().len() > protocol::MAX_PAYLOAD_BYTES {
         count_refusal(shared, Refusal::Oversized);
         return;
@@ -65,21 +85,6 @@ fn on_pose(shared: &Shared, sample: &Sample) {
         Err(_) => {
             shared.counters.sessions_refused.fetch_add(1, Ordering::Relaxed);
         }
-    }
-}
-
-/// Every put from another Zenoh session under the prefix. The only key a client may put on is
-/// a session's `pose`; a put anywhere else (an output key such as `force`, a leaf below `pose`,
-/// the model's or the server's namespace, an unknown leaf) is counted as `unknown_key`.
-fn on_any(shared: &Shared, sample: &Sample) {
-    let key = sample.key_expr().as_str();
-    let is_pose = key
-        .strip_prefix(shared.prefix.as_str())
-        .and_then(|rest| rest.strip_prefix("/session/"))
-        .and_then(|rest| rest.split_once('/'))
-        .is_some_and(|(_, leaf)| leaf == CLIENT_PUT_LEAF);
-    if !is_pose {
-        shared.counters.unknown_key.fetch_add(1, Ordering::Relaxed);
     }
 }
 
@@ -520,26 +525,19 @@ fn session_queryable(
     Ok(())
 }
 
-/// Declares the pose subscriber, the unknown-key counter and the queryables. They live as long as
+/// Declares the pose subscriber (which also counts puts on unknown keys) and the queryables. They live as long as
 /// the Zenoh session.
 pub(crate) fn declare(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResult<()> {
     let p = &shared.prefix;
     let err = |what: &'static str| move |e: zenoh::Error| SimError::Transport(format!("cannot declare {what}: {e}"));
     let s = shared.clone();
     session
-        .declare_subscriber(format!("{p}/session/*/pose"))
-        .callback(move |sample| on_pose(&s, &sample))
+        .declare_subscriber(format!("{p}/**"))
+        .allowed_origin(Locality::Remote)
+        .callback(move |sample| on_put(&s, &sample))
         .background()
         .wait()
         .map_err(err("the pose subscriber"))?;
-    let s = shared.clone();
-    session
-        .declare_subscriber(format!("{p}/**"))
-        .allowed_origin(Locality::Remote)
-        .callback(move |sample| on_any(&s, &sample))
-        .background()
-        .wait()
-        .map_err(err("the key counter"))?;
     session_queryable(session, shared, "control", |s, id, q| query_json(q).and_then(|req| apply(s, id, &req)))?;
     session_queryable(session, shared, "metrics", |s, id, _| metrics(s, id))?;
     let s = shared.clone();
