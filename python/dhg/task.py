@@ -78,7 +78,8 @@ class PlannedPath:
     def offset_from_line(self, points_m: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Distance (m) of points from the line through A and B: how far across the path a tip is,
         wherever along it, so a tip past B counts its offset across the path but not its overshoot
-        along it (which :meth:`lateral_deviation` adds, and the target distance measures)."""
+        along it (which :meth:`lateral_deviation` adds, and the target distance measures); the
+        guidance studies judge lateral accuracy by it (docs/decisions/0015-offset-across-the-path.md)."""
         p = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
         rel = p - self.entry_m
         return np.linalg.norm(rel - np.outer(rel @ self.direction, self.direction), axis=1)
