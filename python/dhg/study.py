@@ -362,7 +362,7 @@ class _LiveStation:
 
         from dhg.surgeons import SurgeonController
         from dhg.task import PlannedPath
-        from dhg.trainee import drive_surgeon, live_metrics, planned_depth_from_info
+        from dhg.trainee import drive_surgeon, live_metrics, planned_depth_from_info, states_since_reset
 
         self.end_attempt()
         self.client.states.clear()
@@ -372,11 +372,7 @@ class _LiveStation:
         )
         drive_surgeon(self.client, surgeon, rules.max_duration_s)
         time.sleep(0.25)  # the last state messages
-        states = list(self.client.states)
-        # A state published before the reset can arrive after it: keep the run since the clock restarted.
-        times = [st["time_s"] for st in states]
-        cut = max((i for i in range(1, len(times)) if times[i] < times[i - 1]), default=0)
-        m = live_metrics(self.client, surgeon, states[cut:])
+        m = live_metrics(self.client, surgeon, states_since_reset(list(self.client.states)))
         return {k: float(v) for k, v in m.items()}
         yield  # a generator that never queries: the server's model guides it
 

@@ -30,6 +30,7 @@ __all__ = [
     "run_course",
     "run_trainee",
     "state_records",
+    "states_since_reset",
 ]
 
 
@@ -77,6 +78,13 @@ def state_records(states: list[dict[str, Any]]) -> npt.NDArray[np.float64]:
     if not states:
         return np.empty((0, 11))
     return np.array([[s["time_s"], *s["features"], float(bool(s["flags"] & FLAGS["drill_on"]))] for s in states])
+
+
+def states_since_reset(states: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The states from the last restart of the session's clock on: a state published before a
+    reset can arrive after it."""
+    times = [st["time_s"] for st in states]
+    return states[max((i for i in range(1, len(times)) if times[i] < times[i - 1]), default=0) :]
 
 
 def planned_depth_from_info(info: dict[str, Any]) -> float | None:
@@ -256,10 +264,7 @@ def run_course(
         )
         sent, wall_s = drive_surgeon(client, surgeon, duration_s)
         time.sleep(0.25)  # let the last state and guidance messages arrive
-        states = list(client.states)
-        # A state published before the reset can arrive after it: keep the run since the clock restarted.
-        times = [st["time_s"] for st in states]
-        states = states[max((i for i in range(1, len(times)) if times[i] < times[i - 1]), default=0) :]
+        states = states_since_reset(list(client.states))
         metrics = live_metrics(client, surgeon, states)
         learner.update(float(metrics["plunge_depth_m"]), float(metrics["max_deviation_m"]))
         run = TraineeRun(

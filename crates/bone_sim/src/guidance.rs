@@ -474,10 +474,25 @@ impl Guide {
             self.hold = None;
             return Vector3::zeros();
         }
-        let past = (input.tip_m - hold.from_m).dot(&hold.axis).max(0.0);
-        let v_fwd = input.tip_velocity_m_s.dot(&hold.axis).max(0.0);
+        let (from_m, axis) = (hold.from_m, hold.axis);
+        self.resist_advance(input, from_m, axis, cap)
+    }
+
+    /// The brake's law, shared by the heat hold: against advance along `axis` past `from_m`, a
+    /// spring and a damper on forward motion, scaled by the gain and capped at `cap_n`; never
+    /// forward.
+    fn resist_advance(
+        &self,
+        input: &GuideInput<'_>,
+        from_m: Point3<f64>,
+        axis: Vector3<f64>,
+        cap_n: f64,
+    ) -> Vector3<f64> {
+        let p = &self.params;
+        let past = (input.tip_m - from_m).dot(&axis).max(0.0);
+        let v_fwd = input.tip_velocity_m_s.dot(&axis).max(0.0);
         let resist = (p.brake_stiffness_n_per_m * past + p.brake_damping_n_s_per_m * v_fwd) * self.gain;
-        -hold.axis * resist.min(cap)
+        -axis * resist.min(cap_n)
     }
 
     /// The heat hold: once the tip comes within `heat_margin_c` of the necrosis threshold, a
@@ -498,10 +513,7 @@ impl Guide {
             _ => {}
         }
         let Some(h) = self.heat else { return Vector3::zeros() };
-        let past = (input.tip_m - h.from_m).dot(&h.axis).max(0.0);
-        let v_fwd = input.tip_velocity_m_s.dot(&h.axis).max(0.0);
-        let resist = (p.brake_stiffness_n_per_m * past + p.brake_damping_n_s_per_m * v_fwd) * self.gain;
-        -h.axis * resist.min(p.heat_hold_n * self.gain)
+        self.resist_advance(input, h.from_m, h.axis, p.heat_hold_n * self.gain)
     }
 
     /// Whether the tip is within `warning_span_m` before the predicted breakthrough, the cortex
