@@ -180,7 +180,7 @@ def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_pat
     finally:
         if worker is not None:
             worker.stop()
-        assert server.stop() == 0
+        assert server.stop() == 0, "\n".join(server.lines[-40:])
 
 
 def test_dhg_lab_config_cli_writes_the_files_and_says_how_to_use_them(tmp_path):
@@ -241,4 +241,4 @@ def test_dhg_serve_with_the_lab_file_caps_each_stations_sessions(lab):
             assert a._json("dhg/session/station-1-third/control", {"op": "create"})["session"] == "station-1-third"
             assert a._json("dhg/session/visitor/control", {"op": "create"})["session"] == "visitor"  # not a station's
     finally:
-        assert server.stop() == 0
+        assert server.stop() == 0, "\n".join(server.lines[-40:])
