@@ -76,6 +76,15 @@ const PLUNGE_END_SPEED_M_S: f64 = 5e-3;
 /// The window (ticks) over which a plunge's speed is judged: 100 ms, one period of 10 Hz tremor,
 /// so a trembling hand that holds still reads as still.
 pub const PLUNGE_WINDOW_TICKS: usize = 100;
+/// A plunge is not judged over by its speed sooner than this many ticks (200 ms) after the
+/// breakthrough. No hand catches a tip that got away sooner than its voluntary reaction to the
+/// give, 150–250 ms for a novice's response to a force perturbation (the range the operator
+/// models use, `dhg.operators`; the virtual experts react in 100–160 ms), so a slow first window
+/// is the cortex still giving way
+/// under a push that has not yet carried the tip on, not a tip back under control. (Judged from
+/// the first window, a light push that gathered speed after 100 ms was once reported as a
+/// 0.28 mm plunge for 2.6 mm of travel.)
+pub const PLUNGE_MIN_TICKS: usize = 200;
 /// Fastest spindle speed a pose may ask for (rpm): the edge of what the cutting and thermal laws
 /// are fitted on (thrust on 1000–1500 rpm, Orelaja et al. 2020; temperature trends on
 /// 188–1820 rpm, Augustin et al. 2008, Arch. Orthop. Trauma Surg. 128:71). Orthopaedic twist
@@ -955,8 +964,9 @@ impl DrillingSession {
             bt.advance_m[slot] = advance;
             bt.plunge_ticks += 1;
             // The plunge ends when the drill stops, or when the tip has been back under control
-            // (advancing slower than a controlled feed) over a whole window.
-            let slow = bt.plunge_ticks > PLUNGE_WINDOW_TICKS
+            // (advancing slower than a controlled feed) over a whole window, judged no sooner
+            // than a hand can have reacted.
+            let slow = bt.plunge_ticks > PLUNGE_MIN_TICKS
                 && advance - window_ago < PLUNGE_END_SPEED_M_S * PLUNGE_WINDOW_TICKS as f64 * TICK_S;
             if rpm <= 0.0 || slow {
                 s.plunging = false;
