@@ -105,15 +105,21 @@ def test_the_learner_learns_from_errors_and_forgets_without_them():
 def test_a_trained_novice_plunges_less_than_the_same_novice_untrained(phantom):
     """Learning acts where it should: a fully learned anticipation eases the push and braces the
     arm before the planned breakthrough, and shortens the plunge of the same hand with the same
-    noise."""
-    for seed in (13, 16):
+    noise. Over 20 novices (30 s attempts), among those whose untrained hand plunged more than
+    3 mm: in total by more than 30 %, and in at least two of three of them."""
+    untrained, trained = [], []
+    for seed in range(10, 30):
         style = sample_style("novice", np.random.default_rng(seed))
         plunges = {}
         for name, a in (("untrained", 0.0), ("trained", 1.0)):
             s = DrillingSession(phantom.volume, phantom.path)
-            learner = Learner(anticipation=a)
             rules = TaskRules(max_duration_s=30.0)
-            ep = run_episode(s, learner.style(style), np.random.default_rng(12), rules=rules)
+            ep = run_episode(s, Learner(anticipation=a).style(style), np.random.default_rng(12), rules=rules)
             plunges[name] = ep.metrics["plunge_depth_m"]
-        assert plunges["untrained"] > 3e-3, f"seed {seed}: the untrained novice barely plunged: {plunges}"
-        assert plunges["trained"] < 0.5 * plunges["untrained"], f"seed {seed}: {plunges}"
+        if plunges["untrained"] > 3e-3:
+            untrained.append(plunges["untrained"])
+            trained.append(plunges["trained"])
+    u, t = np.array(untrained), np.array(trained)
+    assert len(u) >= 5, f"only {len(u)} untrained novices plunged more than 3 mm"
+    assert t.sum() < 0.7 * u.sum(), f"trained {t} m vs untrained {u} m"
+    assert np.mean(t < u) >= 2 / 3, f"trained {t} m vs untrained {u} m"

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -23,6 +23,9 @@ from dhg.features import POSE_COLUMNS
 from dhg.layers import Layer
 from dhg.task import PlannedPath
 from dhg.volume import Volume, XRayViews, as_points
+
+if TYPE_CHECKING:
+    from dhg.surgeons import SurgeonController
 
 __all__ = [
     "GUIDANCE_DEFAULTS",
@@ -370,6 +373,13 @@ class DrillingSession:
         last_error), or None when the gain does not fade."""
         return self._s.fading()
 
+    def drive(self, surgeon: SurgeonController, guided: bool = False) -> npt.NDArray[np.float64] | None:
+        """Lets a virtual surgeon (:class:`dhg.surgeons.SurgeonController`) drill this session, one
+        1 ms tick after another in the core, until the next 10 Hz record (its 11 columns,
+        :data:`dhg.features.RECORD_COLUMNS`) or until the surgeon finishes (``None``). With
+        ``guided``, the surgeon reads the guidance share of each tick's force as its cue."""
+        return self._s.drive(surgeon.native, guided)
+
     def set_prediction(self, predicted_n: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """A model reply: the predicted expert force (N, world frame). Returns the paper's guidance
         as mixed: gain × (predicted − the trainee's current force feedback), clamped (N)."""
@@ -384,11 +394,12 @@ class DrillingSession:
         cortex (the cortex's end less the burr radius), or None when the path crosses none."""
         return self._s.planned_breakthrough_depth_m
 
-    def reset(self) -> None:
+    def reset(self, rest_device: bool = False) -> None:
         """Restores the undrilled bone and a fresh state (guidance mode and gain are kept). The
         device goes on as it was: its force ramps down to rest at the device's rate limit (no
-        step), and its motors keep their heat."""
-        self._s.reset()
+        step), and its motors keep their heat; with ``rest_device`` it starts at rest, with
+        zero force and cold motors, as a new device would."""
+        self._s.reset(rest_device)
 
     @property
     def memory_bytes(self) -> int:

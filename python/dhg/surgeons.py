@@ -16,6 +16,10 @@ depends on what they *perceived* one reaction delay ago. The phases are:
    and pull back. A late reaction and a loose arm make a deeper plunge;
 5. stop near B and switch the drill off.
 
+The surgeon's 1 kHz step is the core's (``bone_sim::surgeon``, wrapped by
+:class:`SurgeonController`), so an offline attempt runs at the core's speed
+(:meth:`dhg.DrillingSession.drive`); the styles are drawn here (:func:`sample_style`).
+
 Guidance (``dhg trainee``): the server adds a cue to the rendered force, the predicted expert
 force minus the trainee's (Fekri et al. 2021). Along the drill this is a force-matching cue: it
 pushes back where the expert pressed harder and pulls in where the expert eased off. A purely
@@ -34,7 +38,6 @@ the path without force feedback, and :func:`scripted_stylus` pushes a stylus alo
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Generator, Iterable
 from dataclasses import asdict, dataclass, field
 from typing import Literal
@@ -42,6 +45,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from dhg import _bone_sim
 from dhg.errors import InvalidInputError
 from dhg.layers import Layer
 from dhg.protocol import WINDOW_RECORDS
@@ -67,29 +71,29 @@ __all__ = [
 Skill = Literal["expert", "novice"]
 CueMeaning = Literal["match", "yield", "felt"]
 
-HAND_MASS_KG = 0.4
-"""Effective mass of hand and stylus (kg)."""
-TRACK_STIFFNESS_N_PER_M = 300.0
+_CONSTANTS = _bone_sim.surgeon_constants()
+HAND_MASS_KG: float = _CONSTANTS["HAND_MASS_KG"]
+"""Effective mass of hand and stylus (kg); defined in the core (``bone_sim::surgeon``)."""
+TRACK_STIFFNESS_N_PER_M: float = _CONSTANTS["TRACK_STIFFNESS_N_PER_M"]
 """How stiffly the arm follows an intended position (N/m), for approach and holding."""
-LATERAL_STIFFNESS_N_PER_M = 250.0
+LATERAL_STIFFNESS_N_PER_M: float = _CONSTANTS["LATERAL_STIFFNESS_N_PER_M"]
 """How stiffly the arm holds the drill on the path laterally (N/m)."""
-GENERIC_BREAKTHROUGH_DEPTH_M = 2.2e-3
+GENERIC_BREAKTHROUGH_DEPTH_M: float = _CONSTANTS["GENERIC_BREAKTHROUGH_DEPTH_M"]
 """Tip depth at which a surgeon without a plan expects the first cortex to give (m)."""
+AIM_FOLLOW_S: float = _CONSTANTS["AIM_FOLLOW_S"]
+"""Time constant (s) with which the arm's aim follows the felt hand position."""
+PUSH_MARGIN_N: float = _CONSTANTS["PUSH_MARGIN_N"]
+"""How much harder than the resistance they feel (N, one reaction delay ago) a subject pushes."""
+MAX_PUSH_N: float = _CONSTANTS["MAX_PUSH_N"]
+"""Most axial push any subject applies, however strongly a guidance cue asks for more (N)."""
+YIELD_SETTLE_S: float = _CONSTANTS["YIELD_SETTLE_S"]
+"""How fast a surgeon who yields to the guidance settles onto what it asks (s)."""
+CUE_LEAK_PER_S: float = _CONSTANTS["CUE_LEAK_PER_S"]
+"""How fast the lean a cue built up fades once the cue is gone (1/s)."""
 EXPERT_ARM_N_PER_M = (210.0, 260.0)
 """Range of the experts' arm stiffness (N/m); see :attr:`SurgeonStyle.arm_stiffness_n_per_m`."""
 NOVICE_ARM_N_PER_M = (100.0, 130.0)
 """Range of the novices' arm stiffness (N/m): a looser arm."""
-AIM_FOLLOW_S = 0.5
-"""Time constant (s) with which the arm's aim follows the felt hand position."""
-PUSH_MARGIN_N = 0.4
-"""How much harder than the resistance they feel (N, one reaction delay ago) a subject pushes."""
-MAX_PUSH_N = 3.0
-"""Most axial push any subject applies, however strongly a guidance cue asks for more (N)."""
-YIELD_SETTLE_S = 0.2
-"""How fast a surgeon who yields to the guidance settles onto what it asks (s)."""
-CUE_LEAK_PER_S = 0.2
-"""How fast the lean a cue built up fades once the cue is gone (1/s): a remembered instruction
-fades, and a model biased in one direction cannot wind the push up for ever."""
 
 
 @dataclass(frozen=True)
@@ -225,39 +229,21 @@ class Episode:
     extra: dict[str, float] = field(default_factory=dict)
 
 
-def _min_jerk(t: float, duration: float) -> float:
-    """Minimum-jerk position profile from 0 to 1 (Flash & Hogan 1985)."""
-    x = min(max(t / duration, 0.0), 1.0)
-    return x**3 * (10.0 - 15.0 * x + 6.0 * x * x)
-
-
-def _floats(v: npt.ArrayLike) -> tuple[float, ...]:
-    return tuple(float(x) for x in np.asarray(v, dtype=float).ravel())
-
-
-def _basis(d: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(d, helper)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(d, e1)
-
-
-def _axis_quaternion(d: npt.NDArray[np.float64]) -> tuple[float, float, float, float]:
-    z = np.array([0.0, 0.0, 1.0])
-    q = np.array([1.0 + z @ d, *np.cross(z, d)])
-    n = np.linalg.norm(q)
-    q = q / n if n > 1e-9 else np.array([0.0, 1.0, 0.0, 0.0])
-    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+def _axis_quaternion(d: npt.ArrayLike) -> tuple[float, float, float, float]:
+    q = _bone_sim.axis_quaternion([float(x) for x in np.asarray(d, dtype=float).ravel()])
+    return (q[0], q[1], q[2], q[3])
 
 
 class SurgeonController:
-    """The virtual surgeon's decisions and hand, one 1 kHz tick at a time.
+    """The virtual surgeon's decisions and hand, one 1 kHz tick at a time (the core's
+    ``bone_sim::surgeon``; this wraps it).
 
     :meth:`step` takes what the stylus reports this tick (the session feedback tuple: tip x, y, z
     (m), depth (m), deviation (m), temperature (°C), layer id, cutting, breakthroughs, plunging,
     plunge depth (m)) and the force felt (N), and returns the next pose row, or ``None`` once the
     surgeon has finished. The surgeon acts on what it perceived one reaction delay ago. It drives
-    a local session (:func:`run_episode`) and a remote server (``dhg trainee``) alike.
+    a local session (:func:`run_episode`, through :meth:`dhg.DrillingSession.drive`) and a remote server
+    (``dhg trainee``) alike.
 
     ``breakthrough_depth_m`` is the tip depth along A→B (m) at which the plan shows the burr
     leaving the first cortex (:func:`planned_breakthrough_depth_m`); anticipating surgeons ease
@@ -268,6 +254,8 @@ class SurgeonController:
     ``"yield"`` (guidance that shapes the motion, as the corridor, brake and shaped modes do:
     ease off where it resists, go with it where it pulls) or ``"felt"`` (nothing: the cue acts
     on the hand only through the arm's impedance, as any other force does).
+
+    Every random draw of the attempt comes from one seed taken from ``rng``.
     """
 
     def __init__(
@@ -278,76 +266,57 @@ class SurgeonController:
         rules: TaskRules | None = None,
         breakthrough_depth_m: float | None = None,
         cue_meaning: CueMeaning = "match",
+        keep_raw: bool = False,
     ) -> None:
         if cue_meaning not in ("match", "yield", "felt"):
             raise ValueError(f"cue_meaning must be 'match', 'yield' or 'felt', got {cue_meaning!r}")
-        self.style, self.rng, self.path = style, rng, path
-        # "match": the paper's force-matching cue (lean into a cue that pushes back); "yield": a cue
-        # that shapes the motion (corridor, brake, warning), so ease off where it resists.
-        self.yields = cue_meaning == "yield"
-        self.reads_cue = cue_meaning != "felt"
-        # Where the plan says the cortex gives (tip depth, m); without a plan, ~3.5 mm of cortex and a 2.5 mm burr.
-        self.breakthrough_depth_m = (
-            GENERIC_BREAKTHROUGH_DEPTH_M if breakthrough_depth_m is None else float(breakthrough_depth_m)
-        )
+        self.style, self.path = style, path
         self.rules = rules or TaskRules()
-        # Plain float tuples, not arrays: step() reads them every tick, and indexing a float
-        # tuple is several times cheaper than indexing an ndarray (same values, same results).
-        self.a = _floats(path.entry_m)
-        self.d = _floats(path.direction)
-        e1, e2 = _basis(np.asarray(path.direction, dtype=float))
-        self.e1, self.e2 = _floats(e1), _floats(e2)
-        self.q = _axis_quaternion(np.asarray(path.direction, dtype=float))
-        self.length = path.length_m
-        self.dt = 1e-3
-        self.max_ticks = int(self.rules.max_duration_s / self.dt)
-        self.delay = max(1, int(round(style.reaction_delay_s / self.dt)))
-        # Hand state in path coordinates: s along A→B, (u, v) across.
-        self.start_s = -25e-3
-        u0, v0 = rng.normal(0.0, 3e-3, size=2)
-        self.u0, self.v0 = float(u0), float(v0)
-        self.s, self.u, self.v = self.start_s, self.u0, self.v0
-        self.vs = self.vu = self.vv = 0.0
-        self.approach_s = float(rng.uniform(1.2, 2.0))
-        self.align_s = float(rng.uniform(0.3, 0.7))
-        self.tremor_phase = _floats(rng.uniform(0.0, 2 * math.pi, size=3))
-        self.w_tremor = 2 * math.pi * style.tremor_hz
-        self.drift_u = self.drift_v = 0.0
-        self.drift_tau = 1.5  # s: how slowly the aim wanders
-        self._k_ou = self.dt / self.drift_tau
-        self._ou_kick = style.drift_m * math.sqrt(2 * self._k_ou)
-        self.noise_state = 0.0
-        self.push = 0.0
-        self.stop_s = 0.0
-        self.phase = "approach"
-        self.phase_t0 = 0.0
-        self.hold_s: float | None = None
-        self.pause_until = -1.0
-        self.cooling = False
-        self.retract_until = -1.0
-        self.seen_breakthroughs = 0
-        self.drill_on = False
-        self.drill_on_t: float | None = None
-        self.drill_off_t: float | None = None
-        self.max_plunge = 0.0
-        self.fb_hist: list[tuple] = []
-        self.s_hist: list[float] = []  # the hand's position along A→B (m), one per tick
-        self.f_ax_hist: list[float] = []  # the device force along A→B (N), one per tick
-        self.aim_s = self.s  # where the arm pushes towards (m along A→B)
-        self.cue_hist: list[float] = []
-        self.lean = 0.0  # N: push added in response to the guidance cue
-        self.tick = 0
+        self._c = _bone_sim.SurgeonController(
+            [float(x) for x in path.entry_m],
+            [float(x) for x in path.target_m],
+            style.to_dict(),
+            int(rng.integers(0, 2**63)),
+            float(self.rules.max_duration_s),
+            None if breakthrough_depth_m is None else float(breakthrough_depth_m),
+            cue_meaning,
+            keep_raw,
+        )
 
     @property
     def done(self) -> bool:
         """Whether the surgeon has finished (stopped at B, or ran out of time)."""
-        return self.phase == "done" or self.tick >= self.max_ticks
+        return bool(self._c.done)
+
+    @property
+    def phase(self) -> str:
+        """``approach``, ``align``, ``feed``, ``stop`` or ``done``."""
+        return str(self._c.phase)
 
     @property
     def drilling_s(self) -> float:
         """Time from drill start to drill stop (s), as far as the run has come."""
-        end = self.drill_off_t if self.drill_off_t is not None else self.tick * self.dt
-        return end - (self.drill_on_t or 0.0)
+        return float(self._c.drilling_s)
+
+    @property
+    def max_plunge(self) -> float:
+        """The deepest plunge felt so far (m)."""
+        return float(self._c.max_plunge_m)
+
+    @property
+    def push(self) -> float:
+        """The push the surgeon means to make along A→B (N), before the lean into a cue."""
+        return float(self._c.push_n)
+
+    @property
+    def lean(self) -> float:
+        """The push added in response to the guidance cue (N)."""
+        return float(self._c.lean_n)
+
+    @property
+    def max_ticks(self) -> int:
+        """The most 1 ms ticks the attempt may last."""
+        return int(self._c.max_ticks)
 
     def step(
         self,
@@ -358,135 +327,19 @@ class SurgeonController:
         """The pose row (x, y, z, qw, qx, qy, qz, drill_on, spindle_rpm) for this tick, or None.
 
         ``force_n`` is the whole force the device renders (N, world frame); ``cue_n`` is the
-        guidance share of it (N), which the surgeon also reads as an instruction (see the module
+        guidance share of it (N), which the surgeon also reads as an instruction (see the class
         docs). Without guidance it is zero."""
-        if self.done:
-            return None
-        style, rng, dt, tick = self.style, self.rng, self.dt, self.tick
-        d, e1, e2 = self.d, self.e1, self.e2
-        t = tick * dt
-        self.fb_hist.append(feedback)
-        self.cue_hist.append(cue_n[0] * d[0] + cue_n[1] * d[1] + cue_n[2] * d[2])
-        seen = self.fb_hist[max(0, tick - self.delay)]
-        _, _, _, p_depth, _, p_temp, p_layer, _, p_bt, _, _ = seen
-        self.max_plunge = max(self.max_plunge, feedback[10])
-        # Aim wander (Ornstein-Uhlenbeck) and signal-dependent push noise (low-passed ~5 Hz).
-        k_ou, kick = self._k_ou, self._ou_kick
-        self.drift_u += -k_ou * self.drift_u + kick * rng.standard_normal()
-        self.drift_v += -k_ou * self.drift_v + kick * rng.standard_normal()
-        self.noise_state += 0.03 * (rng.standard_normal() - self.noise_state)
+        row = self._c.step(feedback, force_n, cue_n)
+        return None if row is None else tuple(row)
 
-        intent_s: float | None = None  # a position the arm tracks, or None: push with `push`
-        if self.phase == "approach":
-            intent_s = self.start_s + (-3e-3 - self.start_s) * _min_jerk(t - self.phase_t0, self.approach_s)
-            if t - self.phase_t0 >= self.approach_s:
-                self.phase, self.phase_t0 = "align", t
-        elif self.phase == "align":
-            intent_s = -3e-3
-            self.drill_on = True
-            if t - self.phase_t0 >= self.align_s:
-                self.phase, self.phase_t0, self.push = "feed", t, 0.0
-                self.drill_on_t = t
-        elif self.phase == "feed":
-            # Perceived tip speed over the last 50 ms (as of one reaction delay ago).
-            back = self.fb_hist[max(0, tick - self.delay - 50)]
-            speed = (p_depth - back[3]) / 0.05
-            ceiling = style.push_cortical_n if p_layer == Layer.CORTICAL else style.push_soft_n
-            easing = p_depth > self.breakthrough_depth_m - style.anticipation_m
-            if style.anticipates_breakthrough and p_layer == Layer.CORTICAL and easing:
-                ceiling = style.ease_fraction * style.push_cortical_n  # the cortex is thinning: ease off
-            if p_bt > self.seen_breakthroughs:
-                self.seen_breakthroughs = p_bt
-                self.retract_until = t + 0.25
-            if p_temp > style.caution_temp_c:
-                self.cooling = True
-            elif self.cooling and p_temp < style.caution_temp_c - 2.0:
-                self.cooling = False
-            if style.hesitations_per_s > 0 and t > self.pause_until and rng.random() < style.hesitations_per_s * dt:
-                self.pause_until = t + style.hesitation_s
-            if t < self.retract_until or self.cooling or t < self.pause_until:
-                # Hold still (pulled 1 mm back after a breakthrough): a pausing hand does not go limp.
-                if self.hold_s is None:
-                    self.hold_s = self.s - (1e-3 if t < self.retract_until else 0.0)
-                intent_s = self.hold_s
-                self.push = self.lean = 0.0
-            else:
-                self.hold_s = None
-                # Integral control of the push towards the preferred feed, within the ceiling.
-                self.push += 2.4 * style.feed_gain * (style.feed_m_s - speed) / style.feed_m_s * dt * ceiling
-                self.push = min(max(self.push, 0.0), ceiling)
-                # Lean into the cue as perceived a reaction delay ago: a cue along -d (pushing the
-                # drill back) means the expert pressed harder.
-                cue_seen = self.cue_hist[max(0, tick - self.delay)]
-                if not self.reads_cue:
-                    pass  # felt only: the cue is in force_n, which the arm's impedance answers
-                elif self.yields:
-                    # Yielding: give way by what the cue asks, after the reaction delay (a hand
-                    # settling onto the new force within about 0.2 s), not more.
-                    self.lean += (cue_seen - self.lean) * dt / YIELD_SETTLE_S
-                else:
-                    self.lean += (-style.cue_follow_per_s * cue_seen - CUE_LEAK_PER_S * self.lean) * dt
-            self.drill_on = not self.cooling
-            if p_depth >= self.length - style.stop_margin_m:
-                self.phase, self.phase_t0 = "stop", t
-                self.hold_s = self.s
-                self.stop_s = self.s
-        elif self.phase == "stop":
-            intent_s = self.stop_s
-            self.drill_on = False
-            if self.drill_off_t is None:
-                self.drill_off_t = t
-            if t - self.phase_t0 >= 0.5:
-                self.phase = "done"
-                return None
+    @property
+    def native(self) -> _bone_sim.SurgeonController:
+        """The core's controller, for :meth:`dhg.DrillingSession.drive`."""
+        return self._c
 
-        # Hand dynamics (semi-implicit Euler at 1 kHz).
-        fx, fy, fz = force_n
-        f_ax = fx * d[0] + fy * d[1] + fz * d[2]
-        self.f_ax_hist.append(f_ax)
-        f_u = fx * e1[0] + fy * e1[1] + fz * e1[2]
-        f_v = fx * e2[0] + fy * e2[1] + fz * e2[2]
-        self.s_hist.append(self.s)
-        if intent_s is not None:
-            drive = TRACK_STIFFNESS_N_PER_M * (intent_s - self.s)
-            self.aim_s = self.s
-        else:
-            # Nobody pushes much harder than the resistance they feel: a push that meets no
-            # resistance (a device that has derated, a bone that gave way) is not kept up. The
-            # lean into a guidance cue comes on top: it is what the subject was told to do.
-            felt_resistance = max(-self.f_ax_hist[max(0, tick - self.delay)], 0.0)
-            own = min(self.push, felt_resistance + PUSH_MARGIN_N)
-            push = min(max(own + self.lean, 0.0), MAX_PUSH_N)
-            push *= 1.0 + style.noise_fraction * self.noise_state * 5.0
-            # The arm pushes towards an aim that moves on at the preferred feed and follows, slowly,
-            # where the hand was felt one reaction delay ago: its stiffness resists travel ahead of
-            # the aim, so a sudden give is caught after about push / stiffness. (An aim that
-            # followed the felt position at once would make a delayed, unstable loop.)
-            felt_s = self.s_hist[max(0, tick - self.delay)]
-            self.aim_s += style.feed_m_s * dt + (felt_s - self.aim_s) * dt / AIM_FOLLOW_S
-            drive = push - style.arm_stiffness_n_per_m * max(self.s - self.aim_s, 0.0)
-        damping = style.hand_damping_n_s_per_m
-        mass, k_lat = style.hand_mass_kg, style.lateral_stiffness_n_per_m
-        self.vs += (drive + f_ax - damping * self.vs) / mass * dt
-        aim_u = self.drift_u + style.tremor_m * math.sin(self.w_tremor * t + self.tremor_phase[0])
-        aim_v = self.drift_v + style.tremor_m * math.sin(self.w_tremor * t + self.tremor_phase[1])
-        if self.phase == "approach":
-            frac = 1.0 - _min_jerk(t - self.phase_t0, self.approach_s)
-            aim_u += self.u0 * frac
-            aim_v += self.v0 * frac
-        self.vu += (k_lat * (aim_u - self.u) + f_u - damping * self.vu) / mass * dt
-        self.vv += (k_lat * (aim_v - self.v) + f_v - damping * self.vv) / mass * dt
-        self.s += self.vs * dt
-        self.u += self.vu * dt
-        self.v += self.vv * dt
-        s_axial = self.s + style.tremor_m * 0.3 * math.sin(self.w_tremor * t + self.tremor_phase[2])
-        a = self.a
-        x = a[0] + s_axial * d[0] + self.u * e1[0] + self.v * e2[0]
-        y = a[1] + s_axial * d[1] + self.u * e1[1] + self.v * e2[1]
-        z = a[2] + s_axial * d[2] + self.u * e1[2] + self.v * e2[2]
-        self.tick += 1
-        on = self.drill_on
-        return (x, y, z, *self.q, 1.0 if on else 0.0, style.spindle_rpm if on else 0.0)
+    def raw(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None:
+        """The attempt's 1 kHz pose rows (N, 9) and device forces (N, 3) in N, if kept."""
+        return self._c.raw()
 
 
 def run_episode(
@@ -499,9 +352,11 @@ def run_episode(
     keep_raw: bool = False,
     predictor: Callable[[npt.NDArray[np.float64]], npt.ArrayLike] | None = None,
     cue_meaning: CueMeaning = "match",
+    rest_device: bool = False,
 ) -> Episode:
     """Drills the session's planned path once with a surgeon of ``style``. The session is reset
-    first. Deterministic for the generator's state.
+    first (with ``rest_device``, the device too: zero force and cold motors, so that the attempt
+    replays exactly through a fresh session). Deterministic for the generator's state.
 
     With a ``predictor`` (a window of the last 20 records' nine features, (20, 9), to the predicted
     expert force (3,) in N; ``dhg.export.load_model(...).predict`` on one window), the model is
@@ -513,7 +368,9 @@ def run_episode(
 
     :func:`drill_episode` is the same attempt as a generator, for callers that answer the model's
     queries of many attempts at once."""
-    steps = drill_episode(session, style, rng, subject, attempt, rules, keep_raw, predictor is not None, cue_meaning)
+    steps = drill_episode(
+        session, style, rng, subject, attempt, rules, keep_raw, predictor is not None, cue_meaning, rest_device
+    )
     try:
         window = next(steps)
         while True:
@@ -533,47 +390,33 @@ def drill_episode(
     keep_raw: bool = False,
     guided: bool = False,
     cue_meaning: CueMeaning = "match",
+    rest_device: bool = False,
 ) -> Generator[npt.NDArray[np.float64], npt.NDArray[np.float64], Episode]:
     """:func:`run_episode` as a generator: when ``guided``, it yields the model's window (20, 9)
     at every 10 Hz record and takes the predicted expert force (3,) in N by ``send``; its return
     value (``StopIteration.value``) is the :class:`Episode`. The yielded array is reused: copy it
     to keep it past the next ``send``."""
     rules = rules or TaskRules()
-    session.reset()
-    native = session._s
+    session.reset(rest_device)
     path: PlannedPath = session.path
     planned = planned_breakthrough_depth_m(session.volume, path, session.config.burr_radius_m)
-    surgeon = SurgeonController(path, style, rng, rules, breakthrough_depth_m=planned, cue_meaning=cue_meaning)
-    max_ticks = surgeon.max_ticks
+    surgeon = SurgeonController(
+        path, style, rng, rules, breakthrough_depth_m=planned, cue_meaning=cue_meaning, keep_raw=keep_raw
+    )
     records: list[npt.NDArray[np.float64]] = []
-    raw_poses = np.empty((max_ticks, 9)) if keep_raw else None
-    raw_forces = np.empty((max_ticks, 3)) if keep_raw else None
-    force = (0.0, 0.0, 0.0)
-    cue = (0.0, 0.0, 0.0)
-    end_tick = max_ticks
     window = np.empty((WINDOW_RECORDS, 9))
-    for tick in range(max_ticks):
-        row = surgeon.step(native.feedback(), force, cue)
-        if row is None:
-            end_tick = tick
-            break
-        f, record = native.tick(row)
-        force = (float(f[0]), float(f[1]), float(f[2]))
+    while (record := session.drive(surgeon, guided)) is not None:
+        records.append(record)
         if guided:
-            cue = native.guidance_share()
-        if keep_raw:
-            raw_poses[tick] = row
-            raw_forces[tick] = force
-        if record is not None:
-            records.append(record)
-            if guided:
-                recent = records[-WINDOW_RECORDS:]
-                pad = WINDOW_RECORDS - len(recent)
-                window[:pad] = recent[0][1:10]
-                for i, r in enumerate(recent):
-                    window[pad + i] = r[1:10]
-                predicted = yield window
-                native.set_prediction((float(predicted[0]), float(predicted[1]), float(predicted[2])))
+            recent = records[-WINDOW_RECORDS:]
+            pad = WINDOW_RECORDS - len(recent)
+            window[:pad] = recent[0][1:10]
+            for i, r in enumerate(recent):
+                window[pad + i] = r[1:10]
+            predicted = yield window
+            session.set_prediction((float(predicted[0]), float(predicted[1]), float(predicted[2])))
+    raw = surgeon.raw()
+    raw_poses, raw_forces = raw if raw is not None else (None, None)
     rec = np.array(records) if records else np.empty((0, 11))
     st = session.state
     metrics = skill_metrics(
@@ -585,7 +428,7 @@ def drill_episode(
         plunge_depth_m=surgeon.max_plunge,
         peak_temperature_c=st.peak_temperature_c,
         time_above_47_s=st.time_above_47_s,
-        forces_n=raw_forces[:end_tick] if keep_raw else None,
+        forces_n=raw_forces,
     )
     return Episode(
         subject=subject,
@@ -594,8 +437,8 @@ def drill_episode(
         style=style,
         records=rec,
         metrics=metrics,
-        raw_poses=raw_poses[:end_tick] if keep_raw else None,
-        raw_forces_n=raw_forces[:end_tick] if keep_raw else None,
+        raw_poses=raw_poses,
+        raw_forces_n=raw_forces,
         extra={"reached_target": float(surgeon.phase == "done")},
     )
 

@@ -65,7 +65,7 @@ def synthesize(
         runs: list[Episode] = []
         for attempt in range(attempts):
             rng = np.random.default_rng([seed, 0 if skill == "expert" else 1, index, attempt + 1])
-            runs.append(run_episode(session, style, rng, subject_id, attempt, rules, keep_raw))
+            runs.append(run_episode(session, style, rng, subject_id, attempt, rules, keep_raw, rest_device=True))
             done += 1
             if progress is not None:
                 progress(done, total)

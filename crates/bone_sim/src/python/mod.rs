@@ -8,6 +8,7 @@ mod convert;
 mod errors;
 mod server;
 mod session;
+mod surgeon;
 mod volume;
 
 use pyo3::prelude::*;
@@ -25,6 +26,9 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<volume::PyDrilledVolume>()?;
     m.add_class::<session::PySession>()?;
     m.add_class::<server::PyServer>()?;
+    m.add_class::<surgeon::PySurgeon>()?;
+    m.add_function(wrap_pyfunction!(surgeon::surgeon_constants, m)?)?;
+    m.add_function(wrap_pyfunction!(surgeon::axis_quaternion, m)?)?;
     m.add_function(wrap_pyfunction!(server::protocol_layouts, m)?)?;
     m.add_function(wrap_pyfunction!(server::check_session_id, m)?)?;
     m.add_function(wrap_pyfunction!(server::defaults, m)?)?;

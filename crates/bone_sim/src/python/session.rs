@@ -37,7 +37,7 @@ fn pose_from_row(row: &[f64]) -> Option<Pose> {
     Some(Pose::new([row[0], row[1], row[2]], [row[3], row[4], row[5], row[6]], row[7] > 0.5, row[8]))
 }
 
-fn record_row(r: &Record) -> [f64; RECORD_COLUMNS] {
+pub(crate) fn record_row(r: &Record) -> [f64; RECORD_COLUMNS] {
     let mut row = [0.0; RECORD_COLUMNS];
     row[0] = r.time_s;
     row[1..=FEATURE_COUNT].copy_from_slice(&r.features);
@@ -90,6 +90,12 @@ type StepArrays<'py> = (Bound<'py, PyArray2<f64>>, Bound<'py, PyArray2<f64>>);
 #[pyclass(name = "DrillingSession", module = "dhg._bone_sim")]
 pub struct PySession {
     inner: DrillingSession,
+}
+
+impl PySession {
+    pub(crate) fn native_mut(&mut self) -> &mut DrillingSession {
+        &mut self.inner
+    }
 }
 
 #[pymethods]
@@ -266,9 +272,15 @@ impl PySession {
         self.inner.planned_breakthrough_depth_m()
     }
 
-    /// Restores the undrilled bone and a fresh state.
-    fn reset(&mut self) {
-        self.inner.reset();
+    /// Restores the undrilled bone and a fresh state; with `rest_device`, the device too (zero
+    /// force, cold motors), as for a new device.
+    #[pyo3(signature = (rest_device=false))]
+    fn reset(&mut self, rest_device: bool) {
+        if rest_device {
+            self.inner.reset_device();
+        } else {
+            self.inner.reset();
+        }
     }
 
     /// X-ray line integrals of the bone as drilled: (top, front, side).
@@ -282,6 +294,19 @@ impl PySession {
     #[getter]
     fn memory_bytes(&self) -> usize {
         self.inner.bone().memory_bytes()
+    }
+
+    /// Drills with `surgeon` (a `SurgeonController`) until the next 10 Hz record (its 11-column
+    /// row) or until the surgeon finishes (None). With `guided`, the surgeon reads the guidance
+    /// share as its cue.
+    #[pyo3(signature = (surgeon, guided=false))]
+    fn drive<'py>(
+        &mut self,
+        py: Python<'py>,
+        mut surgeon: PyRefMut<'_, super::surgeon::PySurgeon>,
+        guided: bool,
+    ) -> Option<Bound<'py, PyArray1<f64>>> {
+        super::surgeon::drive(py, self, &mut surgeon, guided)
     }
 
     /// The configuration in use, as a nested dict of `dhg.SessionConfig`'s fields.

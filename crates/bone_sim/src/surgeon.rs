@@ -1,0 +1,886 @@
+//! The virtual surgeon: a human-like operator that drills the planned path at 1 kHz.
+//!
+//! It models a hand holding the stylus: a mass with arm damping, driven by the push the surgeon
+//! intends and pushed back by the device force. What the surgeon *does* depends on what they
+//! *perceived* one reaction delay ago. The phases are:
+//!
+//! 1. approach: a minimum-jerk reach (Flash & Hogan 1985) from a resting point to 3 mm before A;
+//! 2. align and spin up the drill;
+//! 3. feed: the push is regulated towards a preferred feed but never exceeds a layer-dependent
+//!    ceiling (firm in cortical bone, light in cancellous bone and marrow); surgeons who
+//!    anticipate the breakthrough ease off as the cortex thins, and all stop to let the drill
+//!    cool above their caution temperature; novices hesitate;
+//! 4. breakthrough: once the surgeon feels the cortex give (after the reaction delay), they hold
+//!    and pull back 1 mm. A late reaction and a loose arm make a deeper plunge;
+//! 5. stop near B and switch the drill off.
+//!
+//! Human motor behaviour: physiological tremor of 8–12 Hz (Elble 1990), signal-dependent noise on
+//! the push (Harris & Wolpert 1998), lateral drift of the aim (an Ornstein–Uhlenbeck wander), a
+//! reaction delay, and an arm that pushes by aiming just ahead of where the hand was felt (an
+//! equilibrium point, Feldman 1986; Bizzi et al. 1992). Styles are drawn per subject by the
+//! Python package (`dhg.surgeons.sample_style`); this module is the surgeon's 1 kHz step, so that
+//! an offline study drills at the core's speed, and a remote trainee (`dhg trainee`) steps the
+//! same code per received state.
+//!
+//! Randomness comes from a seeded `ChaCha8` generator: an attempt is a function of its seed.
+
+use nalgebra::{Point3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{SimError, SimResult};
+use crate::path::PlannedPath;
+use crate::record::{Record, TICK_S};
+use crate::session::{DrillingSession, Pose, SessionState};
+use crate::volume::layer::Layer;
+
+/// Effective mass of hand and stylus at the stylus tip (kg): the default of
+/// [`SurgeonStyle::hand_mass_kg`].
+pub const HAND_MASS_KG: f64 = 0.4;
+/// How stiffly the arm follows an intended position (N/m), for the approach and holding; the
+/// default of [`SurgeonStyle::arm_stiffness_n_per_m`].
+pub const TRACK_STIFFNESS_N_PER_M: f64 = 300.0;
+/// How stiffly the arm holds the drill on its aim across the path (N/m); the default of
+/// [`SurgeonStyle::lateral_stiffness_n_per_m`].
+pub const LATERAL_STIFFNESS_N_PER_M: f64 = 250.0;
+/// Tip depth at which a surgeon without a plan expects the first cortex to give (m): about
+/// 3.5 mm of cortex less a 2.5 mm burr's reach.
+pub const GENERIC_BREAKTHROUGH_DEPTH_M: f64 = 2.2e-3;
+/// Time constant (s) with which the arm's aim follows the felt hand position.
+pub const AIM_FOLLOW_S: f64 = 0.5;
+/// How much harder than the resistance they feel (N, one reaction delay ago) a subject pushes.
+pub const PUSH_MARGIN_N: f64 = 0.4;
+/// Most axial push any subject applies, however strongly a guidance cue asks for more (N).
+pub const MAX_PUSH_N: f64 = 3.0;
+/// How fast a surgeon who yields to the guidance settles onto what it asks (s).
+pub const YIELD_SETTLE_S: f64 = 0.2;
+/// How fast the lean a cue built up fades once the cue is gone (1/s): a remembered instruction
+/// fades, and a model biased in one direction cannot wind the push up for ever.
+pub const CUE_LEAK_PER_S: f64 = 0.2;
+/// Where the hand starts along A→B (m): 25 mm before the entry.
+const START_S_M: f64 = -25e-3;
+/// Where the approach ends and the drill is aligned (m along A→B): 3 mm before the entry.
+const ALIGNED_S_M: f64 = -3e-3;
+/// SD of the hand's starting offset across the path (m).
+const START_SPREAD_M: f64 = 3e-3;
+/// How slowly the aim wanders (s): the Ornstein–Uhlenbeck time constant of the lateral drift.
+const DRIFT_TAU_S: f64 = 1.5;
+/// Window over which the surgeon perceives the feed rate (ticks, 50 ms).
+const SPEED_WINDOW_TICKS: usize = 50;
+/// How long the surgeon holds and pulls back after feeling a breakthrough (s).
+const RETRACT_S: f64 = 0.25;
+/// How far the surgeon pulls back after feeling a breakthrough (m).
+const RETRACT_M: f64 = 1e-3;
+/// How much cooler than their caution temperature the drill must get before a cautious surgeon
+/// feeds again (°C).
+const COOL_HYSTERESIS_C: f64 = 2.0;
+/// How long the surgeon holds still at the stop before finishing (s).
+const STOP_HOLD_S: f64 = 0.5;
+
+/// A subject's skill group.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Skill {
+    /// An experienced surgeon.
+    Expert,
+    /// A trainee.
+    Novice,
+}
+
+/// What the surgeon was told the guidance means.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CueMeaning {
+    /// The paper's force-matching cue: lean into a cue that pushes the drill back, ease off one
+    /// that pulls it in.
+    Match,
+    /// Guidance that shapes the motion (corridor, brake, shaped): ease off where it resists, go
+    /// with it where it pulls.
+    Yield,
+    /// Nothing: the cue acts on the hand only through the arm's impedance, as any force does.
+    Felt,
+}
+
+impl CueMeaning {
+    /// Parses `"match"`, `"yield"` or `"felt"`.
+    ///
+    /// # Errors
+    /// Any other name.
+    pub fn from_name(name: &str) -> SimResult<Self> {
+        match name {
+            "match" => Ok(Self::Match),
+            "yield" => Ok(Self::Yield),
+            "felt" => Ok(Self::Felt),
+            _ => Err(SimError::InvalidOption {
+                name: "cue_meaning",
+                value: name.to_owned(),
+                allowed: "'match', 'yield', 'felt'",
+            }),
+        }
+    }
+}
+
+/// One subject's style and motor parameters (SI units; forces are device newtons). The Python
+/// package's `dhg.surgeons.SurgeonStyle` carries the same fields, with their documentation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+#[allow(clippy::struct_excessive_bools)] // two independent traits of a subject
+pub struct SurgeonStyle {
+    /// Skill group.
+    pub skill: Skill,
+    /// Most the subject pushes in cortical bone (N on the device).
+    pub push_cortical_n: f64,
+    /// Most the subject pushes in cancellous bone and marrow (N).
+    pub push_soft_n: f64,
+    /// Preferred feed rate where the bone allows it (m/s).
+    pub feed_m_s: f64,
+    /// How briskly the push is adjusted towards the preferred feed (1 = an expert's).
+    pub feed_gain: f64,
+    /// Delay between a change in what they feel and their response (s).
+    pub reaction_delay_s: f64,
+    /// Arm co-contraction: damping of sudden hand motion (N·s/m).
+    pub hand_damping_n_s_per_m: f64,
+    /// Amplitude of physiological tremor (m).
+    pub tremor_m: f64,
+    /// Tremor frequency (Hz).
+    pub tremor_hz: f64,
+    /// Signal-dependent noise: SD of the push as a fraction of the push.
+    pub noise_fraction: f64,
+    /// Lateral wander of the aim (SD, m).
+    pub drift_m: f64,
+    /// Eases off as the cortex thins.
+    pub anticipates_breakthrough: bool,
+    /// How far before the planned breakthrough depth the subject eases off (m).
+    pub anticipation_m: f64,
+    /// Rate of pauses while feeding (1/s).
+    pub hesitations_per_s: f64,
+    /// Length of a pause (s).
+    pub hesitation_s: f64,
+    /// Above this tip temperature the subject stops feeding to let the drill cool (°C).
+    pub caution_temp_c: f64,
+    /// How far before B the subject aims to stop (m; negative = past B).
+    pub stop_margin_m: f64,
+    /// Spindle speed used (rpm).
+    pub spindle_rpm: f64,
+    /// How briskly the subject leans into a force-matching cue (1/s).
+    pub cue_follow_per_s: f64,
+    /// Stiffness of the arm around the point it pushes towards (N/m).
+    pub arm_stiffness_n_per_m: f64,
+    /// Fraction of the cortical push kept while easing off before the planned breakthrough.
+    pub ease_fraction: f64,
+    /// Effective mass of hand, arm and stylus at the stylus tip (kg).
+    pub hand_mass_kg: f64,
+    /// How stiffly the arm holds the drill on its aim across the path (N/m).
+    pub lateral_stiffness_n_per_m: f64,
+}
+
+impl SurgeonStyle {
+    /// Checks that every value is finite and physically meaningful.
+    ///
+    /// # Errors
+    /// [`SimError::NonFinite`] or [`SimError::InvalidParameter`] naming the field.
+    pub fn validate(&self) -> SimResult<()> {
+        let positive: [(&'static str, f64); 5] = [
+            ("surgeon style feed_m_s (m/s)", self.feed_m_s),
+            ("surgeon style hand_mass_kg (kg)", self.hand_mass_kg),
+            ("surgeon style tremor_hz (Hz)", self.tremor_hz),
+            ("surgeon style feed_gain", self.feed_gain),
+            ("surgeon style hand_damping_n_s_per_m (N·s/m)", self.hand_damping_n_s_per_m),
+        ];
+        let non_negative: [(&'static str, f64); 14] = [
+            ("surgeon style push_cortical_n (N)", self.push_cortical_n),
+            ("surgeon style push_soft_n (N)", self.push_soft_n),
+            ("surgeon style reaction_delay_s (s)", self.reaction_delay_s),
+            ("surgeon style tremor_m (m)", self.tremor_m),
+            ("surgeon style noise_fraction", self.noise_fraction),
+            ("surgeon style drift_m (m)", self.drift_m),
+            ("surgeon style anticipation_m (m)", self.anticipation_m),
+            ("surgeon style hesitations_per_s (1/s)", self.hesitations_per_s),
+            ("surgeon style hesitation_s (s)", self.hesitation_s),
+            ("surgeon style spindle_rpm (rpm)", self.spindle_rpm),
+            ("surgeon style cue_follow_per_s (1/s)", self.cue_follow_per_s),
+            ("surgeon style arm_stiffness_n_per_m (N/m)", self.arm_stiffness_n_per_m),
+            ("surgeon style ease_fraction", self.ease_fraction),
+            ("surgeon style lateral_stiffness_n_per_m (N/m)", self.lateral_stiffness_n_per_m),
+        ];
+        for (what, value) in positive.iter().chain(&non_negative).copied().chain([
+            ("surgeon style caution_temp_c (°C)", self.caution_temp_c),
+            ("surgeon style stop_margin_m (m)", self.stop_margin_m),
+        ]) {
+            if !value.is_finite() {
+                return Err(SimError::NonFinite { what, value });
+            }
+        }
+        for (name, value) in positive {
+            if value <= 0.0 {
+                return Err(SimError::InvalidParameter { name, value, reason: "must be positive" });
+            }
+        }
+        for (name, value) in non_negative {
+            if value < 0.0 {
+                return Err(SimError::InvalidParameter { name, value, reason: "must not be negative" });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What the surgeon perceives of the drill each tick: the part of the session's state a hand and
+/// a screen convey.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Perception {
+    /// Tip depth along A→B (m).
+    pub depth_m: f64,
+    /// Drill-tip temperature (°C).
+    pub temperature_c: f64,
+    /// The layer at the burr's front.
+    pub layer: Layer,
+    /// Breakthroughs so far.
+    pub breakthroughs: u32,
+    /// Depth of the current or last plunge (m).
+    pub plunge_depth_m: f64,
+}
+
+impl Perception {
+    /// What a surgeon perceives of a session in this state.
+    #[must_use]
+    pub fn of(state: &SessionState) -> Self {
+        Self {
+            depth_m: state.depth_m,
+            temperature_c: state.temperature_c,
+            layer: state.layer,
+            breakthroughs: state.breakthroughs,
+            plunge_depth_m: state.plunge_depth_m,
+        }
+    }
+}
+
+/// Where the surgeon is in the attempt.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Phase {
+    /// Reaching towards the entry.
+    Approach,
+    /// Aligned before the entry, spinning the drill up.
+    Align,
+    /// Drilling along the path.
+    Feed,
+    /// Holding at the end with the drill off.
+    Stop,
+    /// Finished.
+    Done,
+}
+
+impl Phase {
+    /// The phase's name: `approach`, `align`, `feed`, `stop` or `done`.
+    #[must_use]
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Approach => "approach",
+            Self::Align => "align",
+            Self::Feed => "feed",
+            Self::Stop => "stop",
+            Self::Done => "done",
+        }
+    }
+}
+
+/// What the surgeon remembers of one tick, for acting on it a reaction delay later.
+#[derive(Debug, Clone, Copy)]
+struct Felt {
+    seen: Perception,
+    /// The guidance cue along A→B (N).
+    cue_axial_n: f64,
+    /// The device force along A→B (N).
+    force_axial_n: f64,
+    /// The hand's position along A→B (m).
+    hand_s_m: f64,
+}
+
+/// Minimum-jerk position profile from 0 to 1 (Flash & Hogan 1985).
+fn min_jerk(t: f64, duration: f64) -> f64 {
+    let x = (t / duration).clamp(0.0, 1.0);
+    x.powi(3) * (10.0 - 15.0 * x + 6.0 * x * x)
+}
+
+/// Two unit vectors across the unit direction `d`, with `d` a right-handed frame.
+fn basis(d: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+    let helper = if d.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+    let e1 = d.cross(&helper).normalize();
+    (e1, d.cross(&e1))
+}
+
+/// The stylus orientation (w, x, y, z) that points the drill's +z along the unit direction `d`.
+#[must_use]
+pub fn axis_quaternion(d: &Vector3<f64>) -> [f64; 4] {
+    let c = Vector3::z().cross(d);
+    let q = nalgebra::Vector4::new(1.0 + d.z, c.x, c.y, c.z);
+    let n = q.norm();
+    if n > 1e-9 {
+        [q.x / n, q.y / n, q.z / n, q.w / n]
+    } else {
+        [0.0, 1.0, 0.0, 0.0]
+    }
+}
+
+/// The virtual surgeon's decisions and hand, one 1 kHz tick at a time (see the module docs).
+#[derive(Debug, Clone)]
+#[allow(clippy::struct_excessive_bools)] // the hand's independent states
+pub struct SurgeonController {
+    style: SurgeonStyle,
+    rng: ChaCha8Rng,
+    entry: Point3<f64>,
+    d: Vector3<f64>,
+    e1: Vector3<f64>,
+    e2: Vector3<f64>,
+    quat: [f64; 4],
+    length_m: f64,
+    breakthrough_depth_m: f64,
+    yields: bool,
+    reads_cue: bool,
+    max_ticks: usize,
+    delay: usize,
+    u0: f64,
+    v0: f64,
+    approach_s: f64,
+    align_s: f64,
+    tremor_phase: [f64; 3],
+    w_tremor: f64,
+    k_ou: f64,
+    ou_kick: f64,
+    // The hand in path coordinates: s along A→B, (u, v) across, and their velocities.
+    s: f64,
+    u: f64,
+    v: f64,
+    vs: f64,
+    vu: f64,
+    vv: f64,
+    drift_u: f64,
+    drift_v: f64,
+    noise_state: f64,
+    push: f64,
+    lean: f64,
+    aim_s: f64,
+    stop_s: f64,
+    phase: Phase,
+    phase_t0: f64,
+    hold_s: Option<f64>,
+    pause_until: f64,
+    cooling: bool,
+    retract_until: f64,
+    seen_breakthroughs: u32,
+    drill_on: bool,
+    drill_on_t: Option<f64>,
+    drill_off_t: Option<f64>,
+    max_plunge_m: f64,
+    /// The last `delay + SPEED_WINDOW_TICKS + 1` ticks, by tick modulo its length.
+    history: Vec<Felt>,
+    tick: usize,
+    /// The device force and guidance share of the last tick driven by [`Self::drill_until_record`].
+    last_force_n: Vector3<f64>,
+    last_cue_n: Vector3<f64>,
+}
+
+impl SurgeonController {
+    /// A surgeon of `style` about to drill `path`, for at most `max_duration_s`, expecting the
+    /// first cortex to give at tip depth `breakthrough_depth_m` (m; `None`: about 2.2 mm, the
+    /// depth without a plan), and reading guidance as `cue_meaning` says. `seed` fixes every
+    /// random draw of the attempt.
+    ///
+    /// # Errors
+    /// An invalid style or a non-finite or non-positive duration.
+    pub fn new(
+        path: &PlannedPath,
+        style: SurgeonStyle,
+        seed: u64,
+        max_duration_s: f64,
+        breakthrough_depth_m: Option<f64>,
+        cue_meaning: CueMeaning,
+    ) -> SimResult<Self> {
+        style.validate()?;
+        if !(max_duration_s.is_finite() && max_duration_s > 0.0) {
+            return Err(SimError::InvalidParameter {
+                name: "max_duration_s (s)",
+                value: max_duration_s,
+                reason: "must be positive and finite",
+            });
+        }
+        let breakthrough_depth_m = breakthrough_depth_m.unwrap_or(GENERIC_BREAKTHROUGH_DEPTH_M);
+        if !breakthrough_depth_m.is_finite() {
+            return Err(SimError::NonFinite { what: "breakthrough_depth_m (m)", value: breakthrough_depth_m });
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let d = path.direction();
+        let (e1, e2) = basis(&d);
+        let max_ticks = (max_duration_s / TICK_S) as usize;
+        let delay = ((style.reaction_delay_s / TICK_S).round_ties_even() as usize).max(1);
+        let normal = |rng: &mut ChaCha8Rng| -> f64 { rng.sample(StandardNormal) };
+        let u0 = START_SPREAD_M * normal(&mut rng);
+        let v0 = START_SPREAD_M * normal(&mut rng);
+        let approach_s = rng.gen_range(1.2..2.0);
+        let align_s = rng.gen_range(0.3..0.7);
+        let tau = std::f64::consts::TAU;
+        let tremor_phase = [rng.gen_range(0.0..tau), rng.gen_range(0.0..tau), rng.gen_range(0.0..tau)];
+        let k_ou = TICK_S / DRIFT_TAU_S;
+        let empty = Felt {
+            seen: Perception {
+                depth_m: 0.0,
+                temperature_c: 0.0,
+                layer: Layer::Outside,
+                breakthroughs: 0,
+                plunge_depth_m: 0.0,
+            },
+            cue_axial_n: 0.0,
+            force_axial_n: 0.0,
+            hand_s_m: 0.0,
+        };
+        Ok(Self {
+            w_tremor: tau * style.tremor_hz,
+            ou_kick: style.drift_m * (2.0 * k_ou).sqrt(),
+            k_ou,
+            rng,
+            entry: path.entry_m(),
+            d,
+            e1,
+            e2,
+            quat: axis_quaternion(&d),
+            length_m: path.length_m(),
+            breakthrough_depth_m,
+            yields: cue_meaning == CueMeaning::Yield,
+            reads_cue: cue_meaning != CueMeaning::Felt,
+            max_ticks,
+            delay,
+            u0,
+            v0,
+            approach_s,
+            align_s,
+            tremor_phase,
+            s: START_S_M,
+            u: u0,
+            v: v0,
+            vs: 0.0,
+            vu: 0.0,
+            vv: 0.0,
+            drift_u: 0.0,
+            drift_v: 0.0,
+            noise_state: 0.0,
+            push: 0.0,
+            lean: 0.0,
+            aim_s: START_S_M,
+            stop_s: 0.0,
+            phase: Phase::Approach,
+            phase_t0: 0.0,
+            hold_s: None,
+            pause_until: -1.0,
+            cooling: false,
+            retract_until: -1.0,
+            seen_breakthroughs: 0,
+            drill_on: false,
+            drill_on_t: None,
+            drill_off_t: None,
+            max_plunge_m: 0.0,
+            history: vec![empty; delay + SPEED_WINDOW_TICKS + 1],
+            tick: 0,
+            last_force_n: Vector3::zeros(),
+            last_cue_n: Vector3::zeros(),
+            style,
+        })
+    }
+
+    /// The subject's style.
+    #[must_use]
+    pub fn style(&self) -> &SurgeonStyle {
+        &self.style
+    }
+
+    /// Whether the surgeon has finished (stopped at B, or ran out of time).
+    #[must_use]
+    pub fn done(&self) -> bool {
+        self.phase == Phase::Done || self.tick >= self.max_ticks
+    }
+
+    /// Where the surgeon is in the attempt.
+    #[must_use]
+    pub fn phase(&self) -> Phase {
+        self.phase
+    }
+
+    /// Ticks stepped so far.
+    #[must_use]
+    pub fn ticks(&self) -> usize {
+        self.tick
+    }
+
+    /// The most ticks the attempt may last.
+    #[must_use]
+    pub fn max_ticks(&self) -> usize {
+        self.max_ticks
+    }
+
+    /// Time from drill start to drill stop (s), as far as the attempt has come.
+    #[must_use]
+    pub fn drilling_s(&self) -> f64 {
+        let end = self.drill_off_t.unwrap_or(self.tick as f64 * TICK_S);
+        end - self.drill_on_t.unwrap_or(0.0)
+    }
+
+    /// The push the surgeon means to make along A→B (N), before the lean into a cue: the feed
+    /// controller's output, within the layer's ceiling.
+    #[must_use]
+    pub fn push_n(&self) -> f64 {
+        self.push
+    }
+
+    /// The push added in response to the guidance cue (N).
+    #[must_use]
+    pub fn lean_n(&self) -> f64 {
+        self.lean
+    }
+
+    /// The deepest plunge seen so far (m).
+    #[must_use]
+    pub fn max_plunge_m(&self) -> f64 {
+        self.max_plunge_m
+    }
+
+    fn felt(&self, tick: usize) -> &Felt {
+        &self.history[tick % self.history.len()]
+    }
+
+    fn felt_mut(&mut self, tick: usize) -> &mut Felt {
+        let n = self.history.len();
+        &mut self.history[tick % n]
+    }
+
+    /// The pose row (x, y, z, qw, qx, qy, qz, `drill_on`, `spindle_rpm`) for this tick, or `None`
+    /// once the surgeon has finished. `now` is what the stylus reports this tick, `force_n` the
+    /// whole force the device rendered last tick (N, world frame) and `cue_n` its guidance share
+    /// (N), which the surgeon also reads as `cue_meaning` says.
+    pub fn step(&mut self, now: &Perception, force_n: &Vector3<f64>, cue_n: &Vector3<f64>) -> Option<[f64; 9]> {
+        if self.done() {
+            return None;
+        }
+        let tick = self.tick;
+        let t = tick as f64 * TICK_S;
+        let dt = TICK_S;
+        let d = self.d;
+        *self.felt_mut(tick) = Felt { seen: *now, cue_axial_n: cue_n.dot(&d), force_axial_n: 0.0, hand_s_m: self.s };
+        let delayed = tick.saturating_sub(self.delay);
+        let seen = self.felt(delayed).seen;
+        self.max_plunge_m = self.max_plunge_m.max(now.plunge_depth_m);
+        // Aim wander (Ornstein–Uhlenbeck) and signal-dependent push noise (low-passed ~5 Hz).
+        let (n_u, n_v, n_push): (f64, f64, f64) =
+            (self.rng.sample(StandardNormal), self.rng.sample(StandardNormal), self.rng.sample(StandardNormal));
+        self.drift_u += -self.k_ou * self.drift_u + self.ou_kick * n_u;
+        self.drift_v += -self.k_ou * self.drift_v + self.ou_kick * n_v;
+        self.noise_state += 0.03 * (n_push - self.noise_state);
+
+        let intent_s = match self.phase {
+            Phase::Approach => {
+                let into = t - self.phase_t0;
+                if into >= self.approach_s {
+                    self.phase = Phase::Align;
+                    self.phase_t0 = t;
+                }
+                Some(START_S_M + (ALIGNED_S_M - START_S_M) * min_jerk(into, self.approach_s))
+            }
+            Phase::Align => {
+                self.drill_on = true;
+                if t - self.phase_t0 >= self.align_s {
+                    self.phase = Phase::Feed;
+                    self.phase_t0 = t;
+                    self.push = 0.0;
+                    self.drill_on_t = Some(t);
+                }
+                Some(ALIGNED_S_M)
+            }
+            Phase::Feed => self.feed(t, &seen),
+            Phase::Stop => {
+                self.drill_on = false;
+                self.drill_off_t.get_or_insert(t);
+                if t - self.phase_t0 >= STOP_HOLD_S {
+                    self.phase = Phase::Done;
+                    return None;
+                }
+                Some(self.stop_s)
+            }
+            Phase::Done => return None,
+        };
+
+        // Hand dynamics (semi-implicit Euler at 1 kHz).
+        let style = &self.style;
+        let f_ax = force_n.dot(&d);
+        let f_u = force_n.dot(&self.e1);
+        let f_v = force_n.dot(&self.e2);
+        let slots = self.history.len();
+        self.history[tick % slots].force_axial_n = f_ax;
+        let drive = if let Some(intent) = intent_s {
+            self.aim_s = self.s;
+            TRACK_STIFFNESS_N_PER_M * (intent - self.s)
+        } else {
+            // Nobody pushes much harder than the resistance they feel: a push that meets no
+            // resistance (a device that has derated, a bone that gave way) is not kept up. The
+            // lean into a guidance cue comes on top: it is what the subject was told to do.
+            let then = self.felt(delayed);
+            let felt_resistance = (-then.force_axial_n).max(0.0);
+            let own = self.push.min(felt_resistance + PUSH_MARGIN_N);
+            let mut push = (own + self.lean).clamp(0.0, MAX_PUSH_N);
+            push *= 1.0 + style.noise_fraction * self.noise_state * 5.0;
+            // The arm pushes towards an aim that moves on at the preferred feed and follows,
+            // slowly, where the hand was felt one reaction delay ago: its stiffness resists travel
+            // ahead of the aim, so a sudden give is caught after about push / stiffness. (An aim
+            // that followed the felt position at once would make a delayed, unstable loop.)
+            self.aim_s += style.feed_m_s * dt + (then.hand_s_m - self.aim_s) * dt / AIM_FOLLOW_S;
+            push - style.arm_stiffness_n_per_m * (self.s - self.aim_s).max(0.0)
+        };
+        let (damping, mass, k_lat) =
+            (style.hand_damping_n_s_per_m, style.hand_mass_kg, style.lateral_stiffness_n_per_m);
+        self.vs += (drive + f_ax - damping * self.vs) / mass * dt;
+        let tremor = |phase: f64, amplitude: f64| amplitude * (self.w_tremor * t + phase).sin();
+        let mut aim_u = self.drift_u + tremor(self.tremor_phase[0], style.tremor_m);
+        let mut aim_v = self.drift_v + tremor(self.tremor_phase[1], style.tremor_m);
+        if self.phase == Phase::Approach {
+            let frac = 1.0 - min_jerk(t - self.phase_t0, self.approach_s);
+            aim_u += self.u0 * frac;
+            aim_v += self.v0 * frac;
+        }
+        self.vu += (k_lat * (aim_u - self.u) + f_u - damping * self.vu) / mass * dt;
+        self.vv += (k_lat * (aim_v - self.v) + f_v - damping * self.vv) / mass * dt;
+        self.s += self.vs * dt;
+        self.u += self.vu * dt;
+        self.v += self.vv * dt;
+        let s_axial = self.s + tremor(self.tremor_phase[2], style.tremor_m * 0.3);
+        let p = self.entry + d * s_axial + self.e1 * self.u + self.e2 * self.v;
+        self.tick += 1;
+        let (on, rpm) = if self.drill_on { (1.0, style.spindle_rpm) } else { (0.0, 0.0) };
+        let q = self.quat;
+        Some([p.x, p.y, p.z, q[0], q[1], q[2], q[3], on, rpm])
+    }
+
+    /// The feed phase's decisions at time `t` (s) on what was perceived a reaction delay ago:
+    /// the position to hold, or `None` to push with `self.push`.
+    fn feed(&mut self, t: f64, seen: &Perception) -> Option<f64> {
+        let style = &self.style;
+        let dt = TICK_S;
+        // Perceived tip speed over the last 50 ms (as of one reaction delay ago).
+        let back = self.felt(self.tick.saturating_sub(self.delay + SPEED_WINDOW_TICKS)).seen.depth_m;
+        let speed = (seen.depth_m - back) / (SPEED_WINDOW_TICKS as f64 * TICK_S);
+        let cortical = seen.layer == Layer::Cortical;
+        let mut ceiling = if cortical { style.push_cortical_n } else { style.push_soft_n };
+        let easing = seen.depth_m > self.breakthrough_depth_m - style.anticipation_m;
+        if style.anticipates_breakthrough && cortical && easing {
+            ceiling = style.ease_fraction * style.push_cortical_n; // the cortex is thinning: ease off
+        }
+        if seen.breakthroughs > self.seen_breakthroughs {
+            self.seen_breakthroughs = seen.breakthroughs;
+            self.retract_until = t + RETRACT_S;
+        }
+        if seen.temperature_c > style.caution_temp_c {
+            self.cooling = true;
+        } else if self.cooling && seen.temperature_c < style.caution_temp_c - COOL_HYSTERESIS_C {
+            self.cooling = false;
+        }
+        if style.hesitations_per_s > 0.0 && t > self.pause_until && self.rng.gen::<f64>() < style.hesitations_per_s * dt
+        {
+            self.pause_until = t + style.hesitation_s;
+        }
+        let intent = if t < self.retract_until || self.cooling || t < self.pause_until {
+            // Hold still (pulled back after a breakthrough): a pausing hand does not go limp.
+            let back_m = if t < self.retract_until { RETRACT_M } else { 0.0 };
+            let hold = *self.hold_s.get_or_insert(self.s - back_m);
+            self.push = 0.0;
+            self.lean = 0.0;
+            Some(hold)
+        } else {
+            self.hold_s = None;
+            // Integral control of the push towards the preferred feed, within the ceiling.
+            self.push += 2.4 * style.feed_gain * (style.feed_m_s - speed) / style.feed_m_s * dt * ceiling;
+            self.push = self.push.max(0.0).min(ceiling);
+            // The cue as perceived a reaction delay ago.
+            let cue_seen = self.felt(self.tick.saturating_sub(self.delay)).cue_axial_n;
+            if !self.reads_cue {
+                // felt only: the cue is in the force, which the arm's impedance answers
+            } else if self.yields {
+                // Yielding: give way by what the cue asks, after the reaction delay (a hand
+                // settling onto the new force within about 0.2 s), not more.
+                self.lean += (cue_seen - self.lean) * dt / YIELD_SETTLE_S;
+            } else {
+                // Matching: a cue along −d (pushing the drill back) means the expert pressed harder.
+                self.lean += (-style.cue_follow_per_s * cue_seen - CUE_LEAK_PER_S * self.lean) * dt;
+            }
+            None
+        };
+        self.drill_on = !self.cooling;
+        if seen.depth_m >= self.length_m - style.stop_margin_m {
+            self.phase = Phase::Stop;
+            self.phase_t0 = t;
+            self.hold_s = Some(self.s);
+            self.stop_s = self.s;
+        }
+        intent
+    }
+
+    /// Drills `session` with this surgeon until the session writes its next 10 Hz record
+    /// (returned), or until the surgeon finishes (`None`). The surgeon perceives the session's
+    /// state each tick and feels the force it renders; with `guided`, it also reads the
+    /// guidance share as its cue (without, the cue is zero). `on_tick` sees each tick's pose row
+    /// and force (N).
+    pub fn drill_until_record(
+        &mut self,
+        session: &mut DrillingSession,
+        guided: bool,
+        mut on_tick: impl FnMut(&[f64; 9], &Vector3<f64>),
+    ) -> Option<Record> {
+        loop {
+            let now = Perception::of(session.state());
+            let (force, cue) = (self.last_force_n, self.last_cue_n);
+            let row = self.step(&now, &force, &cue)?;
+            let pose = Pose::new([row[0], row[1], row[2]], [row[3], row[4], row[5], row[6]], row[7] > 0.5, row[8]);
+            let out = session.tick(Some(&pose));
+            self.last_force_n = out.force_n;
+            self.last_cue_n = if guided { session.state().guidance_n } else { Vector3::zeros() };
+            on_tick(&row, &out.force_n);
+            if out.record.is_some() {
+                return out.record;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::float_cmp)] // exact values the controller copies through (speed, orientation)
+mod tests {
+    use super::*;
+
+    fn novice() -> SurgeonStyle {
+        SurgeonStyle {
+            skill: Skill::Novice,
+            push_cortical_n: 1.9,
+            push_soft_n: 0.35,
+            feed_m_s: 0.9e-3,
+            feed_gain: 0.4,
+            reaction_delay_s: 0.3,
+            hand_damping_n_s_per_m: 9.0,
+            tremor_m: 0.3e-3,
+            tremor_hz: 10.0,
+            noise_fraction: 0.2,
+            drift_m: 1.2e-3,
+            anticipates_breakthrough: false,
+            anticipation_m: 0.0,
+            hesitations_per_s: 0.07,
+            hesitation_s: 2.0,
+            caution_temp_c: 57.0,
+            stop_margin_m: -1e-3,
+            spindle_rpm: 1200.0,
+            cue_follow_per_s: 2.0,
+            arm_stiffness_n_per_m: 115.0,
+            ease_fraction: 1.0,
+            hand_mass_kg: HAND_MASS_KG,
+            lateral_stiffness_n_per_m: LATERAL_STIFFNESS_N_PER_M,
+        }
+    }
+
+    fn path() -> PlannedPath {
+        PlannedPath::new(Point3::new(0.0, 0.0, 0.0), Point3::new(0.0, 0.0, 0.05)).unwrap()
+    }
+
+    fn still(depth_m: f64) -> Perception {
+        Perception { depth_m, temperature_c: 37.0, layer: Layer::Outside, breakthroughs: 0, plunge_depth_m: 0.0 }
+    }
+
+    #[test]
+    fn the_same_seed_drills_the_same_poses_and_another_seed_other_ones() {
+        let run = |seed| {
+            let mut s = SurgeonController::new(&path(), novice(), seed, 5.0, None, CueMeaning::Felt).unwrap();
+            (0..3000).map(|_| s.step(&still(0.0), &Vector3::zeros(), &Vector3::zeros()).unwrap()).collect::<Vec<_>>()
+        };
+        assert_eq!(run(7), run(7));
+        assert_ne!(run(7), run(8));
+    }
+
+    #[test]
+    fn the_approach_ends_aligned_before_the_entry_with_the_drill_on() {
+        let mut s = SurgeonController::new(&path(), novice(), 1, 5.0, None, CueMeaning::Felt).unwrap();
+        let mut row = [0.0; 9];
+        // A free hand (no force) reaches 3 mm before A within the approach and align phases.
+        while s.phase() != Phase::Feed {
+            row = s.step(&still(0.0), &Vector3::zeros(), &Vector3::zeros()).unwrap();
+        }
+        assert!((row[2] - ALIGNED_S_M).abs() < 1.5e-3, "z = {} m", row[2]);
+        assert!(row[7] > 0.5 && row[8] == 1200.0, "drill on at its speed: {row:?}");
+        // The stylus points the drill along A→B (+z): the identity orientation.
+        assert_eq!(&row[3..7], &[1.0, 0.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn a_felt_breakthrough_is_answered_after_the_reaction_delay_by_a_hold() {
+        let steady = SurgeonStyle { hesitations_per_s: 0.0, ..novice() };
+        let mut s = SurgeonController::new(&path(), steady, 3, 60.0, None, CueMeaning::Felt).unwrap();
+        let zero = Vector3::zeros();
+        while s.phase() != Phase::Feed {
+            s.step(&still(0.0), &zero, &zero);
+        }
+        // Feeding in soft bone against a light resistance; then the cortex gives at tick `bt`.
+        let resist = Vector3::new(0.0, 0.0, -0.3);
+        for _ in 0..500 {
+            s.step(&still(5e-3), &resist, &zero);
+        }
+        assert!(s.hold_s.is_none() && s.push > 0.0, "pushing before the breakthrough");
+        let broke = Perception { breakthroughs: 1, ..still(5e-3) };
+        let delay = s.delay;
+        for k in 0..delay {
+            s.step(&broke, &resist, &zero);
+            assert!(s.retract_until < 0.0, "reacted {k} ticks after the breakthrough, before its delay");
+        }
+        s.step(&broke, &resist, &zero);
+        assert!(s.retract_until > 0.0 && s.hold_s.is_some() && s.push == 0.0, "holds after the delay");
+    }
+
+    #[test]
+    fn the_surgeon_stops_at_b_and_finishes_half_a_second_later_with_the_drill_off() {
+        let mut s = SurgeonController::new(&path(), novice(), 4, 60.0, None, CueMeaning::Felt).unwrap();
+        let zero = Vector3::zeros();
+        while s.phase() != Phase::Feed {
+            s.step(&still(0.0), &zero, &zero);
+        }
+        // The tip reported past B less the stop margin (-1 mm: 51 mm), seen a reaction delay later.
+        let at_b = still(0.0511);
+        let mut before = 0;
+        while s.phase() == Phase::Feed {
+            s.step(&at_b, &zero, &zero).unwrap();
+            before += 1;
+        }
+        assert_eq!(before, s.delay + 1, "stopped when the surgeon saw B, a reaction delay later");
+        let mut ticks = 0;
+        while let Some(row) = s.step(&at_b, &zero, &zero) {
+            ticks += 1;
+            assert!(s.phase() == Phase::Stop && row[7] < 0.5 && row[8] == 0.0, "stopping, drill off");
+        }
+        assert!(s.done() && s.phase() == Phase::Done);
+        assert!((498..=500).contains(&ticks), "held {ticks} ticks");
+        assert!(s.drilling_s() > 0.0);
+    }
+
+    #[test]
+    fn an_invalid_style_or_duration_is_refused_with_the_field_named() {
+        let bad = SurgeonStyle { hand_mass_kg: 0.0, ..novice() };
+        let e = SurgeonController::new(&path(), bad, 1, 5.0, None, CueMeaning::Felt).unwrap_err();
+        assert!(e.to_string().contains("hand_mass_kg"), "{e}");
+        let nan = SurgeonStyle { tremor_m: f64::NAN, ..novice() };
+        let e = SurgeonController::new(&path(), nan, 1, 5.0, None, CueMeaning::Felt).unwrap_err();
+        assert!(matches!(e, SimError::NonFinite { .. }) && e.to_string().contains("tremor_m"), "{e}");
+        let e = SurgeonController::new(&path(), novice(), 1, 0.0, None, CueMeaning::Felt).unwrap_err();
+        assert!(e.to_string().contains("max_duration_s"), "{e}");
+        assert!(CueMeaning::from_name("obey").is_err());
+    }
+
+    #[test]
+    fn the_orientation_points_the_drill_along_the_direction() {
+        for d in [Vector3::new(1.0, 0.0, 0.0), Vector3::new(0.0, -0.6, 0.8), Vector3::new(0.0, 0.0, -1.0)] {
+            let q = axis_quaternion(&d);
+            let r = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]));
+            assert!((r * Vector3::z() - d).norm() < 1e-12, "{d:?}: {q:?}");
+        }
+    }
+}
