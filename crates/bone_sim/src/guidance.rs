@@ -42,6 +42,13 @@ use crate::path::PlannedPath;
 /// Largest accepted guidance gain.
 pub const MAX_GAIN: f64 = 4.0;
 
+/// The default [`GuidanceParams::warning_feed_m_s`] (m/s): half a novice's preferred feed
+/// (0.7–1.1 mm/s in `dhg.surgeons.sample_style`), near the 0.3–0.6 mm/s at which controlled
+/// advancement through a far cortex keeps the plunge under a millimetre (Wallace et al. 2019).
+/// Tuned on seeds 3–8: a warning by position alone held trainees who yield to it still in the
+/// last millimetre of cortex (3 of 6 reached B against 5 of 6 unguided; docs/results.md).
+pub const WARNING_FEED_M_S: f64 = 0.5e-3;
+
 /// What the guidance share renders.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -132,6 +139,12 @@ pub struct GuidanceParams {
     pub warning_n: f64,
     /// How far before the predicted breakthrough the warning ramp starts (m).
     pub warning_span_m: f64,
+    /// Near the predicted breakthrough, the warning and the model's easing cue ask the trainee to
+    /// slow down: at a feed along the axis of this (m/s) or faster they resist in full, slower in
+    /// proportion, and not at all on a tip that is still, so a trainee who yields as asked is
+    /// slowed and never held still in the cortex. 0: in full at any speed (a resistance by
+    /// position alone).
+    pub warning_feed_m_s: f64,
     /// `shaped`: the heat hold engages when the tip is within this of the session's necrosis
     /// threshold (°C below it).
     pub heat_margin_c: f64,
@@ -165,6 +178,7 @@ impl Default for GuidanceParams {
             brake_damping_n_s_per_m: 20.0,
             warning_n: 0.35,
             warning_span_m: 1.0e-3,
+            warning_feed_m_s: WARNING_FEED_M_S,
             // The expert of `dhg synth` pauses with the drill off 2 °C short of 47 °C and goes on
             // once 2 °C cooler (surgeons.py, caution_temp_c), as intermittent drilling lets the bone
             // cool (Pandey & Panda 2013 review the effect of drilling pauses); at a stop the tip
@@ -203,6 +217,7 @@ impl GuidanceParams {
         non_negative("guidance brake_damping_n_s_per_m", self.brake_damping_n_s_per_m)?;
         non_negative("guidance warning_n", self.warning_n)?;
         positive("guidance warning_span_m", self.warning_span_m)?;
+        non_negative("guidance warning_feed_m_s", self.warning_feed_m_s)?;
         non_negative("guidance heat_margin_c", self.heat_margin_c)?;
         positive("guidance heat_release_c", self.heat_release_c)?;
         non_negative("guidance heat_hold_n", self.heat_hold_n).map(|_| ())
@@ -426,7 +441,7 @@ impl Guide {
                     // through the first cortex, and 65 % fewer novices reaching B in 150 s).
                     let ease_n = self.paper_n.dot(&input.axis);
                     if ease_n > 0.0 && self.near_breakthrough(input) {
-                        f -= input.axis * ease_n;
+                        f -= input.axis * (ease_n * self.slow_down(input));
                     }
                 }
                 if mode == GuidanceMode::Shaped {
@@ -533,7 +548,17 @@ impl Guide {
         }
         let depth = input.path.depth_m(&input.tip_m);
         let ramp = ((depth - (at - p.warning_span_m)) / p.warning_span_m).clamp(0.0, 1.0);
-        -input.axis * (p.warning_n * ramp * self.gain)
+        -input.axis * (p.warning_n * ramp * self.slow_down(input) * self.gain)
+    }
+
+    /// How much of a slow-down request near the breakthrough applies at the tip's feed: 1 at
+    /// `warning_feed_m_s` or faster, in proportion below, 0 on a still or withdrawing tip.
+    fn slow_down(&self, input: &GuideInput<'_>) -> f64 {
+        let feed = self.params.warning_feed_m_s;
+        if feed <= 0.0 {
+            return 1.0;
+        }
+        (input.tip_velocity_m_s.dot(&input.axis) / feed).clamp(0.0, 1.0)
     }
 }
 
@@ -852,8 +877,9 @@ mod tests {
         assert!(!g.is_braking(), "the hold is over after 2 s");
         // And the model's axial cue, within the warning span before the predicted breakthrough
         // (10 mm here): where the expert pushed less (the paper's cue pulls in), a resistance as
-        // large; where the expert pushed harder, nothing.
-        let near = input(&path, Point3::new(0.0, 0.0, 0.0095), Vector3::zeros());
+        // large (the tip advancing faster than `warning_feed_m_s`); where the expert pushed
+        // harder, nothing.
+        let near = input(&path, Point3::new(0.0, 0.0, 0.0095), Vector3::new(0.0, 0.0, 1e-3));
         for _ in 0..300 {
             g.set_target(Vector3::new(0.0, 0.0, 0.5)); // the expert pushed 0.5 N less
             assert!(g.step(&near, 1e-3).z <= 0.0);
@@ -879,8 +905,9 @@ mod tests {
         let path = path();
         let mut g = live(GuidanceMode::Shaped);
         let p = g.params().clone();
+        // A tip advancing at 1 mm/s, faster than `warning_feed_m_s`: the warning in full.
         let at = |g: &mut Guide, depth: f64, broken: bool| {
-            let mut i = input(&path, Point3::new(0.0, 0.0, depth), Vector3::zeros());
+            let mut i = input(&path, Point3::new(0.0, 0.0, depth), Vector3::new(0.0, 0.0, 1e-3));
             i.broken_through = broken;
             let f = g.step(&i, 1e-3);
             g.set_target(Vector3::zeros());
@@ -891,6 +918,28 @@ mod tests {
         assert!((half + 0.5 * p.warning_n).abs() < 1e-9, "{half}");
         assert!((at(&mut g, 0.0101, false) + p.warning_n).abs() < 1e-9);
         assert_eq!(at(&mut g, 0.0101, true), 0.0, "once through, no warning");
+    }
+
+    #[test]
+    fn the_warning_asks_to_slow_down_and_never_holds_a_still_tip() {
+        let path = path();
+        let mut g = live(GuidanceMode::Shaped);
+        let p = g.params().clone();
+        let tip = Point3::new(0.0, 0.0, 0.0101); // past the ramp: the full warning
+        let mut at = |v: f64| {
+            let f = g.step(&input(&path, tip, Vector3::new(0.0, 0.0, v)), 1e-3).z;
+            g.set_target(Vector3::zeros());
+            f
+        };
+        assert!((at(2.0 * p.warning_feed_m_s) + p.warning_n).abs() < 1e-9, "fast: in full");
+        assert!((at(0.5 * p.warning_feed_m_s) + 0.5 * p.warning_n).abs() < 1e-9, "half the feed: half");
+        assert_eq!(at(0.0), 0.0, "a still tip is not held");
+        assert_eq!(at(-1e-3), 0.0, "nor one pulled back");
+        // With warning_feed_m_s = 0 the warning is by position alone.
+        let mut by_position = live(GuidanceMode::Shaped);
+        by_position.set_params(GuidanceParams { warning_feed_m_s: 0.0, ..p.clone() }).unwrap();
+        let still = by_position.step(&input(&path, tip, Vector3::zeros()), 1e-3).z;
+        assert!((still + p.warning_n).abs() < 1e-9, "{still}");
     }
 
     #[test]
@@ -936,7 +985,7 @@ mod tests {
         for mode in GuidanceMode::ALL {
             let mut g = live(mode);
             g.set_target(Vector3::new(0.3, 0.0, 0.3));
-            let i = input(&path, Point3::new(0.003, 0.0, 0.0099), Vector3::zeros());
+            let i = input(&path, Point3::new(0.003, 0.0, 0.0099), Vector3::new(0.0, 0.0, 1e-3));
             let on = g.step(&i, 1e-3);
             assert!(on.norm() > 0.0, "{mode:?}");
             let mut f = on;
