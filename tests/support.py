@@ -8,8 +8,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from dhg.client import TraineeClient
-from dhg.live_demo import ServerProcess, free_port
+from dhg.live.client import TraineeClient
+from dhg.live.demo import ServerProcess, free_port
 
 PEAK_FORCE_N = 3.3
 """The Touch profile's peak: nothing above it may reach a device."""

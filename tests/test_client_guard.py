@@ -1,4 +1,4 @@
-"""The client's force check (:class:`dhg.client.ForceGuard`) and the Python decoders, under
+"""The client's force check (:class:`dhg.live.client.ForceGuard`) and the Python decoders, under
 arbitrary input (hypothesis): nothing non-finite or above the device's limits is ever handed on."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dhg import protocol
-from dhg.client import ForceGuard, all_finite
-from dhg.errors import InvalidInputError
-from dhg.session import DeviceProfile
+from dhg.core import protocol
+from dhg.core.errors import InvalidInputError
+from dhg.core.session import DeviceProfile
+from dhg.live.client import ForceGuard, all_finite
 
 PEAK = DeviceProfile().peak_force_n
 RATE = DeviceProfile().max_force_rate_n_per_s
@@ -121,9 +121,9 @@ def test_the_recorder_writes_only_possible_states_and_never_stops(messages):
 
     import numpy as np
 
-    from dhg.dataset import load_dataset
-    from dhg.layers import Layer
-    from dhg.recorder import MAX_SESSION_TIME_S, SessionRecorder, valid_message
+    from dhg.core.layers import Layer
+    from dhg.data.dataset import load_dataset
+    from dhg.live.recorder import MAX_SESSION_TIME_S, SessionRecorder, valid_message
 
     with tempfile.TemporaryDirectory() as tmp:
         rec = SessionRecorder((), "prop-1", Path(tmp) / "ds", zenoh_session=object())

@@ -10,7 +10,8 @@ import pydicom
 import pytest
 from pydicom.data import get_testdata_file
 
-from dhg import CTImportError, Layer, ct
+from dhg import CTImportError, Layer
+from dhg.bone import ct
 
 CT_SMALL = get_testdata_file("CT_small.dcm")
 

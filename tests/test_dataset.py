@@ -9,9 +9,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from dhg.dataset import DatasetError, load_dataset, load_raw, records_schema, write_dataset
-from dhg.features import FEATURE_NAMES, FEATURE_UNITS
-from dhg.synth import synthesize
+from dhg.core.features import FEATURE_NAMES, FEATURE_UNITS
+from dhg.data.dataset import DatasetError, load_dataset, load_raw, records_schema, write_dataset
+from dhg.data.synth import synthesize
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +35,7 @@ def test_schema_units_and_card(small, coarse_phantom):
     assert card["sampling_rate_hz"] == 10.0
     assert [f["name"] for f in card["features"]] == list(FEATURE_NAMES)
     assert card["planned_path"] == coarse_phantom.path.to_dict()
-    assert card["generator"]["seed"] == 3 and card["volume"]["source"] == "dhg.phantom.femur"
+    assert card["generator"]["seed"] == 3 and card["volume"]["source"] == "dhg.bone.phantom.femur"
     assert len(card["episodes"]) == 3 and "completion_time_s" in card["episodes"][0]["metrics"]
     raw = load_raw(out)
     assert raw.num_rows == sum(len(e.raw_poses) for e in episodes)
@@ -133,7 +133,7 @@ def test_refuses_truncated_and_corrupt_files(copy):
 
 
 def test_writer_refuses_bad_episodes_and_leaves_nothing(tmp_path, small):
-    from dhg.dataset import EpisodeInput
+    from dhg.data.dataset import EpisodeInput
 
     bad = EpisodeInput("e0", "expert", 0, np.full((3, 11), np.nan))
     with pytest.raises(DatasetError, match="NaN"):
@@ -197,7 +197,7 @@ def test_a_rewrite_interrupted_after_the_swap_leaves_the_whole_new_dataset(tmp_p
 def test_without_an_atomic_swap_a_crash_between_renames_is_pointed_to(tmp_path, small, monkeypatch):
     import os
 
-    from dhg import dataset
+    from dhg.data import dataset
 
     out = write_dataset(tmp_path / "d", small[1][:1], {})
     monkeypatch.setattr(dataset, "_exchange", lambda a, b: False)
@@ -279,7 +279,7 @@ def test_cli_inspect_lists_the_episodes_and_plots_one(small, tmp_path):
     out, episodes = small
 
     def inspect(*args: str) -> subprocess.CompletedProcess[str]:
-        cmd = [sys.executable, "-m", "dhg.cli", "inspect", str(out), *args]
+        cmd = [sys.executable, "-m", "dhg.cli.main", "inspect", str(out), *args]
         return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
 
     png = tmp_path / "e1.png"
@@ -297,13 +297,13 @@ def test_cli_inspect_lists_the_episodes_and_plots_one(small, tmp_path):
     assert rows[0]["metrics"]["plunge_depth_m"] == episodes[0].metrics["plunge_depth_m"]
     r = inspect("--plot", str(png), "--episode", "9")
     assert r.returncode == 3 and "no episode 9 (it has episodes 0, 1, 2)" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "dhg.cli", "inspect", str(tmp_path)], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "dhg.cli.main", "inspect", str(tmp_path)], capture_output=True, text=True)
     assert r.returncode == 3 and "not a DHG dataset folder" in r.stderr
 
 
 def test_replaying_the_raw_poses_reproduces_the_forces(small, coarse_phantom):
     """docs/dataset.md: the raw stream of dhg synth replays through a fresh session exactly."""
-    from dhg.session import DrillingSession
+    from dhg.core.session import DrillingSession
 
     out, episodes = small
     raw = load_raw(out)

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dhg.export import load_model, read_model_meta
-from dhg.features import FEATURE_NAMES
-from dhg.models import default_model_path
-from dhg.phantom import default_phantom
-from dhg.synth import synthesize
+from dhg.bone.phantom import default_phantom
+from dhg.core.features import FEATURE_NAMES
+from dhg.data.synth import synthesize
+from dhg.learning.torchscript import load_model, read_model_meta
+from dhg.learning.weights import default_model_path
 
 sys.path.insert(0, str(Path(__file__).parent / "data"))
 from make_golden import golden_windows  # noqa: E402
@@ -20,7 +20,7 @@ from make_golden import golden_windows  # noqa: E402
 
 def test_bundled_model_is_the_documented_one():
     path = default_model_path()
-    assert path.is_file(), "python/dhg/models/default.ts ships with the package"
+    assert path.is_file(), "python/dhg/learning/weights/default.ts ships with the package"
     assert path.stat().st_size <= 4 * 1024 * 1024, "the bundled model must stay within 4 MB"
     meta = read_model_meta(path)
     assert meta["preset"] == "fusion-2x256" and meta["window"] == 20

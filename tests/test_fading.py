@@ -6,8 +6,12 @@ import numpy as np
 import pytest
 
 from dhg import default_phantom
-from dhg.errors import InvalidInputError
-from dhg.operators import (
+from dhg.core.errors import InvalidInputError
+from dhg.core.path import TaskRules
+from dhg.core.session import DrillingSession
+from dhg.core.surgeon import SurgeonController
+from dhg.operators.episodes import run_episode
+from dhg.operators.models import (
     ARM_MASS_KG,
     ARM_STIFFNESS_N_PER_M,
     NOVICE_REACTION_S,
@@ -15,9 +19,8 @@ from dhg.operators import (
     cue_meaning,
     operator_style,
 )
-from dhg.session import DrillingSession
-from dhg.surgeons import SurgeonController, run_episode, sample_style, scripted_stylus
-from dhg.task import TaskRules
+from dhg.operators.scripted import scripted_stylus
+from dhg.operators.styles import sample_style
 
 
 @pytest.fixture(scope="module")

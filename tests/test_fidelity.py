@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 
 import dhg
-from dhg.session import MAX_POSITION_M, MAX_SPINDLE_RPM, DrillingSession
-from dhg.surgeons import SurgeonController, planned_breakthrough_depth_m, sample_style
+from dhg.bone.planning import planned_breakthrough_depth_m
+from dhg.core.session import MAX_POSITION_M, MAX_SPINDLE_RPM, DrillingSession
+from dhg.core.surgeon import SurgeonController
+from dhg.operators.styles import sample_style
 from support import tool_quaternion
 
 BREAKTHROUGHS, PLUNGE = 8, 10  # indices in the session's feedback tuple
@@ -104,7 +106,7 @@ def test_a_long_press_settles_at_the_continuous_force(coarse_phantom):
     path = coarse_phantom.path
     q = tool_quaternion(path.direction)
     approach = path.point_at(np.linspace(-6e-3, 10e-3, 800))
-    rows = dhg.session.poses(np.vstack([approach, np.repeat(approach[-1:], 30_000, axis=0)]), q, False, 0.0)
+    rows = dhg.core.session.poses(np.vstack([approach, np.repeat(approach[-1:], 30_000, axis=0)]), q, False, 0.0)
     forces = np.linalg.norm(s.step(rows).forces_n, axis=1)
     peak = s.config.device.peak_force_n
     cont = s.config.device.continuous_force_n

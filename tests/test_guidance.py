@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dhg.errors import InvalidInputError, ShapeError
-from dhg.session import GUIDANCE_MODES, DrillingSession
+from dhg.core.errors import InvalidInputError, ShapeError
+from dhg.core.session import GUIDANCE_MODES, DrillingSession
 from support import tool_quaternion as _axis_quaternion
 
 

@@ -13,11 +13,11 @@ import time
 import numpy as np
 import pytest
 
-from dhg import protocol
-from dhg.client import TraineeClient
-from dhg.errors import InvalidInputError, TransportError
-from dhg.lab import acl, load_lab, write_lab
-from dhg.live_demo import ServerProcess, free_port
+from dhg.core import protocol
+from dhg.core.errors import InvalidInputError, TransportError
+from dhg.live.client import TraineeClient
+from dhg.live.demo import ServerProcess, free_port
+from dhg.live.lab import acl, load_lab, write_lab
 from support import wait_until as _wait
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl to create certificates")
@@ -192,7 +192,7 @@ def test_dhg_lab_config_cli_writes_the_files_and_says_how_to_use_them(tmp_path):
         [
             sys.executable,
             "-m",
-            "dhg.cli",
+            "dhg.cli.main",
             "lab-config",
             "--lab",
             str(tmp_path / "lab.toml"),
@@ -213,7 +213,7 @@ def test_dhg_lab_config_cli_writes_the_files_and_says_how_to_use_them(tmp_path):
     missing = tmp_path / "lab2.toml"
     missing.write_text(LAB.format(port=7447).replace("certs/", "nocerts/"))
     done = subprocess.run(
-        [sys.executable, "-m", "dhg.cli", "lab-config", "--lab", str(missing), "--out", str(tmp_path / "o2")],
+        [sys.executable, "-m", "dhg.cli.main", "lab-config", "--lab", str(missing), "--out", str(tmp_path / "o2")],
         capture_output=True,
         text=True,
         timeout=120,
@@ -225,7 +225,7 @@ def test_dhg_serve_with_the_lab_file_caps_each_stations_sessions(lab):
     """A station names its sessions after itself (its access-control list allows no other); with
     ``--lab`` the server lets it hold at most ``sessions_per_station`` (2) of them, so one station
     cannot take every slot. Over plain TCP: the cap does not depend on the transport."""
-    from dhg.errors import EngineError
+    from dhg.core.errors import EngineError
 
     root, _, _ = lab
     endpoint = f"tcp/127.0.0.1:{free_port()}"

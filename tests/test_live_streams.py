@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from dhg.dataset import DatasetError, EpisodeInput, load_dataset, load_raw, write_dataset
-from dhg.live_streams import RAW_COLUMNS, Episode, EpisodeSplitter, PoseLog, RawParts, force_jerk
+from dhg.data.dataset import DatasetError, EpisodeInput, load_dataset, load_raw, write_dataset
+from dhg.live.streams import RAW_COLUMNS, Episode, EpisodeSplitter, PoseLog, RawParts, force_jerk
 
 
 def _ids(split: EpisodeSplitter, stream: str, ticks: list[int]) -> list[int]:
@@ -209,8 +209,8 @@ class _NoServer:
 
 
 def test_a_force_whose_pose_comes_after_the_flush_is_still_written_by_the_final_one(tmp_path):
-    from dhg import protocol
-    from dhg.recorder import SessionRecorder
+    from dhg.core import protocol
+    from dhg.live.recorder import SessionRecorder
 
     rec = SessionRecorder((), "s1", tmp_path / "rec", raw=True, zenoh_session=_NoServer())
     state = protocol.encode("state", record_seq=1, time_s=0.1, features=[0.0] * 8 + [37.0])

@@ -14,11 +14,11 @@ import pytest
 import torch
 
 from dhg import InvalidInputError, ShapeError
-from dhg.dataset import load_dataset, write_dataset
-from dhg.export import ModelFileError, export_model, load_model, read_model_meta
-from dhg.model import ForcePredictor, LSTMRegressor, MinMaxScaler, ModelConfig, preset
-from dhg.synth import synthesize
-from dhg.train import TrainConfig, make_windows, split_windows, train
+from dhg.data.dataset import load_dataset, write_dataset
+from dhg.data.synth import synthesize
+from dhg.learning.network import ForcePredictor, LSTMRegressor, MinMaxScaler, ModelConfig, preset
+from dhg.learning.torchscript import ModelFileError, export_model, load_model, read_model_meta
+from dhg.learning.train import TrainConfig, make_windows, split_windows, train
 
 BIN = Path(sys.executable).parent
 
@@ -201,7 +201,7 @@ def test_cli_train_evaluate_and_ablate(data, tmp_path):
     assert result["windows"] > 100 and len(result["rmse_n_per_axis"]) == 3
     r = _cli("evaluate", "--model", str(tmp_path / "nothing.ts"), "--data", str(data))
     assert r.returncode == 3 and "no such model file" in r.stderr
-    from dhg.ablation import ablate
+    from dhg.learning.ablation import ablate
 
     results = ablate(data, tmp_path / "ab", TrainConfig(max_epochs=1), presets=("tiny",), seeds=(0, 1))
     table = (tmp_path / "ab" / "table.md").read_text()
@@ -223,7 +223,7 @@ def test_distributed_training_with_two_cpu_processes(data, tmp_path):
         "--nproc_per_node",
         "2",
         "-m",
-        "dhg.cli",
+        "dhg.cli.main",
         "train",
         "--data",
         str(data),
@@ -243,8 +243,8 @@ def test_distributed_training_with_two_cpu_processes(data, tmp_path):
 
 def test_a_trained_model_carries_the_experts_demonstration_profiles(run, data):
     """dhg train stores the profiles of its dataset's experts in the model file, so a server
-    given the model has them (dhg.profiles)."""
-    from dhg.profiles import build_profiles
+    given the model has them (dhg.learning.profiles)."""
+    from dhg.learning.profiles import build_profiles
 
     out, _ = run
     p = load_model(out / "model.ts").profiles

@@ -12,13 +12,13 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from dhg import protocol
-from dhg.client import TraineeClient
-from dhg.export import load_model
-from dhg.live_demo import ServerProcess
-from dhg.models import default_model_path
-from dhg.serve import ModelService
-from dhg.zenoh_config import open_zenoh, zenoh_config_json5
+from dhg.core import protocol
+from dhg.learning.torchscript import load_model
+from dhg.learning.weights import default_model_path
+from dhg.live.client import TraineeClient
+from dhg.live.demo import ServerProcess
+from dhg.live.services import ModelService
+from dhg.live.zenoh_config import open_zenoh, zenoh_config_json5
 from support import entry, serve, stream, wait_until
 
 

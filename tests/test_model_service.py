@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from dhg import protocol
-from dhg.errors import InvalidInputError
-from dhg.export import load_model
-from dhg.models import default_model_path
-from dhg.serve import ModelService
-from dhg.zenoh_config import open_zenoh, zenoh_config_json5
+from dhg.core import protocol
+from dhg.core.errors import InvalidInputError
+from dhg.learning.torchscript import load_model
+from dhg.learning.weights import default_model_path
+from dhg.live.services import ModelService
+from dhg.live.zenoh_config import open_zenoh, zenoh_config_json5
 from support import wait_until
 
 

@@ -10,10 +10,13 @@ import numpy as np
 import pytest
 
 import dhg
-from dhg import _bone_sim, errors, protocol, serve
-from dhg.live_demo import free_port
-from dhg.session import CuttingLaw, DeviceProfile, SessionConfig, ThermalParams
-from dhg.volume import HuMapping
+from dhg import _bone_sim
+from dhg.core import errors, protocol
+from dhg.core.server import ServerSettings, start_engine
+from dhg.core.session import CuttingLaw, DeviceProfile, SessionConfig, ThermalParams
+from dhg.core.volume import HuMapping
+from dhg.live.demo import free_port
+from dhg.live.zenoh_config import zenoh_config_json5
 
 CORE = _bone_sim.defaults()
 
@@ -25,7 +28,7 @@ CORE = _bone_sim.defaults()
         (CuttingLaw, CORE["session"]["cutting"]),
         (ThermalParams, CORE["session"]["thermal"]),
         (HuMapping, CORE["hu_mapping"]),
-        (serve.ServerSettings, CORE["server"]),
+        (ServerSettings, CORE["server"]),
     ],
 )
 def test_each_settings_dataclass_has_the_cores_fields_and_defaults(cls, core):
@@ -58,9 +61,10 @@ def test_a_config_crosses_the_binding_and_comes_back_the_same(coarse_phantom):
     expected = cfg.to_native() | {"coupling_stiffness_n_per_m": 300.0}  # followed the device's maximum
     assert back == expected
     given = SessionConfig(coupling_stiffness_n_per_m=150.0)
-    assert dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path, given)._s.config()[
-        "coupling_stiffness_n_per_m"
-    ] == 150.0
+    assert (
+        dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path, given)._s.config()["coupling_stiffness_n_per_m"]
+        == 150.0
+    )
     mapping = HuMapping(cortical_min_hu=650.0)
     vol = dhg.Volume.from_hu(
         np.full((4, 4, 4), 800, np.int16), (1e-3,) * 3, (0.0, 0.0, 0.0), np.eye(3), mapping=mapping
@@ -116,8 +120,8 @@ def test_each_error_kind_arrives_as_its_class(coarse_phantom):
     catch("invalid_input", lambda: _bone_sim.check_session_id(".."))
     catch("shape", lambda: vol._vol.layer_at(np.zeros((2, 2))))
     catch("transport", lambda: _bone_sim.Server(vol._vol, list(p.entry_m), list(p.target_m), "{ mode: 7 }"))
-    conf = serve.zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
-    srv = serve.start_engine(vol, p, conf, serve.ServerSettings(max_sessions=1))
+    conf = zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
+    srv = start_engine(vol, p, conf, ServerSettings(max_sessions=1))
     try:
         catch("engine", lambda: srv.metrics("nobody"))
     finally:

@@ -6,7 +6,7 @@ import numpy as np
 
 import dhg
 from dhg import Layer
-from dhg.surgeons import layer_runs
+from dhg.bone.planning import layer_runs
 
 
 def test_layer_sequence_along_the_default_path(phantom):
@@ -76,7 +76,7 @@ def test_cancellous_density_rises_towards_the_head(phantom):
 
 
 def test_deterministic_for_a_seed():
-    a, b, c = (dhg.phantom.femur_arrays(seed, 2e-3) for seed in (3, 3, 4))
+    a, b, c = (dhg.bone.phantom.femur_arrays(seed, 2e-3) for seed in (3, 3, 4))
     assert np.array_equal(a["hu"], b["hu"]) and np.array_equal(a["labels"], b["labels"])
     assert not np.array_equal(a["hu"], c["hu"]), "the seed must change texture and noise"
     assert np.array_equal(a["labels"], c["labels"]), "the seed must not change the anatomy"

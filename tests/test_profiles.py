@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dhg.dataset import EpisodeInput, load_dataset, write_dataset
-from dhg.errors import InvalidInputError
-from dhg.layers import Layer
-from dhg.profiles import CORRIDOR_N_PER_M, DemoProfiles, build_profiles
-from dhg.task import PlannedPath
+from dhg.core.errors import InvalidInputError
+from dhg.core.layers import Layer
+from dhg.core.path import PlannedPath
+from dhg.data.dataset import EpisodeInput, load_dataset, write_dataset
+from dhg.learning.profiles import CORRIDOR_N_PER_M, DemoProfiles, build_profiles
 
 PATH = PlannedPath(np.zeros(3), np.array([0.0, 0.0, 0.004]))  # 4 mm along +z
 
@@ -72,7 +72,7 @@ def test_profiles_need_a_path_experts_and_a_positive_bin(dataset, tmp_path):
 def test_a_session_corridor_follows_a_profile(phantom):
     """The profile sets the corridor's stiffness per depth: the same offset pulls 4x less where
     the stiffness is 4x lower."""
-    from dhg.session import DrillingSession
+    from dhg.core.session import DrillingSession
 
     s = DrillingSession(phantom.volume, phantom.path)
     s.set_guidance("corridor", 1.0)
@@ -80,7 +80,7 @@ def test_a_session_corridor_follows_a_profile(phantom):
     helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     side = np.cross(d, helper)
     side /= np.linalg.norm(side)
-    from dhg.session import poses
+    from dhg.core.session import poses
 
     def pull(profile):
         s.reset()

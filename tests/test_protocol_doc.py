@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dhg import _bone_sim, protocol
+from dhg import _bone_sim
+from dhg.core import protocol
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
 

@@ -14,26 +14,30 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dhg import _bone_sim, protocol, serve
-from dhg.client import TraineeClient
-from dhg.errors import EngineError, InvalidInputError
-from dhg.layers import Layer
-from dhg.live_demo import free_port
-from dhg.surgeons import planned_breakthrough_depth_m
-from dhg.trainee import planned_depth_from_info
+from dhg import _bone_sim
+from dhg.bone.planning import planned_breakthrough_depth_m
+from dhg.core import protocol
+from dhg.core.errors import EngineError, InvalidInputError
+from dhg.core.layers import Layer
+from dhg.core.server import ServerSettings, start_engine
+from dhg.live.client import TraineeClient
+from dhg.live.demo import free_port
+from dhg.live.runner import scheduling_hint
+from dhg.live.trainee import planned_depth_from_info
+from dhg.live.zenoh_config import zenoh_config_json5
 from support import wait_until
 
 
 @pytest.fixture()
 def engine(coarse_phantom):
-    conf = serve.zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
-    srv = serve.start_engine(coarse_phantom.volume, coarse_phantom.path, conf, serve.ServerSettings(max_sessions=2))
+    conf = zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
+    srv = start_engine(coarse_phantom.volume, coarse_phantom.path, conf, ServerSettings(max_sessions=2))
     yield srv
     srv.stop()
 
 
 def test_unknown_server_settings_are_refused_with_the_allowed_keys(coarse_phantom):
-    conf = serve.zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
+    conf = zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
     p = coarse_phantom.path
 
     def start(settings):
@@ -51,8 +55,8 @@ def test_unknown_server_settings_are_refused_with_the_allowed_keys(coarse_phanto
 
 def test_a_spinning_engine_serves_a_zenoh_client_says_so_sleeps_when_idle_and_stops(coarse_phantom):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    conf = serve.zenoh_config_json5([endpoint], mode="router")
-    srv = serve.start_engine(coarse_phantom.volume, coarse_phantom.path, conf, serve.ServerSettings(wait="spin"))
+    conf = zenoh_config_json5([endpoint], mode="router")
+    srv = start_engine(coarse_phantom.volume, coarse_phantom.path, conf, ServerSettings(wait="spin"))
     try:
         # Without a session it sleeps: two spinning threads would use about 1 s of CPU in 0.5 s.
         cpu0, wall0 = time.process_time(), time.monotonic()
@@ -152,8 +156,8 @@ def test_the_short_slices_reported_are_the_ones_the_kernel_gave(coarse_phantom):
     # The comm thread and Zenoh's I/O threads ask for a 0.1 ms slice (no privilege needed on
     # Linux 6.12+); the tick thread too when it has no SCHED_FIFO. Health must say what happened.
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    conf = serve.zenoh_config_json5([endpoint], mode="router")
-    srv = serve.start_engine(coarse_phantom.volume, coarse_phantom.path, conf, serve.ServerSettings())
+    conf = zenoh_config_json5([endpoint], mode="router")
+    srv = start_engine(coarse_phantom.volume, coarse_phantom.path, conf, ServerSettings())
     prefixes = ("dhg-comm", "dhg-tick", "rx-", "tx-")
 
     def io_sliced(threads: dict[str, tuple[int, int | None]]) -> int:
@@ -287,13 +291,13 @@ def test_stop_is_idempotent_and_later_calls_fail_clearly(engine):
 
 def test_the_scheduling_hint_suggests_spinning_only_where_it_helps():
     sleeping = {"tick_realtime": False, "tick_wait": "sleep"}
-    assert serve.scheduling_hint({**sleeping, "tick_realtime": True}, 16) is None
-    assert serve.scheduling_hint({**sleeping, "tick_wait": "spin"}, 16) is None
-    many = serve.scheduling_hint(sleeping, 16)
+    assert scheduling_hint({**sleeping, "tick_realtime": True}, 16) is None
+    assert scheduling_hint({**sleeping, "tick_wait": "spin"}, 16) is None
+    many = scheduling_hint(sleeping, 16)
     assert many is not None and "--wait spin" in many and "16-core" in many
-    few = serve.scheduling_hint(sleeping, 2)
+    few = scheduling_hint(sleeping, 2)
     assert few is not None and "spin" not in few and "CAP_SYS_NICE" in few and "slice" not in few
-    sliced = serve.scheduling_hint({**sleeping, "short_slices": {"tick": True, "comm": True, "zenoh_io": 4}}, 2)
+    sliced = scheduling_hint({**sleeping, "short_slices": {"tick": True, "comm": True, "zenoh_io": 4}}, 2)
     assert sliced is not None and sliced.startswith(few) and "0.1 ms slice" in sliced
 
 
@@ -301,8 +305,8 @@ def test_sessions_beyond_the_slots_and_bad_ids_are_refused_and_counted(coarse_ph
     """``refused.sessions`` counts every pose that could not get a session: all slots taken, or an
     id the engine refuses; the session that holds the slot is not disturbed."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    conf = serve.zenoh_config_json5([endpoint], mode="router")
-    srv = serve.start_engine(coarse_phantom.volume, coarse_phantom.path, conf, serve.ServerSettings(max_sessions=1))
+    conf = zenoh_config_json5([endpoint], mode="router")
+    srv = start_engine(coarse_phantom.volume, coarse_phantom.path, conf, ServerSettings(max_sessions=1))
     try:
         with TraineeClient(endpoint, "holder") as a, TraineeClient(endpoint, "latecomer") as b:
             entry = np.array(a.create()["entry_m"])

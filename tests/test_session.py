@@ -7,8 +7,8 @@ import pytest
 
 import dhg
 from dhg import InvalidInputError, Layer, SessionConfig, ShapeError
-from dhg.features import FEATURE_NAMES, FEATURE_UNITS, POSE_COLUMNS, RECORD_COLUMNS
-from dhg.session import poses
+from dhg.core.features import FEATURE_NAMES, FEATURE_UNITS, POSE_COLUMNS, RECORD_COLUMNS
+from dhg.core.session import poses
 from support import tool_quaternion as axis_quaternion
 
 

@@ -9,8 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from dhg.errors import InvalidInputError
-from dhg.study import ARMS, Protocol, StudyResult, parse_arms, run_study
+from dhg.core.errors import InvalidInputError
+from dhg.study.runner import ARMS, Protocol, StudyResult, parse_arms, run_study
 
 
 def test_arms_parse_with_gains_and_refuse_nonsense():
@@ -68,7 +68,7 @@ def test_a_study_smoke_run_writes_its_tables_json_and_figure(tmp_path):
         [
             sys.executable,
             "-m",
-            "dhg.cli",
+            "dhg.cli.main",
             "study",
             "--out",
             str(out),
@@ -118,7 +118,7 @@ def test_a_protocol_needs_training_and_an_operator_it_knows(tmp_path):
 
 
 def test_a_protocols_drill_and_guidance_laws_reach_every_attempts_session(coarse_phantom, tmp_path):
-    from dhg.study import _LocalStation
+    from dhg.study.runner import _LocalStation
 
     protocol = Protocol(burr_radius_m=2.25e-3, guidance=(("corridor_deadband_m", 0.1e-3),))
     protocol.validate()
@@ -137,7 +137,7 @@ def test_a_protocols_drill_and_guidance_laws_reach_every_attempts_session(coarse
 
 def test_study_refuses_bad_arguments_with_exit_code_3(tmp_path):
     done = subprocess.run(
-        [sys.executable, "-m", "dhg.cli", "study", "--out", str(tmp_path), "--arms", "shaped"],
+        [sys.executable, "-m", "dhg.cli.main", "study", "--out", str(tmp_path), "--arms", "shaped"],
         capture_output=True,
         text=True,
         timeout=120,
@@ -149,7 +149,7 @@ def test_a_novices_result_does_not_depend_on_who_shares_its_model_batches():
     """Offline, the model answers many attempts' queries in one batch; a novice run with others
     must drill exactly as when run alone (batched float32 passes of different sizes differ in
     the last bits, and a drilling hand amplifies that)."""
-    from dhg.models import default_model_path
+    from dhg.learning.weights import default_model_path
 
     arms, protocol = parse_arms("none,shaped"), Protocol(train=1, duration_s=12)
     together = run_study([3, 4], arms, default_model_path(), protocol, workers=1)
@@ -163,14 +163,14 @@ def test_a_novices_result_does_not_depend_on_who_shares_its_model_batches():
 def test_a_live_study_drills_through_a_running_server(tmp_path):
     """``dhg study --live``: every attempt is drilled in real time through dhg-serve, which guides
     with its own model; the fading arm's schedule (gain, probe) is the server's, read over control."""
-    from dhg.client import TraineeClient
-    from dhg.live_demo import ServerProcess, free_port
+    from dhg.live.client import TraineeClient
+    from dhg.live.demo import ServerProcess, free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server = ServerProcess(["--listen", endpoint, "--voxel-mm", "1.0"], echo=False)
     try:
         out = tmp_path / "live"
-        cmd = [sys.executable, "-m", "dhg.cli", "study", "--out", str(out), "--live", endpoint, "--seeds", "3"]
+        cmd = [sys.executable, "-m", "dhg.cli.main", "study", "--out", str(out), "--live", endpoint, "--seeds", "3"]
         cmd += ["--arms", "none,shaped-fading", "--train", "2", "--probe-every", "2", "--duration", "9"]
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
         with TraineeClient(endpoint) as probe:

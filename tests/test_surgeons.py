@@ -7,10 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from dhg.layers import Layer
-from dhg.surgeons import SurgeonController, layer_runs, planned_breakthrough_depth_m, sample_style
-from dhg.task import PlannedPath
-from dhg.volume import DrilledVolume
+from dhg.bone.planning import layer_runs, planned_breakthrough_depth_m
+from dhg.core.layers import Layer
+from dhg.core.path import PlannedPath
+from dhg.core.surgeon import SurgeonController
+from dhg.core.volume import DrilledVolume
+from dhg.operators.styles import sample_style
 
 PATH = PlannedPath(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.08]))
 
@@ -122,8 +124,8 @@ def test_the_planned_breakthrough_is_where_the_first_cortex_ends_less_the_burr(c
 
 
 def test_the_offset_across_the_path_leaves_out_the_overshoot_past_b():
-    from dhg.surgeons import skill_metrics
-    from dhg.task import TaskRules
+    from dhg.core.path import TaskRules
+    from dhg.operators.metrics import skill_metrics
 
     path = PlannedPath(np.zeros(3), np.array([0.0, 0.0, 0.08]))
     # Tips: before A (not counted), 1 mm off inside, on the line past B by 3 mm, 0.5 mm off past B.

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from PIL import Image
 
-from dhg.surgeons import straight_line_drill
-from dhg.xray import render_views, view_pixel, write_views
+from dhg.bone.xray import render_views, view_pixel, write_views
+from dhg.operators.scripted import straight_line_drill
 
 
 def test_views_change_after_drilling_and_only_along_the_path(coarse_phantom):

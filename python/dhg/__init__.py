@@ -7,17 +7,18 @@ Units are SI everywhere (m, kg, s, N; °C for temperature). Frames and array lay
 from __future__ import annotations
 
 from dhg import _bone_sim
-from dhg.errors import (
+from dhg.bone.phantom import Phantom, default_phantom, femur
+from dhg.core.errors import (
     CTImportError,
     DhgError,
     InvalidInputError,
     ShapeError,
     VolumeFileError,
 )
-from dhg.layers import Layer
-from dhg.phantom import Phantom, default_phantom, femur
-from dhg.serve import Server, ServerSettings, start_engine
-from dhg.session import (
+from dhg.core.layers import Layer
+from dhg.core.path import PlannedPath
+from dhg.core.server import Server, ServerSettings, start_engine
+from dhg.core.session import (
     CuttingLaw,
     DeviceProfile,
     DrillingSession,
@@ -26,8 +27,7 @@ from dhg.session import (
     StepResult,
     ThermalParams,
 )
-from dhg.task import PlannedPath
-from dhg.volume import DrilledVolume, HuMapping, RemovalReport, Volume, XRayViews
+from dhg.core.volume import DrilledVolume, HuMapping, RemovalReport, Volume, XRayViews
 
 __version__: str = _bone_sim.__version__
 

@@ -21,9 +21,9 @@ import time
 import numpy as np
 import torch
 
-from dhg.export import load_model
-from dhg.features import FEATURE_NAMES
-from dhg.models import default_model_path
+from dhg.core.features import FEATURE_NAMES
+from dhg.learning.torchscript import load_model
+from dhg.learning.weights import default_model_path
 
 
 def windows_from(dataset: str | None, model, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -48,7 +48,7 @@ def int8_copy(model):
     """The exported model rebuilt in eager mode with int8 dynamic quantisation of the LSTM and head."""
     import dataclasses
 
-    from dhg.model import ForcePredictor, LSTMRegressor, MinMaxScaler, ModelConfig
+    from dhg.learning.network import ForcePredictor, LSTMRegressor, MinMaxScaler, ModelConfig
 
     names = {f.name for f in dataclasses.fields(ModelConfig)}
     raw = model.meta["model_config"]

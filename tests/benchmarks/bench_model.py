@@ -12,8 +12,8 @@ import time
 import numpy as np
 import torch
 
-from dhg.export import load_model
-from dhg.models import default_model_path
+from dhg.learning.torchscript import load_model
+from dhg.learning.weights import default_model_path
 
 
 def main() -> None:

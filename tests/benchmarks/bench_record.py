@@ -1,6 +1,6 @@
 """What ``dhg record --raw`` costs, and how much of the 1 kHz stream it keeps. Starts ``dhg-serve``
 (phantom femur, bundled model) on a free loopback port, records one session in this process
-(:class:`dhg.recorder.SessionRecorder` with the 1 kHz stream) while a virtual novice
+(:class:`dhg.live.recorder.SessionRecorder` with the 1 kHz stream) while a virtual novice
 (``dhg trainee``, its own process) drills it for ``--seconds``, then stops the recorder cleanly.
 Prints the recorder's CPU use, its flush times, the ticks it kept against the ticks the session
 ran, and the size of the files.
@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dhg.dataset import load_dataset, load_raw
-from dhg.live_demo import ServerProcess, free_port
-from dhg.recorder import SessionRecorder
+from dhg.data.dataset import load_dataset, load_raw
+from dhg.live.demo import ServerProcess, free_port
+from dhg.live.recorder import SessionRecorder
 
 
 def _cpu_s() -> float:
@@ -39,7 +39,7 @@ def _cpu_s() -> float:
 
 def _trainee(endpoint: str, args: argparse.Namespace) -> subprocess.CompletedProcess[str]:
     trainee = subprocess.run(
-        [sys.executable, "-m", "dhg.cli", "trainee", "--connect", endpoint, "--session", "bench-rec"]
+        [sys.executable, "-m", "dhg.cli.main", "trainee", "--connect", endpoint, "--session", "bench-rec"]
         + ["--skill", "novice", "--duration", str(args.seconds), "--seed", str(args.seed)],
         capture_output=True,
         text=True,

@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dhg.live_demo import ServerProcess, free_port
+from dhg.live.demo import ServerProcess, free_port
 
 # The `transport` section of Zenoh's low-latency mode (it excludes QoS; both ends must ask for it).
 LOWLATENCY = {"unicast": {"lowlatency": True, "qos": {"enabled": False}}}
@@ -220,7 +220,7 @@ class _Recording:
         import threading
         import time
 
-        from dhg.recorder import AllSessionsRecorder
+        from dhg.live.recorder import AllSessionsRecorder
 
         self._dir = tempfile.TemporaryDirectory()
         self.rec = AllSessionsRecorder(endpoint, self._dir.name, raw=True)
@@ -235,7 +235,7 @@ class _Recording:
         import resource
         import time
 
-        from dhg.dataset import load_raw
+        from dhg.data.dataset import load_raw
 
         self.stop.set()
         self.thread.join()

@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 import dhg
-from dhg.session import poses
+from dhg.core.session import poses
 
 
 def main() -> None:

@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 import dhg
-from dhg.surgeons import straight_line_drill
+from dhg.operators.scripted import straight_line_drill
 
 
 def timed(fn, repeat: int) -> list[float]:

@@ -15,8 +15,9 @@ from collections import defaultdict
 import numpy as np
 
 from dhg import default_phantom
-from dhg.session import DrillingSession
-from dhg.surgeons import run_episode, sample_style
+from dhg.core.session import DrillingSession
+from dhg.operators.episodes import run_episode
+from dhg.operators.styles import sample_style
 
 BREAKTHROUGHS = 8  # index in the session's feedback tuple
 

@@ -15,18 +15,19 @@ import numpy as np
 import torch
 
 from dhg import default_phantom
-from dhg.export import load_model
-from dhg.operators import Learner, operator_style
-from dhg.study import _LocalStation
-from dhg.surgeons import run_episode, sample_style
-from dhg.task import TaskRules
+from dhg.core.path import TaskRules
+from dhg.learning.torchscript import load_model
+from dhg.operators.episodes import run_episode
+from dhg.operators.models import Learner, operator_style
+from dhg.operators.styles import sample_style
+from dhg.study.runner import _LocalStation
 
 
 def main() -> None:
     from importlib.resources import files
 
     torch.set_num_threads(1)
-    model = load_model(str(files("dhg.models") / "default.ts"))
+    model = load_model(str(files("dhg.learning.weights") / "default.ts"))
     phantom = default_phantom()
     print(f"path length {phantom.path.length_m * 1e3:.1f} mm")
     for seed in (int(s) for s in sys.argv[1].split(",")):

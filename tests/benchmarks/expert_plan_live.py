@@ -16,10 +16,10 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from dhg.client import TraineeClient
-from dhg.live_demo import ServerProcess, free_port
-from dhg.surgeons import GENERIC_BREAKTHROUGH_DEPTH_M
-from dhg.trainee import run_trainee
+from dhg.core.surgeon import GENERIC_BREAKTHROUGH_DEPTH_M
+from dhg.live.client import TraineeClient
+from dhg.live.demo import ServerProcess, free_port
+from dhg.live.trainee import run_trainee
 
 
 def main() -> None:

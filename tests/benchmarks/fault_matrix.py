@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dhg import protocol
-from dhg.client import TraineeClient
-from dhg.errors import EngineError
-from dhg.live_demo import ServerProcess, free_port
+from dhg.core import protocol
+from dhg.core.errors import EngineError
+from dhg.live.client import TraineeClient
+from dhg.live.demo import ServerProcess, free_port
 
 PEAK_N = 3.3
 
@@ -68,7 +68,7 @@ def stream(c: TraineeClient, seconds: float, depth_m: float = 0.0) -> None:
 def record(endpoint: str, *args: str) -> subprocess.Popen[str]:
     """``dhg record --connect endpoint ARGS --status-every 0`` in its own process, output on one pipe."""
     return subprocess.Popen(
-        [sys.executable, "-m", "dhg.cli", "record", "--connect", endpoint, *args, "--status-every", "0"],
+        [sys.executable, "-m", "dhg.cli.main", "record", "--connect", endpoint, *args, "--status-every", "0"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -362,7 +362,7 @@ def model_worker_lost(how: str) -> Outcome:
 
 
 def server_killed_while_recording(root: Path) -> Outcome:
-    from dhg.dataset import load_dataset
+    from dhg.data.dataset import load_dataset
 
     server, endpoint = serve()
     out = root / "rec"

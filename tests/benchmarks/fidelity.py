@@ -27,9 +27,9 @@ import dataclasses
 import numpy as np
 
 import dhg
-from dhg.layers import Layer
-from dhg.session import DeviceProfile, DrillingSession, SessionConfig, poses
-from dhg.task import PlannedPath
+from dhg.core.layers import Layer
+from dhg.core.path import PlannedPath
+from dhg.core.session import DeviceProfile, DrillingSession, SessionConfig, poses
 
 VOXEL_M = 0.25e-3
 """Slab voxel (m): fine enough that the 4.5 mm drill's bore is 18 voxels across."""

@@ -20,9 +20,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from dhg.client import TraineeClient
-from dhg.live_demo import ServerProcess, free_port
-from dhg.trainee import run_trainee
+from dhg.live.client import TraineeClient
+from dhg.live.demo import ServerProcess, free_port
+from dhg.live.trainee import run_trainee
 
 COLUMNS = (
     ("target_distance_m", "to B (mm)", 1e3),

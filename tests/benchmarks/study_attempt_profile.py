@@ -17,11 +17,12 @@ import numpy as np
 import torch
 
 from dhg import default_phantom
-from dhg.export import load_model
-from dhg.models import default_model_path
-from dhg.session import DrillingSession
-from dhg.surgeons import run_episode, sample_style
-from dhg.task import TaskRules
+from dhg.core.path import TaskRules
+from dhg.core.session import DrillingSession
+from dhg.learning.torchscript import load_model
+from dhg.learning.weights import default_model_path
+from dhg.operators.episodes import run_episode
+from dhg.operators.styles import sample_style
 
 
 def main() -> None:

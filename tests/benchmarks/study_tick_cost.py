@@ -1,6 +1,6 @@
 """What one simulated 1 ms tick of a `dhg study` attempt costs (µs of one core): an unguided
 attempt, a guided one answering each model query alone, and 16 guided attempts side by side
-whose queries share one batched forward pass (as `dhg study` runs them, `dhg.study._lockstep`).
+whose queries share one batched forward pass (as `dhg study` runs them, `dhg.study.runner._lockstep`).
 
     python tests/benchmarks/study_tick_cost.py [--duration 20] [--rounds 2]
 
@@ -16,13 +16,14 @@ import numpy as np
 import torch
 
 from dhg import default_phantom
-from dhg.export import load_model
-from dhg.models import default_model_path
-from dhg.operators import operator_style
-from dhg.session import DrillingSession
-from dhg.study import MODEL_BATCH, _lockstep
-from dhg.surgeons import drill_episode, run_episode, sample_style
-from dhg.task import TaskRules
+from dhg.core.path import TaskRules
+from dhg.core.session import DrillingSession
+from dhg.learning.torchscript import load_model
+from dhg.learning.weights import default_model_path
+from dhg.operators.episodes import drill_episode, run_episode
+from dhg.operators.models import operator_style
+from dhg.operators.styles import sample_style
+from dhg.study.runner import MODEL_BATCH, _lockstep
 
 
 def main() -> None:

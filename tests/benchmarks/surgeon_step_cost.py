@@ -23,10 +23,11 @@ from pathlib import Path
 import numpy as np
 
 from dhg import default_phantom
-from dhg.operators import operator_style
-from dhg.session import DrillingSession
-from dhg.surgeons import run_episode, sample_style
-from dhg.task import TaskRules
+from dhg.core.path import TaskRules
+from dhg.core.session import DrillingSession
+from dhg.operators.episodes import run_episode
+from dhg.operators.models import operator_style
+from dhg.operators.styles import sample_style
 
 
 def _python_surgeons(commit: str):

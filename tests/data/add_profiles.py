@@ -3,7 +3,7 @@
 The bundled model predates ``dhg train`` storing profiles. Its training data is reproducible
 (``dhg synth --out data/default``, seed 0); this checks that the regenerated records are the ones
 the model was trained on (the SHA-256 in its metadata), builds their profiles exactly as
-``dhg train`` does (:func:`dhg.train._profiles`) and rewrites the model file with them in its
+``dhg train`` does (:func:`dhg.learning.train._profiles`) and rewrites the model file with them in its
 ``dhg.json``. The weights are untouched, so the golden outputs stay valid.
 
     dhg synth --out data/default && .venv/bin/python tests/data/add_profiles.py data/default
@@ -17,10 +17,10 @@ import warnings
 
 import torch
 
-from dhg.dataset import load_dataset
-from dhg.export import META_NAME, read_model_meta
-from dhg.models import default_model_path
-from dhg.train import _profiles
+from dhg.data.dataset import load_dataset
+from dhg.learning.torchscript import META_NAME, read_model_meta
+from dhg.learning.train import _profiles
+from dhg.learning.weights import default_model_path
 
 
 def main(data_dir: str) -> None:

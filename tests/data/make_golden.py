@@ -1,6 +1,6 @@
 """Regenerates tests/data/golden_model.npz: fixed input windows and the bundled model's outputs.
 
-Run after replacing python/dhg/models/default.ts (and say why in the commit):
+Run after replacing python/dhg/learning/weights/default.ts (and say why in the commit):
 
     .venv/bin/python tests/data/make_golden.py
 """
@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dhg.export import load_model, read_model_meta
-from dhg.models import default_model_path
+from dhg.learning.torchscript import load_model, read_model_meta
+from dhg.learning.weights import default_model_path
 
 
 def golden_windows() -> np.ndarray:

@@ -102,7 +102,7 @@ impl SimError {
 
     /// The error's category, as written in the `kind` field of error replies on the wire
     /// (`docs/protocol.md`): `invalid_input`, `shape`, `transport` or `engine`. Python maps each to
-    /// one exception class (`dhg.errors.ERROR_KINDS`).
+    /// one exception class (`dhg.core.errors.ERROR_KINDS`).
     #[must_use]
     pub fn kind(&self) -> &'static str {
         match self {

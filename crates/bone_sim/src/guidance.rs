@@ -43,7 +43,7 @@ use crate::path::PlannedPath;
 pub const MAX_GAIN: f64 = 4.0;
 
 /// The default [`GuidanceParams::warning_feed_m_s`] (m/s): half a novice's preferred feed
-/// (0.7–1.1 mm/s in `dhg.surgeons.sample_style`), near the 0.3–0.6 mm/s at which controlled
+/// (0.7–1.1 mm/s in `dhg.operators.styles.sample_style`), near the 0.3–0.6 mm/s at which controlled
 /// advancement through a far cortex keeps the plunge under a millimetre (Wallace et al. 2019).
 /// Tuned on seeds 3–8: a warning by position alone held trainees who yield to it still in the
 /// last millimetre of cortex (3 of 6 reached B against 5 of 6 unguided; docs/results.md).
@@ -122,7 +122,7 @@ pub struct GuidanceParams {
     /// Corridor damping of lateral motion beyond the deadband (N·s/m).
     pub corridor_damping_n_s_per_m: f64,
     /// Corridor stiffness per depth bin along A→B (N/m), from the experts' lateral spread
-    /// (`dhg.profiles`: stiff where they agree, compliant where they vary); the last bin holds
+    /// (`dhg.learning.profiles`: stiff where they agree, compliant where they vary); the last bin holds
     /// beyond the path, the first before A. Empty: `corridor_stiffness_n_per_m` everywhere.
     pub corridor_profile_n_per_m: Vec<f64>,
     /// Width of a corridor profile bin (m).

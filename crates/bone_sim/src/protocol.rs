@@ -2,7 +2,7 @@
 //!
 //! Every layout is declared once here as a [`Layout`] table (field, type, byte offset, count,
 //! unit). The encoders and decoders below follow those tables (a test checks each one), Python
-//! builds its `struct` formats from the same tables (`dhg.protocol`), and `docs/protocol.md`
+//! builds its `struct` formats from the same tables (`dhg.core.protocol`), and `docs/protocol.md`
 //! documents them (a test checks the document against the tables).
 //!
 //! Every payload starts with the same 4-byte header: `kind: u8`, `version: u8`, `flags: u16`.
@@ -198,7 +198,7 @@ pub mod flags {
     /// Guidance is mixed into the rendered force (gain > 0 and non-zero guidance).
     pub const GUIDANCE_ACTIVE: u16 = 1 << 6;
 
-    /// Every flag by its name in `docs/protocol.md` (Python's `dhg.protocol.FLAGS` is this).
+    /// Every flag by its name in `docs/protocol.md` (Python's `dhg.core.protocol.FLAGS` is this).
     pub const ALL: [(&str, u16); 7] = [
         ("drill_on", DRILL_ON),
         ("in_contact", IN_CONTACT),

@@ -1,6 +1,6 @@
 //! The paper's 10 Hz record: nine features, in one fixed order, defined here once.
 //!
-//! Python reads [`FEATURES`] through the binding (`dhg.features`), datasets store it in their
+//! Python reads [`FEATURES`] through the binding (`dhg.core.features`), datasets store it in their
 //! card, and `docs/frames.md` tables it. Never reorder: trained models depend on it.
 
 /// One feature of the record: its column name (with unit suffix) and unit.

@@ -79,7 +79,7 @@ pub const PLUNGE_WINDOW_TICKS: usize = 100;
 /// A plunge is not judged over by its speed sooner than this many ticks (200 ms) after the
 /// breakthrough. No hand catches a tip that got away sooner than its voluntary reaction to the
 /// give, 150–250 ms for a novice's response to a force perturbation (the range the operator
-/// models use, `dhg.operators`; the virtual experts react in 100–160 ms), so a slow first window
+/// models use, `dhg.operators.models`; the virtual experts react in 100–160 ms), so a slow first window
 /// is the cortex still giving way
 /// under a push that has not yet carried the tip on, not a tip back under control. (Judged from
 /// the first window, a light push that gathered speed after 100 ms was once reported as a
@@ -535,7 +535,7 @@ impl DrillingSession {
     }
 
     /// The step (m) at which the planned path's layers are read, as a surgeon reads them off the
-    /// planning CT (`dhg.surgeons.planned_breakthrough_depth_m` samples the same).
+    /// planning CT (`dhg.bone.planning.planned_breakthrough_depth_m` samples the same).
     pub const PLAN_STEP_M: f64 = 0.25e-3;
 
     fn planned_breakthrough(&self) -> Option<f64> {

@@ -18,7 +18,7 @@
 //! the push (Harris & Wolpert 1998), lateral drift of the aim (an Ornstein–Uhlenbeck wander), a
 //! reaction delay, and an arm that pushes by aiming just ahead of where the hand was felt (an
 //! equilibrium point, Feldman 1986; Bizzi et al. 1992). Styles are drawn per subject by the
-//! Python package (`dhg.surgeons.sample_style`); this module is the surgeon's 1 kHz step, so that
+//! Python package (`dhg.operators.styles.sample_style`); this module is the surgeon's 1 kHz step, so that
 //! an offline study drills at the core's speed, and a remote trainee (`dhg trainee`) steps the
 //! same code per received state.
 //!
@@ -123,7 +123,7 @@ impl CueMeaning {
 }
 
 /// One subject's style and motor parameters (SI units; forces are device newtons). The Python
-/// package's `dhg.surgeons.SurgeonStyle` carries the same fields, with their documentation.
+/// package's `dhg.core.surgeon.SurgeonStyle` carries the same fields, with their documentation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 #[allow(clippy::struct_excessive_bools)] // two independent traits of a subject

@@ -1,5 +1,5 @@
 //! `dhg._bone_sim.Server`: the real-time server (engine + Zenoh transport) and the protocol
-//! layouts, for `dhg.serve` and `dhg.protocol`.
+//! layouts, for `dhg.core.server` and `dhg.core.protocol`.
 
 use std::time::Duration;
 
@@ -15,7 +15,7 @@ use crate::path::PlannedPath;
 use crate::protocol::LAYOUTS;
 use crate::transport::{Server, ServerSettings};
 
-/// The real-time server. Build it with `dhg.serve`; this is the native half.
+/// The real-time server. Build it with `dhg.core.server.start_engine`; this is the native half.
 #[pyclass(name = "Server", module = "dhg._bone_sim")]
 pub struct PyServer {
     inner: Option<Server>,
@@ -31,7 +31,7 @@ impl PyServer {
 impl PyServer {
     /// Starts the engine on `volume` with the default path `entry_m` → `target_m` (m) and opens
     /// its Zenoh session from `zenoh_json5`. `settings` is a dict of the fields of
-    /// `dhg.serve.ServerSettings` (the core's `ServerSettings`; missing ones take its defaults),
+    /// `dhg.core.server.ServerSettings` (the core's `ServerSettings`; missing ones take its defaults),
     /// `session` a (nested) `dhg.SessionConfig` dict.
     #[new]
     #[pyo3(signature = (volume, entry_m, target_m, zenoh_json5, prefix="dhg", settings=None, session=None))]

@@ -23,7 +23,7 @@ type RawTicks = (Vec<[f64; POSE_COLUMNS]>, Vec<[f64; 3]>);
 /// The 1 kHz poses (N, 9) and forces (N, 3) of a kept attempt.
 type RawArrays<'py> = (Bound<'py, PyArray2<f64>>, Bound<'py, PyArray2<f64>>);
 
-/// The virtual surgeon (`crate::surgeon`). Build it with `dhg.surgeons.SurgeonController`;
+/// The virtual surgeon (`crate::surgeon`). Build it with `dhg.core.surgeon.SurgeonController`;
 /// this is the native half.
 #[pyclass(name = "SurgeonController", module = "dhg._bone_sim")]
 pub struct PySurgeon {
@@ -34,7 +34,7 @@ pub struct PySurgeon {
 
 #[pymethods]
 impl PySurgeon {
-    /// A surgeon of `style` (a dict of `dhg.surgeons.SurgeonStyle`'s fields) drilling the path
+    /// A surgeon of `style` (a dict of `dhg.core.surgeon.SurgeonStyle`'s fields) drilling the path
     /// `entry_m` → `target_m` (m) for at most `max_duration_s`; `seed` fixes its random draws.
     #[new]
     #[pyo3(signature = (entry_m, target_m, style, seed, max_duration_s, breakthrough_depth_m=None, cue_meaning="match", keep_raw=false))]

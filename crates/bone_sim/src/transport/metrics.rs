@@ -83,7 +83,7 @@ impl SessionMetrics {
             "target_distance_m": if self.records > 0 { (self.last_tip_m - target_m.coords).norm() } else { f64::NAN },
             "peak_temperature_c": self.peak_temperature_c,
             "time_above_47_s": self.time_above_47_s,
-            // The attempt's largest plunge, as `dhg.surgeons.skill_metrics` reports it (a later,
+            // The attempt's largest plunge, as `dhg.operators.metrics.skill_metrics` reports it (a later,
             // smaller plunge after a second breakthrough must not hide the first).
             "plunge_depth_m": self.max_plunge_m,
             "breakthroughs": self.breakthroughs,

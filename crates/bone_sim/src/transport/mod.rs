@@ -49,7 +49,7 @@ pub const DEFAULT_IDLE_TIMEOUT_S: f64 = 5.0;
 /// Timeout of one model query (s), by default: 2.5 windows of the 10 Hz stream.
 pub const DEFAULT_MODEL_TIMEOUT_S: f64 = 0.25;
 
-/// What `dhg-serve` sets, with the defaults: the one definition (`dhg.serve.ServerSettings` reads
+/// What `dhg-serve` sets, with the defaults: the one definition (`dhg.core.server.ServerSettings` reads
 /// its fields and defaults from here, through `dhg._bone_sim.defaults()`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

@@ -1,0 +1,177 @@
+"""Wire payloads of the real-time server, read from the one definition in the Rust core.
+
+The layouts (field, type, byte offset, count, unit) come from ``dhg._bone_sim.protocol_layouts()``;
+this module turns them into :mod:`struct` formats, so Python and Rust cannot disagree. The document
+for client writers in other languages is ``docs/protocol.md``.
+
+All payloads are little-endian and start with ``kind: u8, version: u8, flags: u16``. Positions are
+world (LPS) coordinates in m, forces in N, times in s (``_ns`` fields: ns of the client's clock).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from dhg import _bone_sim
+from dhg.core.errors import InvalidInputError
+
+__all__ = [
+    "FLAGS",
+    "LAYOUTS",
+    "MAX_PAYLOAD_BYTES",
+    "VERSION",
+    "WINDOW_RECORDS",
+    "Layout",
+    "decode",
+    "decode_predict",
+    "encode",
+    "encode_pose",
+    "encode_prediction",
+    "keys",
+]
+
+VERSION: int = _bone_sim.PROTOCOL_VERSION
+WINDOW_RECORDS: int = _bone_sim.WINDOW_RECORDS
+MAX_PAYLOAD_BYTES: int = _bone_sim.MAX_PAYLOAD_BYTES
+
+FLAGS: dict[str, int] = dict(_bone_sim.FLAGS)
+"""Flag bits of the force and state headers (bit 0 of a pose: drill on), as the core defines them
+(``protocol.rs``, ``flags``)."""
+
+_CODES = {"u8": "B", "u16": "H", "u32": "I", "u64": "Q", "f32": "f", "f64": "d"}
+
+
+@dataclass(frozen=True)
+class Layout:
+    """One payload layout: kind byte, fixed size (bytes) and its fields."""
+
+    name: str
+    kind: int
+    size: int
+    fields: tuple[tuple[str, str, int, int, str], ...]
+    """(name, type, offset (bytes), count, unit) in order."""
+
+    @property
+    def struct(self) -> struct.Struct:
+        """The :class:`struct.Struct` of the fixed part (no padding: fields are contiguous)."""
+        return struct.Struct("<" + "".join(f"{n}{_CODES[t]}" if n > 1 else _CODES[t] for _, t, _, n, _ in self.fields))
+
+
+LAYOUTS: dict[str, Layout] = {
+    name: Layout(name, d["kind"], d["size"], tuple(tuple(f) for f in d["fields"]))
+    for name, d in _bone_sim.protocol_layouts().items()
+}
+_STRUCTS = {name: layout.struct for name, layout in LAYOUTS.items()}
+
+
+def check_session_id(session_id: str) -> str:
+    """Returns ``session_id`` if it is a valid session id (the engine's rule: 1–64 of
+    ``A-Z a-z 0-9 _ . -``, the first a letter or digit, so never ``.``, ``..`` or a hidden
+    name), else raises :class:`dhg.core.errors.InvalidInputError` saying why."""
+    from dhg.core.errors import InvalidInputError
+
+    if not isinstance(session_id, str):
+        raise InvalidInputError(f"session id {session_id!r}: must be a string")
+    return _bone_sim.check_session_id(session_id)
+
+
+def keys(prefix: str, session_id: str) -> dict[str, str]:
+    """The key expressions of one session under ``prefix`` (see ``docs/protocol.md``)."""
+    base = f"{prefix}/session/{session_id}"
+    return {leaf: f"{base}/{leaf}" for leaf in ("pose", "force", "guidance", "state", "control", "metrics", "xray")} | {
+        "health": f"{prefix}/server/health",
+        "predict": f"{prefix}/model/predict",
+    }
+
+
+def encode(name: str, flags: int = 0, **values: Any) -> bytes:
+    """Packs a fixed-size payload of layout ``name``; fields not given are zero."""
+    layout = LAYOUTS[name]
+    args: list[Any] = []
+    for field, ty, _, count, _ in layout.fields:
+        if field == "kind":
+            v: Any = layout.kind
+        elif field == "version":
+            v = VERSION
+        elif field == "flags":
+            v = flags
+        else:
+            v = values.pop(field, 0 if count == 1 else [0] * count)
+        if count > 1:
+            seq = list(np.asarray(v, dtype=float if ty.startswith("f") else int).ravel())
+            if len(seq) != count:
+                raise InvalidInputError(f"{name}.{field} needs {count} values, got {len(seq)}")
+            args.extend(seq)
+        else:
+            args.append(v)
+    if values:
+        raise InvalidInputError(f"{name} has no fields {sorted(values)}")
+    return _STRUCTS[name].pack(*args)
+
+
+def decode(name: str, payload: bytes) -> dict[str, Any]:
+    """Unpacks a payload of layout ``name`` into a dict (vectors as tuples, ``flags`` as an int).
+
+    Raises :class:`InvalidInputError` on a wrong size, kind or version.
+    """
+    layout = LAYOUTS[name]
+    if len(payload) < layout.size:
+        raise InvalidInputError(f"{name} payload has {len(payload)} bytes, expected {layout.size}")
+    if payload[0] != layout.kind or payload[1] != VERSION:
+        raise InvalidInputError(
+            f"{name} payload has kind {payload[0]} version {payload[1]}, expected {layout.kind} v{VERSION}"
+        )
+    flat = _STRUCTS[name].unpack_from(payload)
+    out: dict[str, Any] = {}
+    i = 0
+    for field, _, _, count, _ in layout.fields:
+        out[field] = flat[i] if count == 1 else tuple(flat[i : i + count])
+        i += count
+    return out
+
+
+def encode_pose(
+    seq: int,
+    client_time_ns: int,
+    position_m: npt.ArrayLike,
+    orientation_wxyz: npt.ArrayLike,
+    drill_on: bool,
+    spindle_rpm: float,
+) -> bytes:
+    """A stylus pose: burr centre (m, world), orientation quaternion (w, x, y, z; +z of the tool
+    frame is the drill axis), drill on/off, spindle speed (rpm), the client's sequence number and
+    clock (ns), both echoed in the force."""
+    return encode(
+        "pose",
+        flags=FLAGS["drill_on"] if drill_on else 0,
+        seq=seq & 0xFFFFFFFF,
+        client_time_ns=client_time_ns,
+        position_m=position_m,
+        orientation_wxyz=orientation_wxyz,
+        spindle_rpm=spindle_rpm,
+    )
+
+
+def decode_predict(payload: bytes) -> tuple[int, npt.NDArray[np.float32]]:
+    """A model query → (window_seq, window (rows, cols) float32, oldest record first)."""
+    head = decode("predict", payload[: LAYOUTS["predict"].size])
+    rows, cols = head["rows"], head["cols"]
+    start = [f for f in LAYOUTS["predict"].fields if f[0] == "window"][0][2]
+    if len(payload) != start + 4 * rows * cols:
+        raise InvalidInputError(f"predict payload has {len(payload)} bytes for a {rows}x{cols} window")
+    window = np.frombuffer(payload, dtype="<f4", offset=start, count=rows * cols).reshape(rows, cols)
+    return int(head["window_seq"]), window
+
+
+def encode_prediction(window_seq: int, force_n: npt.ArrayLike, inference_s: float, model_id: str) -> bytes:
+    """A model reply: predicted expert force (N, world), inference time (s) and the model id."""
+    ident = model_id.encode()[:1024]
+    body = encode(
+        "prediction", window_seq=window_seq, force_n=force_n, inference_s=inference_s, model_id_len=len(ident)
+    )
+    return body + ident

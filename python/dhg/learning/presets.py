@@ -1,0 +1,72 @@
+"""The model's configurations and the presets of the paper's Table 1 (see :mod:`dhg.learning.network`),
+without torch: the CLI lists and checks them before anything heavy is imported."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from dhg.core.errors import InvalidInputError
+from dhg.core.features import FEATURE_NAMES
+from dhg.core.protocol import WINDOW_RECORDS
+
+__all__ = ["FORCES", "PRESETS", "ModelConfig", "preset"]
+
+FORCES = FEATURE_NAMES[0:3]
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """What the network sees and predicts, and its size."""
+
+    preset: str
+    input_features: tuple[str, ...] = FEATURE_NAMES
+    output_features: tuple[str, ...] = FORCES
+    layers: int = 2
+    hidden: int = 256
+    window: int = WINDOW_RECORDS
+    """Time steps e of the input window (10 Hz records): the engine's window (``protocol.rs``)."""
+
+    def __post_init__(self) -> None:
+        for group, names in (("input_features", self.input_features), ("output_features", self.output_features)):
+            unknown = [n for n in names if n not in FEATURE_NAMES]
+            if unknown or not names or len(set(names)) != len(names):
+                raise InvalidInputError(f"{group} must be distinct names from {FEATURE_NAMES}, got {names}")
+        if not set(FORCES) <= set(self.output_features):
+            raise InvalidInputError(f"output_features must include the forces {FORCES}")
+        if self.layers < 1 or self.hidden < 1 or self.window < 2:
+            raise InvalidInputError(
+                f"layers >= 1, hidden >= 1 and window >= 2 required, got {self.layers}, {self.hidden}, {self.window}"
+            )
+
+    def index(self, names: tuple[str, ...]) -> list[int]:
+        """Positions of ``names`` among the nine features."""
+        return [FEATURE_NAMES.index(n) for n in names]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ModelConfig:
+        """Inverse of :meth:`to_dict`."""
+        d = dict(d)
+        d["input_features"] = tuple(d["input_features"])
+        d["output_features"] = tuple(d["output_features"])
+        return cls(**d)
+
+
+PRESETS: dict[str, ModelConfig] = {
+    "fusion-1x128": ModelConfig("fusion-1x128", layers=1, hidden=128),
+    "fusion-2x256": ModelConfig("fusion-2x256", layers=2, hidden=256),
+    "force-only-2x256": ModelConfig("force-only-2x256", input_features=FORCES, layers=2, hidden=256),
+    "all-2x256": ModelConfig("all-2x256", output_features=FEATURE_NAMES, layers=2, hidden=256),
+    "tiny": ModelConfig("tiny", layers=1, hidden=16),
+}
+
+
+def preset(name: str) -> ModelConfig:
+    """The named preset (see the module docstring)."""
+    if name not in PRESETS:
+        raise InvalidInputError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+    return PRESETS[name]

@@ -1,0 +1,325 @@
+"""Training the DHG model (the paper's section 3.1 defaults: Adam, learning rate 0.004, batch 50,
+RMSE loss, min–max scaling, a chronological split).
+
+Data: windows of ``e`` consecutive records of one episode predict the next record (windows never
+straddle two episodes), or with ``horizon`` k the record k steps after the window's last (the
+expert's force k × 0.1 s ahead, a cue that leads). The windows are ordered as the dataset is
+(episode by episode, in time) and split chronologically without shuffling. The last
+``test_fraction`` of the windows (≈ 13.5 %, the paper's share) form the test set, and the last
+``val_fraction`` of the rest the validation set for early stopping. One window's worth of windows
+(plus the horizon) is dropped at each boundary, so no record is in two sets. The scaler is fitted
+on the training windows only.
+
+Runs on CPU by default and on CUDA when asked (``device="cuda"`` or ``"auto"``). Under ``torchrun``
+it trains with DistributedDataParallel; rank 0 writes everything.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from dhg.core.errors import InvalidInputError
+from dhg.core.features import FEATURE_NAMES
+from dhg.data.dataset import Dataset, load_dataset
+from dhg.learning.network import ForcePredictor, LSTMRegressor, MinMaxScaler, ModelConfig, preset
+
+__all__ = ["Split", "TrainConfig", "make_windows", "split_windows", "train"]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings (paper defaults where the paper gives them)."""
+
+    learning_rate: float = 0.004
+    batch_size: int = 50
+    max_epochs: int = 60
+    patience: int = 8
+    """Epochs without a better validation RMSE before stopping."""
+    test_fraction: float = 0.135
+    val_fraction: float = 0.1
+    seed: int = 0
+    device: str = "cpu"
+    """``cpu``, ``cuda`` or ``auto`` (CUDA when present)."""
+    skill: str = "expert"
+    """Which episodes to learn from (the paper learns from experts)."""
+    best_only: bool = False
+    """Only each subject's best attempt (the paper's selection)."""
+    horizon: int = 1
+    """Records ahead of the window's last that the target lies: 1 is the next record (the paper,
+    0.1 s ahead); k predicts the expert's force k × 0.1 s ahead."""
+
+    def __post_init__(self) -> None:
+        if not (self.learning_rate > 0 and self.batch_size >= 1 and self.max_epochs >= 1 and self.patience >= 1):
+            raise InvalidInputError(f"invalid training settings {self}")
+        if not (0 < self.test_fraction < 0.5 and 0 < self.val_fraction < 0.5):
+            raise InvalidInputError("test_fraction and val_fraction must be in (0, 0.5)")
+        if self.device not in ("cpu", "cuda", "auto"):
+            raise InvalidInputError(f"device must be cpu, cuda or auto, got {self.device!r}")
+        if not 1 <= self.horizon <= 50:
+            raise InvalidInputError(f"horizon must be 1 to 50 records (0.1 to 5 s), got {self.horizon}")
+
+
+def make_windows(ds: Dataset, window: int, skill: str | None = "expert", best_only: bool = False, horizon: int = 1):
+    """Windows (N, window, 9) and their targets (N, 9), the record ``horizon`` steps after each
+    window's last (1: the next record), in dataset order; none straddles two episodes. Returns
+    (windows, targets, episode_ids)."""
+    if horizon < 1:
+        raise InvalidInputError(f"horizon must be at least 1 record, got {horizon}")
+    xs, ys, ids = [], [], []
+    for ep in ds.select(skill, best_only):
+        f = ep.features
+        n = len(f) - window - horizon + 1
+        if n <= 0:
+            continue
+        idx = np.arange(window)[None, :] + np.arange(n)[:, None]
+        xs.append(f[idx])  # (n, window, 9)
+        ys.append(f[window + horizon - 1 :])  # (n, 9)
+        ids.append(np.full(n, ep.episode_id))
+    if not xs:
+        raise InvalidInputError(
+            f"no {skill or 'any'} episode is longer than the window of {window} records plus the horizon of {horizon}"
+        )
+    return np.concatenate(xs), np.concatenate(ys), np.concatenate(ids)
+
+
+@dataclass
+class Split:
+    """Index ranges of the chronological split."""
+
+    train: slice
+    val: slice
+    test: slice
+
+    def sizes(self) -> dict[str, int]:
+        """Samples per set."""
+        return {k: v.stop - v.start for k, v in asdict(self).items()}
+
+
+def split_windows(n: int, window: int, test_fraction: float, val_fraction: float) -> Split:
+    """Chronological train/val/test ranges over ``n`` ordered windows, with a gap of ``window``
+    windows before each boundary so that no record is shared between sets (pass the window plus
+    the horizon less one when targets lie further ahead)."""
+    n_test = int(round(n * test_fraction))
+    test_start = n - n_test
+    train_val_end = test_start - window
+    n_val = int(round(train_val_end * val_fraction))
+    val_start = train_val_end - n_val
+    train_end = val_start - window
+    if train_end < 1 or n_val < 1 or n_test < 1:
+        raise InvalidInputError(f"{n} windows are too few to split (need train, validation and test sets)")
+    return Split(slice(0, train_end), slice(val_start, train_val_end), slice(test_start, n))
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise InvalidInputError("device 'cuda' was asked for but no CUDA device is available")
+    return torch.device(name)
+
+
+@dataclass
+class TrainResult:
+    """What a training run produced."""
+
+    run_dir: Path
+    metrics: dict[str, Any]
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+def _rmse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return torch.sqrt(F.mse_loss(pred, target) + 1e-12)
+
+
+def train(
+    data_dir: str | os.PathLike[str],
+    run_dir: str | os.PathLike[str],
+    model_cfg: ModelConfig | str = "fusion-2x256",
+    cfg: TrainConfig | None = None,
+    resume: bool = False,
+    progress: Callable[[int, int, float, float], None] | None = None,
+) -> TrainResult:
+    """Trains a model on a dataset folder and writes the run folder: ``checkpoint.pt``,
+    ``metrics.json``, ``loss.png``, ``forces.png`` and the exported ``model.ts``.
+    ``progress(epoch, max_epochs, train_rmse, val_rmse)`` is called after each epoch."""
+    from dhg.data.plots import plot_forces, plot_losses
+    from dhg.learning.torchscript import export_model
+
+    cfg = cfg or TrainConfig()
+    mcfg = preset(model_cfg) if isinstance(model_cfg, str) else model_cfg
+    ddp = int(os.environ.get("WORLD_SIZE", "1")) > 1
+    rank = 0
+    if ddp:
+        import torch.distributed as dist
+
+        backend = "nccl" if cfg.device != "cpu" and torch.cuda.is_available() else "gloo"
+        dist.init_process_group(backend)
+        rank = dist.get_rank()
+    device = _device(cfg.device)
+    if ddp and device.type == "cuda":
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    run = Path(run_dir)
+    if rank == 0:
+        run.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+
+    ds = load_dataset(data_dir)
+    x_all, y_all, _ = make_windows(ds, mcfg.window, cfg.skill, cfg.best_only, cfg.horizon)
+    split = split_windows(len(x_all), mcfg.window + cfg.horizon - 1, cfg.test_fraction, cfg.val_fraction)
+    x = torch.as_tensor(x_all, dtype=torch.float32)  # (N, T, 9)
+    y = torch.as_tensor(y_all, dtype=torch.float32)  # (N, 9)
+    scaler = MinMaxScaler().fit(torch.cat([x[split.train].reshape(-1, 9), y[split.train]]))
+    in_idx = torch.tensor(mcfg.index(mcfg.input_features))
+    out_idx = torch.tensor(mcfg.index(mcfg.output_features))
+    force_pos = torch.tensor([mcfg.output_features.index(n) for n in FEATURE_NAMES[0:3]])
+    xn = scaler(x).index_select(2, in_idx)  # (N, T, F_in)
+    yn = scaler(y).index_select(1, out_idx)  # (N, F_out)
+
+    net = LSTMRegressor(mcfg).to(device)
+    model: torch.nn.Module = net
+    if ddp:
+        model = torch.nn.parallel.DistributedDataParallel(
+            net, device_ids=[device.index] if device.type == "cuda" else None
+        )
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.learning_rate)
+    start_epoch, best_val, best_state, history, bad_epochs = 0, math.inf, None, [], 0
+    ckpt_path = run / "checkpoint.pt"
+    if resume and ckpt_path.is_file():
+        ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
+        if ckpt["model_config"] != mcfg.to_dict():
+            raise InvalidInputError(f"{ckpt_path} was trained with {ckpt['model_config']}, not {mcfg.to_dict()}")
+        net.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        start_epoch, best_val, best_state = ckpt["epoch"] + 1, ckpt["best_val"], ckpt["best_state"]
+        history, bad_epochs = ckpt["history"], ckpt["bad_epochs"]
+        torch.set_rng_state(ckpt["torch_rng"])
+
+    x_tr, y_tr = xn[split.train], yn[split.train]
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    t0 = time.perf_counter()
+    for epoch in range(start_epoch, cfg.max_epochs):
+        if bad_epochs >= cfg.patience:
+            break
+        model.train()
+        g = torch.Generator().manual_seed(cfg.seed * 100_003 + epoch)
+        order = torch.randperm(len(x_tr), generator=g)
+        # Each rank takes an equal share, so all ranks run the same number of batches (DDP's
+        # all-reduce would otherwise wait forever on the rank with one batch more).
+        order = order[: len(order) - len(order) % world][rank::world]
+        total, count = 0.0, 0
+        for b in range(0, len(order), cfg.batch_size):
+            idx = order[b : b + cfg.batch_size]
+            xb, yb = x_tr[idx].to(device), y_tr[idx].to(device)
+            opt.zero_grad(set_to_none=True)
+            loss = _rmse(model(xb), yb)
+            loss.backward()
+            opt.step()
+            total += float(loss.detach()) * len(idx)
+            count += len(idx)
+        val = _evaluate(net, xn[split.val], yn[split.val], force_pos, device)["rmse_normalized"]
+        history.append({"epoch": epoch, "train_rmse": total / max(count, 1), "val_rmse": val})
+        if val < best_val - 1e-6:
+            best_val, bad_epochs = val, 0
+            best_state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
+        else:
+            bad_epochs += 1
+        if rank == 0:
+            ckpt = {
+                "model": net.state_dict(),
+                "optimizer": opt.state_dict(),
+                "model_config": mcfg.to_dict(),
+                "train_config": asdict(cfg),
+                "epoch": epoch,
+                "best_val": best_val,
+                "best_state": best_state,
+                "history": history,
+                "bad_epochs": bad_epochs,
+                "torch_rng": torch.get_rng_state(),
+            }
+            tmp = ckpt_path.with_suffix(".tmp")
+            torch.save(ckpt, tmp)
+            os.replace(tmp, ckpt_path)
+        if progress is not None:
+            progress(epoch + 1, cfg.max_epochs, history[-1]["train_rmse"], val)
+    train_time = time.perf_counter() - t0
+    if best_state is not None:
+        net.load_state_dict(best_state)
+    net = net.cpu().eval()
+    cpu = torch.device("cpu")
+    metrics: dict[str, Any] = {
+        "preset": mcfg.preset,
+        "model_config": mcfg.to_dict(),
+        "train_config": asdict(cfg),
+        "samples": split.sizes(),
+        "epochs": len(history),
+        "best_epoch": int(np.argmin([h["val_rmse"] for h in history])) if history else -1,
+        "train_time_s": train_time,
+        "data": {"path": str(ds.path), "records_sha256": ds.card["files"]["records.parquet"]["sha256"]},
+        "parameters": sum(p.numel() for p in net.parameters()),
+    }
+    for name, sl in (("train", split.train), ("val", split.val), ("test", split.test)):
+        metrics[name] = _evaluate(net, xn[sl], yn[sl], force_pos, cpu, scaler.span[0:3])
+    if rank == 0:
+        plot_losses(history, run / "loss.png", title=f"{mcfg.preset}: RMSE (normalised) per epoch")
+        predictor = ForcePredictor(net, scaler, mcfg).eval()
+        test_x = x[split.test][:1000]
+        with torch.no_grad():
+            predicted = predictor(test_x).numpy()
+        plot_forces(y[split.test][:1000, 0:3].numpy(), predicted, run / "forces.png", title=f"{mcfg.preset}: test set")
+        export_model(predictor, mcfg, metrics, run / "model.ts", profiles=_profiles(ds))
+        # Last: a run with metrics.json is finished (dhg ablate reuses it), so it must have the rest.
+        tmp = run / "metrics.json.tmp"
+        tmp.write_text(json.dumps(metrics, indent=1))
+        os.replace(tmp, run / "metrics.json")
+    if ddp:
+        import torch.distributed as dist
+
+        dist.destroy_process_group()
+    return TrainResult(run, metrics, history)
+
+
+def _evaluate(
+    net: LSTMRegressor,
+    xn: torch.Tensor,
+    yn: torch.Tensor,
+    force_pos: torch.Tensor,
+    device: torch.device,
+    force_span: torch.Tensor | None = None,
+) -> dict[str, Any]:
+    """RMSE on the force outputs, normalised and (given the scaler's spans) in newtons per axis."""
+    net.eval()
+    preds = []
+    with torch.no_grad():
+        for b in range(0, len(xn), 1024):
+            preds.append(net(xn[b : b + 1024].to(device)).cpu())
+    pred = torch.cat(preds).index_select(1, force_pos)  # (N, 3) normalised
+    ref = yn.index_select(1, force_pos)
+    out: dict[str, Any] = {"rmse_normalized": float(torch.sqrt(F.mse_loss(pred, ref)))}
+    if force_span is not None:
+        err_n = (pred - ref) * force_span  # (N, 3) in N
+        per_axis = torch.sqrt((err_n**2).mean(dim=0))
+        out["rmse_n"] = float(torch.sqrt((err_n**2).mean()))
+        out["rmse_n_per_axis"] = [float(v) for v in per_axis]
+    return out
+
+
+def _profiles(ds: Any) -> dict[str, Any] | None:
+    """The dataset's expert demonstration profiles (:mod:`dhg.learning.profiles`), or None where it has no
+    planned path or no experts (the model then guides with the fixed corridor)."""
+    from dhg.learning.profiles import build_profiles
+
+    try:
+        return build_profiles(ds).to_dict()
+    except InvalidInputError:
+        return None

@@ -1,0 +1,5 @@
+"""Everything on Zenoh: the Zenoh configuration (:mod:`~dhg.live.zenoh_config`), the model and
+X-ray services (:mod:`~dhg.live.services`), ``dhg-serve``'s runner (:mod:`~dhg.live.runner`), the
+trainee client (:mod:`~dhg.live.client`, :mod:`~dhg.live.trainee`), the recorder
+(:mod:`~dhg.live.recorder`, :mod:`~dhg.live.streams`), the secure lab mode (:mod:`~dhg.live.lab`)
+and the live demo (:mod:`~dhg.live.demo`). The engine itself is :class:`dhg.Server`."""

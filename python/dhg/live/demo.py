@@ -1,0 +1,209 @@
+"""``dhg live-demo`` (``make demo``): the whole product on one machine.
+
+Starts ``dhg-serve`` (phantom femur, bundled model) as a child process on a free loopback port,
+drives it with two virtual novices with the same hand (same seed), one feeling the guidance and one
+not, prints their skill metrics and the guidance/latency figures side by side, writes the guided
+session's X-ray views and a plot of force, guidance and temperature over time, and stops the server
+with SIGTERM, as a person would with Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dhg.core.errors import TransportError
+
+__all__ = ["ServerProcess", "free_port", "plot_live_runs", "run_live_demo"]
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class ServerProcess:
+    """``dhg-serve`` as a child process; its output lines are echoed (with ``echo``) and kept."""
+
+    def __init__(self, args: list[str], echo: bool = True, ready_timeout_s: float = 120.0):
+        self.lines: list[str] = []
+        self._ready: queue.Queue[str] = queue.Queue()
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "dhg.cli.serve", *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+        )
+        self._echo = echo
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+        try:
+            line = self._ready.get(timeout=ready_timeout_s)
+        except queue.Empty:
+            self.stop()
+            raise TransportError(f"dhg-serve was not ready within {ready_timeout_s} s") from None
+        if not line.startswith("dhg-serve ready"):
+            self.stop()
+            raise TransportError("dhg-serve did not start:\n" + "\n".join(self.lines[-10:]))
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            line = line.rstrip("\n")
+            self.lines.append(line)
+            if self._echo:
+                print(f"  server │ {line}", flush=True)
+            if line.startswith("dhg-serve ready"):
+                self._ready.put(line)
+        self._ready.put("exited")
+
+    def stop(self, timeout_s: float = 20.0) -> int:
+        """SIGTERM, then wait; SIGKILL if it does not stop in time. Returns the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._reader.join(timeout=5.0)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+        return int(self.proc.returncode)
+
+
+def plot_live_runs(runs: list[Any], out: str | Path, title: str = "") -> Path:
+    """PNG of networked runs over time (s): force feedback |F| (N), guidance |G| (N) and drill-tip
+    temperature (°C), one colour per run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from dhg.data.plots import _save
+
+    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True, constrained_layout=True)
+    for run, colour in zip(runs, ("tab:blue", "tab:orange", "tab:green"), strict=False):
+        label = f"{run.skill}, {run.guidance_mode} gain {run.guidance_gain:g}"
+        r = run.records
+        if len(r):
+            axes[0].plot(r[:, 0], np.linalg.norm(r[:, 1:4], axis=1), color=colour, label=label)
+            axes[2].plot(r[:, 0], r[:, 9], color=colour, label=label)
+        if run.guidance:
+            tg = np.array([g["tick"] * 1e-3 for g in run.guidance])  # session time, as the records' time_s
+            gx = np.array([np.linalg.norm(g["guidance_n"]) for g in run.guidance])
+            axes[1].plot(tg, gx, color=colour, label=label)
+    axes[0].set_ylabel("feedback |F| (N)")
+    axes[1].set_ylabel("guidance |G| (N)")
+    axes[2].set_ylabel("tip temperature (°C)")
+    axes[2].axhline(47.0, color="red", lw=0.8, ls="--")
+    axes[2].set_xlabel("time (s)")
+    axes[0].legend(loc="upper left")
+    if title:
+        axes[0].set_title(title)
+    return _save(fig, out)
+
+
+def _row(name: str, values: list[str]) -> list[str]:
+    return [name, *values]
+
+
+def run_live_demo(
+    out: str | Path,
+    duration_s: float = 20.0,
+    seed: int = 7,
+    echo_server: bool = True,
+    zenoh_config_file: str | None = None,
+) -> int:
+    """Runs the demo (see the module docstring); returns the server's exit code. A
+    ``zenoh_config_file`` goes to the server and both trainees (the endpoint stays loopback)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from dhg.live.client import TraineeClient
+    from dhg.live.trainee import run_trainee
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    console = Console()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    console.print(f"[bold]starting dhg-serve[/] on {endpoint} (phantom femur, bundled model)")
+    zcfg = ["--zenoh-config", str(zenoh_config_file)] if zenoh_config_file else []
+    server = ServerProcess(["--listen", endpoint, "--status-every", "5", *zcfg], echo=echo_server)
+    runs = []
+    try:
+        for name, gain in (("guided", 1.0), ("unguided", 0.0)):
+            console.print(f"[bold]{name} novice[/]: drilling for up to {duration_s:g} s (seed {seed}) …")
+            with TraineeClient(endpoint, f"demo-{name}", zenoh_config_file=zenoh_config_file) as client:
+                run = run_trainee(client, "novice", gain, duration_s, seed)
+                if name == "guided":
+                    for view, png in client.xray().items():
+                        (out / f"{view}.png").write_bytes(png)
+                run.server_health = client.health(duration_s + 5.0)
+            runs.append(run)
+    finally:
+        code = server.stop()
+    table = Table(title="Virtual novice, same hand: with and without guidance (phantom femur)")
+    table.add_column("")
+    for run in runs:
+        label = f"{run.guidance_mode}, gain {run.guidance_gain:g}" if run.guidance_gain > 0 else "unguided"
+        table.add_column(label, justify="right")
+
+    def fmt(key: str, scale: float = 1.0, spec: str = ".2f") -> list[str]:
+        return [format(float(r.metrics[key]) * scale, spec) for r in runs]
+
+    table.add_row(*_row("reached B", [str(r.metrics["reached_target"]) for r in runs]))
+    table.add_row(*_row("completed (task rules)", [str(r.metrics["completed"]) for r in runs]))
+    table.add_row(*_row("time drilling (s)", fmt("completion_time_s", 1, ".1f")))
+    table.add_row(*_row("distance to B (mm)", fmt("target_distance_m", 1e3)))
+    table.add_row(*_row("mean deviation (mm)", fmt("mean_deviation_m", 1e3)))
+    table.add_row(*_row("max deviation (mm)", fmt("max_deviation_m", 1e3)))
+    table.add_row(*_row("plunge (mm)", fmt("plunge_depth_m", 1e3)))
+    table.add_row(*_row("peak temperature (°C)", fmt("peak_temperature_c", 1, ".1f")))
+    table.add_row(*_row("time above 47 °C (s)", fmt("time_above_47_s", 1, ".1f")))
+    table.add_row(*_row("force jerk (N/s)", fmt("force_jerk_n_per_s")))
+    table.add_row(*_row("guidance messages", [str(r.latency["guidance"]) for r in runs]))
+    table.add_row(
+        *_row(
+            "mean |model cue| (N)",
+            [
+                f"{np.mean([np.linalg.norm(g['guidance_n']) for g in r.guidance]):.3f}" if r.guidance else "-"
+                for r in runs
+            ],
+        )
+    )
+    table.add_row(
+        *_row(
+            "model latency p99 (ms)",
+            [
+                f"{np.percentile([g['model_latency_s'] for g in r.guidance], 99) * 1e3:.1f}" if r.guidance else "-"
+                for r in runs
+            ],
+        )
+    )
+    for key, label in (("pose_to_force", "pose→force"), ("pose_to_guidance", "pose→guidance")):
+        for q in ("p50", "p99"):
+            table.add_row(*_row(f"{label} {q} (ms)", [f"{r.latency[f'{key}_{q}_s'] * 1e3:.2f}" for r in runs]))
+    table.add_row(*_row("forces / poses sent", [f"{r.latency['forces']} / {r.poses_sent}" for r in runs]))
+    table.add_row(*_row("missed ticks (server)", [str(r.server_health["missed_ticks"]) for r in runs]))
+    console.print(table)
+    plot = plot_live_runs(runs, out / "live.png", "Virtual novice through dhg-serve: guided vs unguided")
+    console.print(
+        f"X-ray views of the guided session: {', '.join(str(out / f'{v}.png') for v in ('top', 'front', 'side'))}"
+    )
+    console.print(f"plot: {plot}")
+    console.print(f"dhg-serve exited with code {code}")
+    return code

@@ -1,0 +1,369 @@
+"""The secure lab mode: one lab file → the Zenoh configurations of a training lab (``dhg lab-config``).
+
+A lab runs one server (``dhg-serve``), haptic stations, instructors and model workers on one
+network. In the open mode any peer can put a force on any session's key, reset any session and
+answer the model's queries. The lab file names every identity, and this module writes, for each,
+a Zenoh configuration that
+
+* encrypts every link with TLS (the server's certificate signed by the lab's CA; clients verify it),
+* authenticates every client by user name and password (the server holds the dictionary),
+* and gives the server an access-control list (deny by default) in which
+
+  - a **station** may publish only its own poses, query only its own control, metrics and
+    X-rays (and the server's health), and hear only its own outputs. Its sessions are named
+    ``<station>`` or ``<station>-<anything>``;
+  - an **instructor** may read every session (subscribe to every output, query every session and
+    the server's health, recover the recorded streams) and publish nothing;
+  - a **model worker** may join the engine's worker pool under its own name (the liveliness
+    token ``<prefix>/model/workers/<name>`` and the queryable below it), serve the shared
+    ``<prefix>/model/predict``, and nothing else;
+  - the **server** identity (its own model and X-ray services, which connect to its engine over
+    loopback) does the same as worker ``dhg-server`` and serves X-rays;
+  - nobody but the engine publishes a force, guidance or state: no client rule allows it.
+
+The lab file (TOML)::
+
+    [server]
+    endpoint = "tls/dhg-server.lab:7447"      # where clients connect
+    listen = "tls/0.0.0.0:7447"               # optional: where the server listens (default: endpoint)
+    prefix = "dhg"                            # optional
+    ca_certificate = "certs/ca.pem"           # the lab's CA (relative to the lab file)
+    certificate = "certs/server.pem"          # the server's certificate and key, signed by the CA
+    private_key = "certs/server-key.pem"
+    password = "..."                          # the server identity's own password
+    sessions_per_station = 2                  # optional: what dhg-serve --lab lets one station hold
+
+    [[station]]
+    name = "station-1"
+    password = "..."
+
+    [[instructor]]
+    name = "instructor"
+    password = "..."
+
+    [[model_worker]]
+    name = "model-1"
+    password = "..."
+
+``dhg lab-config --lab lab.toml --out DIR`` writes ``DIR/server.json5`` (for ``dhg-serve
+--zenoh-config``), ``DIR/users.txt`` (the password dictionary it names) and ``DIR/<name>.json5``
+for every other identity (for ``--zenoh-config`` of ``dhg trainee``, ``record``, ``study --live``
+and model workers). ``--make-certs`` first creates a lab CA and a server certificate with
+``openssl`` where the files do not exist. ``docs/deployment.md`` is the how-to.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomllib
+
+from dhg.core.errors import InvalidInputError
+from dhg.core.protocol import check_session_id
+
+__all__ = ["Identity", "Lab", "acl", "load_lab", "make_certs", "write_lab"]
+
+ROLES = ("station", "instructor", "model_worker")
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,47}")
+SERVER_IDENTITY = "dhg-server"
+"""The user name of the server's own services (model, X-rays) when they connect to its engine."""
+
+
+@dataclass(frozen=True)
+class Identity:
+    """One client of the lab: ``role`` (station, instructor, model_worker), a user name and password."""
+
+    role: str
+    name: str
+    password: str
+
+
+@dataclass
+class Lab:
+    """A lab file, read (paths absolute)."""
+
+    endpoint: str
+    listen: str
+    prefix: str
+    ca_certificate: Path
+    certificate: Path
+    private_key: Path
+    server_password: str
+    sessions_per_station: int = 2
+    """Most sessions one station may hold at once (``dhg-serve --lab`` enforces it)."""
+    identities: list[Identity] = field(default_factory=list)
+
+    def of(self, role: str) -> list[Identity]:
+        return [i for i in self.identities if i.role == role]
+
+
+def _need(table: dict[str, Any], key: str, where: str) -> Any:
+    if key not in table:
+        raise InvalidInputError(f"{where}: '{key}' is missing")
+    return table[key]
+
+
+def load_lab(path: str | os.PathLike[str]) -> Lab:
+    """Reads and checks a lab file (see the module docs)."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise InvalidInputError(f"{p}: not a readable TOML lab file ({exc})") from None
+    server = _need(data, "server", str(p))
+    base = p.parent
+
+    def rel(key: str) -> Path:
+        return (base / str(_need(server, key, f"{p} [server]"))).resolve()
+
+    endpoint = str(_need(server, "endpoint", f"{p} [server]"))
+    if not endpoint.startswith("tls/"):
+        raise InvalidInputError(f"{p} [server]: the endpoint must be a tls/ endpoint, got {endpoint!r}")
+    prefix = str(server.get("prefix", "dhg"))
+    for seg in prefix.split("/"):
+        check_session_id(seg)
+    lab = Lab(
+        endpoint=endpoint,
+        listen=str(server.get("listen", endpoint)),
+        prefix=prefix,
+        ca_certificate=rel("ca_certificate"),
+        certificate=rel("certificate"),
+        private_key=rel("private_key"),
+        server_password=str(_need(server, "password", f"{p} [server]")),
+        sessions_per_station=int(server.get("sessions_per_station", 2)),
+    )
+    if lab.sessions_per_station < 1:
+        raise InvalidInputError(f"{p} [server]: sessions_per_station must be at least 1")
+    seen = {SERVER_IDENTITY}
+    for role in ROLES:
+        for k, entry in enumerate(data.get(role, [])):
+            where = f"{p} [[{role}]] #{k + 1}"
+            name, password = str(_need(entry, "name", where)), str(_need(entry, "password", where))
+            if not _NAME.fullmatch(name):
+                raise InvalidInputError(
+                    f"{where}: name {name!r} must be 1-48 of A-Z a-z 0-9 _ . -, the first alphanumeric"
+                )
+            if name in seen:
+                raise InvalidInputError(f"{where}: the name {name!r} is used twice")
+            if len(password) < 8 or ":" in password or "\n" in password:
+                raise InvalidInputError(f"{where}: the password must have at least 8 characters, without ':'")
+            seen.add(name)
+            lab.identities.append(Identity(role, name, password))
+    if not lab.of("station"):
+        raise InvalidInputError(f"{p}: a lab needs at least one [[station]]")
+    return lab
+
+
+def _rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> dict[str, Any]:
+    return {"id": rid, "messages": messages, "flows": flows, "permission": "allow", "key_exprs": keys}
+
+
+def acl(lab: Lab) -> dict[str, Any]:
+    """The server's access-control list (Zenoh ``access_control``) for the lab's identities."""
+    p = lab.prefix
+    rules: list[dict[str, Any]] = []
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+
+    def grant(who: str, names: list[str], *granted: dict[str, Any]) -> None:
+        subjects.append({"id": who, "usernames": names})
+        rules.extend(granted)
+        policies.append({"rules": [r["id"] for r in granted], "subjects": [who]})
+
+    health = f"{p}/server/health"
+    for st in lab.of("station"):
+        n = st.name
+        own = [f"{p}/session/{n}", f"{p}/session/{n}-$*"]
+        grant(
+            f"station:{n}",
+            [n],
+            _rule(f"{n}:pose", ["put"], ["ingress"], [f"{s}/pose" for s in own]),
+            _rule(
+                f"{n}:ask",
+                ["query"],
+                ["ingress"],
+                [health] + [f"{s}/{leaf}" for s in own for leaf in ("control", "metrics", "xray/*")],
+            ),
+            _rule(f"{n}:replies", ["reply"], ["egress"], [health] + [f"{s}/**" for s in own]),
+            _rule(
+                f"{n}:hear",
+                ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+                ["ingress"],
+                [f"{s}/{leaf}" for s in own for leaf in ("force", "guidance", "state", "guidance/**", "state/**")],
+            ),
+            _rule(
+                f"{n}:outputs",
+                ["put", "liveliness_token"],
+                ["egress"],
+                [f"{s}/{leaf}" for s in own for leaf in ("force", "guidance", "state", "guidance/**", "state/**")],
+            ),
+            _rule(
+                f"{n}:recover",
+                ["query"],
+                ["ingress"],
+                [f"{s}/{leaf}/**" for s in own for leaf in ("guidance", "state")],
+            ),
+        )
+    instructors = [i.name for i in lab.of("instructor")]
+    if instructors:
+        grant(
+            "instructors",
+            instructors,
+            _rule(
+                "instructor:read",
+                ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query", "query"],
+                ["ingress"],
+                [f"{p}/**"],
+            ),
+            _rule("instructor:hear", ["put", "reply", "liveliness_token"], ["egress"], [f"{p}/**"]),
+        )
+    # A model worker joins the engine's pool under its own name only (its token and its
+    # queryable), and may serve the shared key the engine queries while the pool is empty.
+    for n in [i.name for i in lab.of("model_worker")] + [SERVER_IDENTITY]:
+        own = f"{p}/model/workers/{n}"
+        extra = [f"{p}/session/*/xray/*"] if n == SERVER_IDENTITY else []
+        grant(
+            f"worker:{n}",
+            [n],
+            _rule(
+                f"{n}:serve",
+                ["declare_queryable", "reply"],
+                ["ingress"],
+                [f"{p}/model/predict", f"{own}/predict"] + extra,
+            ),
+            _rule(f"{n}:join", ["liveliness_token"], ["ingress"], [own]),
+            _rule(f"{n}:queries", ["query"], ["egress"], [f"{p}/model/predict", f"{own}/predict"] + extra),
+        )
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def _tls(lab: Lab, server: bool) -> dict[str, Any]:
+    tls: dict[str, Any] = {"root_ca_certificate": str(lab.ca_certificate), "verify_name_on_connect": True}
+    if server:
+        tls |= {"listen_certificate": str(lab.certificate), "listen_private_key": str(lab.private_key)}
+    return tls
+
+
+def _base(mode: str, lab: Lab, user: str, password: str, server: bool) -> dict[str, Any]:
+    return {
+        "mode": mode,
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {
+            "link": {"tls": _tls(lab, server)},
+            "auth": {"usrpwd": {"user": user, "password": password}},
+        },
+    }
+
+
+def lab_configs(lab: Lab, users_file: Path) -> dict[str, dict[str, Any]]:
+    """``{"server": ..., "<name>": ...}``: the Zenoh configuration of each lab member."""
+    server = _base("router", lab, SERVER_IDENTITY, lab.server_password, server=True)
+    server["listen"] = {"endpoints": [lab.listen]}
+    server["transport"]["auth"]["usrpwd"]["dictionary_file"] = str(users_file)
+    server["access_control"] = acl(lab)
+    out = {"server": server}
+    for ident in lab.identities:
+        conf = _base("client", lab, ident.name, ident.password, server=False)
+        conf["connect"] = {"endpoints": [lab.endpoint]}
+        out[ident.name] = conf
+    return out
+
+
+def write_lab(lab_path: str | os.PathLike[str], out_dir: str | os.PathLike[str], certs: bool = False) -> list[Path]:
+    """Writes every configuration of the lab file into ``out_dir`` (see the module docs); with
+    ``certs``, first creates the lab CA and the server certificate where they do not exist.
+    Returns the files written. Files with passwords are readable by their owner only."""
+    lab = load_lab(lab_path)
+    if certs:
+        make_certs(lab)
+    for f in (lab.ca_certificate, lab.certificate, lab.private_key):
+        if not f.is_file():
+            raise InvalidInputError(
+                f"{f}: no such file (run with --make-certs to create a lab CA and server certificate)"
+            )
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    users = out / "users.txt"
+    lines = [f"{SERVER_IDENTITY}:{lab.server_password}"] + [f"{i.name}:{i.password}" for i in lab.identities]
+    written = [_private(users, "\n".join(lines) + "\n")]
+    for name, conf in lab_configs(lab, users.resolve()).items():
+        written.append(_private(out / f"{name}.json5", json.dumps(conf, indent=2) + "\n"))
+    return written
+
+
+def _private(path: Path, text: str) -> Path:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    os.chmod(path, 0o600)
+    return path
+
+
+def _host(endpoint: str) -> str:
+    addr = endpoint.split("/", 1)[1]
+    return addr.rsplit(":", 1)[0].strip("[]")
+
+
+def make_certs(lab: Lab, days: int = 825) -> None:
+    """Creates the lab's CA and the server's certificate (for the endpoint's host name, plus
+    localhost and 127.0.0.1 for the server's own services) with ``openssl``, where missing."""
+    if lab.certificate.is_file() and lab.private_key.is_file() and lab.ca_certificate.is_file():
+        return
+    ca_key = lab.ca_certificate.with_name(lab.ca_certificate.stem + "-key.pem")
+    for f in (lab.ca_certificate, lab.certificate, lab.private_key):
+        f.parent.mkdir(parents=True, exist_ok=True)
+
+    def run(*args: str, stdin: str | None = None) -> None:
+        try:
+            subprocess.run(["openssl", *args], check=True, capture_output=True, text=True, input=stdin)
+        except FileNotFoundError:
+            raise InvalidInputError("openssl is not installed: create the certificates yourself") from None
+        except subprocess.CalledProcessError as exc:
+            raise InvalidInputError(f"openssl {args[0]} failed: {exc.stderr.strip()}") from None
+
+    if not lab.ca_certificate.is_file():
+        run("req", "-x509", "-newkey", "rsa:3072", "-nodes", "-keyout", str(ca_key), "-out", str(lab.ca_certificate),
+            "-days", str(days), "-subj", "/CN=DHG lab CA")  # fmt: skip
+        os.chmod(ca_key, 0o600)
+    host = _host(lab.endpoint)
+    alt = {
+        "DNS:localhost",
+        "IP:127.0.0.1",
+        f"IP:{host}" if re.fullmatch(r"[0-9.]+|[0-9a-fA-F:]+", host) else f"DNS:{host}",
+    }
+    csr = lab.certificate.with_suffix(".csr")
+    run(
+        "req",
+        "-newkey",
+        "rsa:3072",
+        "-nodes",
+        "-keyout",
+        str(lab.private_key),
+        "-out",
+        str(csr),
+        "-subj",
+        f"/CN={host}",
+    )
+    os.chmod(lab.private_key, 0o600)
+    ext = (
+        f"subjectAltName={','.join(sorted(alt))}\nbasicConstraints=CA:FALSE\n"
+        "keyUsage=digitalSignature,keyEncipherment\n"
+    )
+    ext_file = csr.with_suffix(".ext")
+    ext_file.write_text(ext)
+    run("x509", "-req", "-in", str(csr), "-CA", str(lab.ca_certificate), "-CAkey", str(ca_key), "-CAcreateserial",
+        "-out", str(lab.certificate), "-days", str(days), "-extfile", str(ext_file))  # fmt: skip
+    csr.unlink()
+    ext_file.unlink()

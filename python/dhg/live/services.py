@@ -1,0 +1,238 @@
+"""The model service and the X-ray service: the Python halves of ``dhg-serve`` on Zenoh."""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from dhg.core import protocol
+from dhg.core.errors import InvalidInputError
+from dhg.core.protocol import check_session_id
+
+__all__ = ["ModelService", "XRayService"]
+
+log = logging.getLogger("dhg.live.runner")
+
+
+class ModelService:
+    """Answers the engine's model queries with the model's predicted expert force.
+
+    The service joins the engine's worker pool: it serves ``<prefix>/model/workers/<id>/predict``
+    and holds the liveliness token ``<prefix>/model/workers/<id>``, and the engine sends each
+    window to one worker of the pool (the one with the fewest queries in flight; see
+    ``docs/protocol.md``). ``worker_id`` names it (a session id's characters; default: the Zenoh
+    session's id; in the secure lab mode the worker's user name, the one key its access control
+    lets it hold). It also serves the shared ``<prefix>/model/predict``, which the engine queries
+    while its pool is empty.
+
+    Queries are queued by the Zenoh callback; one worker thread takes everything that arrived
+    within ``max_wait_s`` of the first query (up to ``max_batch`` windows), runs one forward pass,
+    and replies to each query. With the default ``max_wait_s = 0`` it waits for nothing: queries
+    that arrive during a forward pass form the next batch, so batches grow with the load and a
+    lone query pays no waiting. Bad queries get an error reply and are counted. The queue holds at
+    most ``max_queue`` queries (more are refused at once, as ``busy``), and a query that waited
+    longer than ``max_age_s`` (the engine's 0.25 s query timeout by default: its asker has given up)
+    is refused as ``stale`` instead of computed. Why no batching wait: ``docs/decisions/0010-model-service.md``.
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        model: Any,
+        prefix: str = "dhg",
+        max_batch: int = 64,
+        max_wait_s: float = 0.0,
+        max_queue: int = 256,
+        max_age_s: float = 0.25,
+        clock: Callable[[], float] = time.perf_counter,
+        worker_id: str | None = None,
+    ):
+        if model.window != protocol.WINDOW_RECORDS:
+            raise InvalidInputError(
+                f"the model takes windows of {model.window} records, but the engine sends "
+                f"{protocol.WINDOW_RECORDS} (docs/protocol.md, predict): train it with window {protocol.WINDOW_RECORDS}"
+            )
+        self.model = model
+        self.model_id = str(model.meta.get("id") or model.meta.get("preset") or model.path.name)
+        self.key = f"{prefix}/model/predict"
+        self.max_batch = max_batch
+        self.max_wait_s = max_wait_s
+        self.max_age_s = max_age_s
+        self._clock = clock  # what a query's age is measured with (s)
+        self.answered = 0
+        self.refused = 0
+        self.busy = 0
+        self.stale = 0
+        self.batches = 0
+        self.inference_s: list[float] = []
+        self._queue: queue.Queue[tuple[float, Any]] = queue.Queue(maxsize=max_queue)
+        self._stop = threading.Event()
+        # TorchScript's profiling executor optimises on the first calls (100s of ms): do them now,
+        # not on a trainee's first windows.
+        for batch in (1, 2, 1):
+            model.predict(np.zeros((batch, model.window, 9), dtype=np.float32))
+        self._worker = threading.Thread(target=self._run, name="dhg-model", daemon=True)
+        self._worker.start()
+        self.worker_id = check_session_id(worker_id if worker_id is not None else str(session.info.zid()))
+        self.worker_key = f"{prefix}/model/workers/{self.worker_id}"
+        self._queryables = [
+            session.declare_queryable(key, self._on_query, complete=True)
+            for key in (self.key, f"{self.worker_key}/predict")
+        ]
+        # Declared last: the engine sends this worker queries once it sees the token.
+        self._token = session.liveliness().declare_token(self.worker_key)
+
+    def _on_query(self, query: Any) -> None:
+        try:
+            self._queue.put_nowait((self._clock(), query))
+        except queue.Full:
+            self.busy += 1
+            self._reply_error(query, "busy: the model service's queue is full")
+
+    def _reply_error(self, query: Any, message: str) -> None:
+        self.refused += 1
+        try:
+            query.reply_err(json.dumps({"error": message}))
+        finally:
+            query.drop()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                first = self._queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            batch = [first]
+            deadline = time.perf_counter() + self.max_wait_s
+            while len(batch) < self.max_batch:
+                left = deadline - time.perf_counter()
+                try:
+                    batch.append(self._queue.get(timeout=left) if left > 0 else self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            now = self._clock()
+            fresh = []
+            for arrived, q in batch:
+                if now - arrived > self.max_age_s:
+                    self.stale += 1
+                    self._reply_error(q, f"stale: queued {now - arrived:.3f} s, longer than {self.max_age_s} s")
+                else:
+                    fresh.append(q)
+            if fresh:
+                self._answer(fresh)
+
+    def _answer(self, batch: list[Any]) -> None:
+        good, windows = [], []
+        for q in batch:
+            try:
+                payload = q.payload.to_bytes() if q.payload is not None else b""
+                seq, window = protocol.decode_predict(payload)
+                if window.shape != (self.model.window, 9) or not np.all(np.isfinite(window)):
+                    raise InvalidInputError(f"window of shape {window.shape} or non-finite values")
+            except (InvalidInputError, ValueError) as exc:
+                self._reply_error(q, str(exc))
+                continue
+            good.append((q, seq))
+            windows.append(window)
+        if not good:
+            return
+        t0 = time.perf_counter()
+        try:
+            forces = self.model.predict(np.stack(windows), check_output=False)
+        except Exception as exc:  # a model failure must not kill the worker
+            log.exception("model forward failed")
+            for q, _ in good:
+                self._reply_error(q, f"model failed: {exc}")
+            return
+        dt = time.perf_counter() - t0
+        self.batches += 1
+        self.inference_s.append(dt)
+        del self.inference_s[:-1000]
+        for (q, seq), f in zip(good, forces, strict=True):
+            if not np.all(np.isfinite(f)):  # a window far outside the training ranges overflows the model
+                self._reply_error(
+                    q, "the prediction is not finite: the window's values lie far outside the model's ranges"
+                )
+                continue
+            try:
+                q.reply(q.key_expr, protocol.encode_prediction(seq, f, dt, self.model_id))
+                self.answered += 1
+            finally:
+                q.drop()
+
+    def stats(self) -> dict[str, float]:
+        """Answered and refused queries (of them: busy, stale), batches, and inference time p50/p99 (s)."""
+        t = np.array(self.inference_s) if self.inference_s else np.zeros(1)
+        return {
+            "answered": self.answered,
+            "refused": self.refused,
+            "busy": self.busy,
+            "stale": self.stale,
+            "batches": self.batches,
+            "inference_p50_s": float(np.percentile(t, 50)),
+            "inference_p99_s": float(np.percentile(t, 99)),
+        }
+
+    def close(self) -> None:
+        """Leaves the pool (the token first, so the engine stops choosing it), undeclares the
+        queryables and stops the worker thread."""
+        self._stop.set()
+        for entity in (self._token, *self._queryables):
+            try:
+                entity.undeclare()
+            except Exception:  # the session may already be closed
+                pass
+        self._worker.join(timeout=2.0)
+
+
+class XRayService:
+    """Answers ``<prefix>/session/<id>/xray/<view>`` (view: top, front, side or ``*``) with PNG
+    radiographs of that session's bone as drilled now, with the planned path drawn in."""
+
+    def __init__(self, session: Any, server: Any, volume: Any, prefix: str = "dhg"):
+        from dhg.bone.xray import auto_windows
+
+        self.server = server
+        self.volume = volume
+        self.prefix = prefix
+        self.windows = auto_windows(volume.xray())
+        self._queryable = session.declare_queryable(f"{prefix}/session/*/xray/*", self._on_query)
+
+    def _on_query(self, query: Any) -> None:
+        from dhg.bone.xray import render_views
+        from dhg.core.path import PlannedPath
+        from dhg.core.volume import XRayViews
+
+        try:
+            parts = str(query.key_expr).split("/")
+            sid, view = parts[-3], parts[-1]
+            if view not in ("top", "front", "side", "*"):
+                raise InvalidInputError(f"unknown view {view!r}: use top, front, side or *")
+            info = self.server.control(sid, {"op": "info"})
+            top, front, side = self.server.xray(sid)
+            path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))
+            images = render_views(self.volume, XRayViews(top, front, side), path, windows=self.windows)
+            for name, img in images.items():
+                if view in ("*", name):
+                    buf = io.BytesIO()
+                    img.save(buf, format="PNG")
+                    query.reply(f"{self.prefix}/session/{sid}/xray/{name}", buf.getvalue(), encoding="image/png")
+        except Exception as exc:  # every failure becomes an error reply, never a dead callback
+            query.reply_err(json.dumps({"error": str(exc)}))
+        finally:
+            query.drop()
+
+    def close(self) -> None:
+        """Undeclares the queryable."""
+        try:
+            self._queryable.undeclare()
+        except Exception:
+            pass

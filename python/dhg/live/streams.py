@@ -1,0 +1,218 @@
+"""A live session's streams as the recorder hears them (``dhg record``).
+
+A session reaches the recorder as two Zenoh streams, each in order but not in step with the other:
+the 1 kHz forces (each with its tick and the pose it used) and the 10 Hz states (the records).
+Resetting the session's bone restarts both clocks, which starts a new episode (attempt).
+:class:`EpisodeSplitter` puts both streams into the same episodes. :class:`PoseLog` pairs each
+force with the pose it used, since forces echo only the pose's ``seq``. :class:`RawParts` keeps
+the 1 kHz rows in parts of 10 s, so each write of a long recording rewrites at most one small
+part (a minute-long part cost 38 ms per flush, a 10 s one 18 ms: ``docs/benchmarks.md``).
+
+Ticks here are the session's step numbers from 0 at its start or reset, as in ``raw.parquet``:
+the step with tick ``k`` ends at session time ``(k + 1)`` ms, so its force message says
+``tick = k + 1`` and the record it completes says ``time_s = (k + 1) * 1e-3``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from dhg.data.dataset import RAW_FILE, RAW_PART_FILE, RawPart, parquet_bytes, raw_schema
+
+__all__ = ["RAW_COLUMNS", "Episode", "EpisodeSplitter", "PoseLog", "RawParts", "force_jerk"]
+
+RAW_COLUMNS = len(raw_schema().names) - 1
+"""Columns of a raw row as the recorder holds it: the schema's less ``episode_id``."""
+
+SKIP_SLACK_TICKS = 20
+"""How far (ticks, 1 ms each) a message may lie past the other stream's last tick in an episode
+that stream has left and still belong to it: forces dropped at an episode's end leave a gap. A
+state further past belongs to a later episode (one shorter than this without a record of its own
+would take the state; that needs 20 dropped forces in a row at a reset)."""
+
+Stream = Literal["force", "state"]
+
+
+@dataclass
+class Episode:
+    """One episode (attempt) of the recorded session as both streams fill it."""
+
+    last: dict[str, int] = field(default_factory=dict)
+    """Newest tick each stream put in it."""
+    records: list[dict[str, Any]] = field(default_factory=list)
+    """Decoded state messages, in order."""
+    rows: list[tuple[Any, ...]] = field(default_factory=list)
+    """Forces not yet written: (tick, pose seq, force x, y, z, guidance x, y, z), paired with
+    their poses at the next flush."""
+    episode_id: int | None = None
+    """Its id in the dataset, given with its first record (None: no record yet)."""
+    jerk_sum: float = 0.0
+    jerk_count: int = 0
+    last_row: npt.NDArray[np.float64] | None = None
+
+
+class EpisodeSplitter:
+    """Puts messages of the two streams into shared episodes by tick.
+
+    Each stream walks the same list of episodes. A tick at or below the stream's previous tick in
+    its episode is a reset. The stream then joins the next episode, which the other stream
+    opened when it saw the same reset first, or opens it. An episode that the other stream left
+    behind and whose ticks end more than :data:`SKIP_SLACK_TICKS` before this tick is one this
+    stream never saw (an attempt shorter than one record has no state), and is passed over.
+    """
+
+    def __init__(self) -> None:
+        self.episodes: list[Episode] = []
+        self._at: dict[str, int] = {"force": -1, "state": -1}
+
+    def at(self, stream: Stream) -> int:
+        """Index of the episode ``stream`` is in (-1 before its first message)."""
+        return self._at[stream]
+
+    def place(self, stream: Stream, tick: int) -> Episode:
+        """The episode of a ``stream`` message at ``tick``."""
+        other: Stream = "state" if stream == "force" else "force"
+        i = self._at[stream]
+        if i >= 0 and tick > self.episodes[i].last[stream]:
+            ep = self.episodes[i]
+            ep.last[stream] = tick
+            return ep
+        j = i + 1
+        while j < len(self.episodes):
+            cand = self.episodes[j]
+            left_behind = self._at[other] > j
+            if not (left_behind and tick > cand.last.get(other, -1) + SKIP_SLACK_TICKS):
+                break
+            j += 1
+        if j == len(self.episodes):
+            self.episodes.append(Episode())
+        self._at[stream] = j
+        ep = self.episodes[j]
+        ep.last[stream] = tick
+        return ep
+
+
+class PoseLog:
+    """The client's poses by ``seq``, to pair each force with the pose its tick used. A force can
+    reach the recorder before its pose does (both pass the server's router, on their own paths),
+    so rows are paired at each flush, and a pose newer than any received yet is in flight, not
+    lost."""
+
+    def __init__(self, capacity: int = 65_536) -> None:
+        self._rows: dict[int, tuple[float, ...]] = {}
+        self.newest = -1
+        self.capacity = capacity
+        """Poses kept at most (about a minute at 1 kHz), for a client whose forces never come."""
+
+    def add(self, seq: int, row: tuple[float, ...]) -> None:
+        """A pose (``seq``, pose row in :data:`dhg.core.features.POSE_COLUMNS` order)."""
+        if seq <= self.newest:
+            self._rows.clear()  # the client restarted its numbering
+        self._rows[seq] = row
+        self.newest = seq
+        if len(self._rows) > self.capacity:
+            del self._rows[next(iter(self._rows))]
+
+    def get(self, seq: int) -> tuple[float, ...] | None:
+        """The pose ``seq``, or None if it has not arrived (see :meth:`in_flight`)."""
+        return self._rows.get(seq)
+
+    def in_flight(self, seq: int) -> bool:
+        """Whether pose ``seq`` may still arrive: it is newer than every pose received."""
+        return seq > self.newest
+
+    def forget_below(self, seq: int) -> None:
+        """Drops poses older than ``seq``: no force still to pair uses them."""
+        rows = self._rows
+        while rows:
+            first = next(iter(rows))
+            if first >= seq:
+                break
+            del rows[first]
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+
+def force_jerk(ep: Episode, rows: npt.NDArray[np.float64]) -> None:
+    """Adds new rows of ``ep`` (tick first, device force in columns 10–12) to its RMS rate of
+    change of the device force (N/s), counting only consecutive ticks: a tick the transport
+    dropped leaves a gap, not a jump."""
+    if ep.last_row is not None:
+        rows = np.vstack([ep.last_row[None, :], rows])
+    if len(rows) > 1:
+        consecutive = np.diff(rows[:, 0]) == 1
+        d = np.diff(rows[:, 10:13], axis=0)[consecutive] / 1e-3
+        ep.jerk_sum += float(np.sum(d * d))
+        ep.jerk_count += int(np.count_nonzero(consecutive))
+    ep.last_row = rows[-1].copy()
+
+
+class RawParts:
+    """The 1 kHz rows of a recording, written as parts. The open part is rewritten on each
+    write until it holds ``part_rows`` rows; then it is closed, and later writes hard-link it
+    unchanged (:class:`dhg.data.dataset.RawPart`). :meth:`joined` makes the single ``raw.parquet``
+    of a recording that ends cleanly."""
+
+    def __init__(self, part_rows: int = 10_000) -> None:  # why 10,000: docs/decisions/0013-raw-part-size.md
+        self.part_rows = part_rows
+        self._closed: list[RawPart] = []
+        self._open: list[npt.NDArray[np.float64]] = []
+        self._open_rows = 0
+        self.rows = 0
+
+    def add(self, episode_id: int, rows: npt.NDArray[np.float64]) -> None:
+        """Appends rows (:data:`RAW_COLUMNS` columns) of episode ``episode_id``."""
+        if len(rows):
+            self._open.append(np.column_stack([np.full(len(rows), float(episode_id)), rows]))
+            self._open_rows += len(rows)
+            self.rows += len(rows)
+
+    def _table(self, arrays: list[npt.NDArray[np.float64]]) -> Any:
+        import pyarrow as pa
+
+        a = np.concatenate(arrays) if arrays else np.empty((0, RAW_COLUMNS + 1))
+        schema = raw_schema()
+        cols = [
+            pa.array(a[:, i].astype(np.int32) if f.name in ("episode_id", "tick") else a[:, i], type=f.type)
+            for i, f in enumerate(schema)
+        ]
+        return pa.Table.from_arrays(cols, schema=schema)
+
+    def parts(self) -> list[RawPart]:
+        """The parts for the next write: the closed ones (to link) and the open one (new bytes)."""
+        if not self._open:
+            return list(self._closed)
+        return [*self._closed, _part(RAW_PART_FILE.format(len(self._closed)), self._table(self._open))]
+
+    def written(self, parts: list[RawPart]) -> None:
+        """Call after ``parts`` were written: closes the open part once it is full."""
+        if self._open_rows >= self.part_rows and len(parts) > len(self._closed):
+            p = parts[len(self._closed)]
+            self._closed.append(RawPart(p.name, p.rows, p.sha256))
+            self._open, self._open_rows = [], 0
+
+    def joined(self, folder: Path) -> list[RawPart]:
+        """Every row so far as one ``raw.parquet`` (the closed parts are read back from
+        ``folder``, the dataset written last)."""
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        if self.rows == 0:
+            return []
+        tables = [pq.read_table(folder / p.name) for p in self._closed]
+        if self._open:
+            tables.append(self._table(self._open))
+        return [_part(RAW_FILE, pa.concat_tables(tables).cast(raw_schema()))]
+
+
+def _part(name: str, table: Any) -> RawPart:
+    import hashlib
+
+    data = parquet_bytes(table)
+    return RawPart(name, table.num_rows, hashlib.sha256(data).hexdigest(), data)
