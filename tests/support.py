@@ -62,3 +62,34 @@ def wait_until(cond: Callable[[], object], timeout_s: float, what: str = "condit
             return
         time.sleep(0.005)
     raise AssertionError(f"{what} not met within {timeout_s} s")
+
+
+def schema_fields(schema: dict) -> set[str]:
+    """Every property name a JSON schema (as ``schemars`` writes it) declares, nested objects and
+    ``$defs`` included."""
+    names: set[str] = set()
+
+    def walk(node: object) -> None:
+        if isinstance(node, dict):
+            names.update(node.get("properties", {}))
+            for value in node.values():
+                walk(value)
+        elif isinstance(node, list):
+            for value in node:
+                walk(value)
+
+    walk(schema)
+    return names
+
+
+def reply_fields(reply: object) -> set[str]:
+    """Every key of a JSON reply, nested objects and objects in lists included."""
+    names: set[str] = set()
+    if isinstance(reply, dict):
+        for key, value in reply.items():
+            names.add(key)
+            names |= reply_fields(value)
+    elif isinstance(reply, list):
+        for value in reply:
+            names |= reply_fields(value)
+    return names

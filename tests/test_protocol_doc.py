@@ -10,6 +10,7 @@ import pytest
 
 from dhg import _bone_sim
 from dhg.core import protocol
+from support import schema_fields
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
 
@@ -81,3 +82,26 @@ def test_the_control_table_names_exactly_the_ops_and_fields_the_server_takes():
     refuse as unknown, or one it takes that the doc leaves out, fails here."""
     code = [(op, set(fields)) for op, fields in _bone_sim.control_ops()]
     assert _doc_control_ops() == code
+
+
+def _doc_paragraph_fields(reply: str) -> set[str]:
+    """The backticked names of the doc's ``**<reply>**:`` paragraph (up to the blank line)."""
+    m = re.search(rf"^\*\*{reply}\*\*: (.*?)\n\n", DOC.read_text(), re.M | re.S)
+    assert m, f"no **{reply}** paragraph in protocol.md"
+    return set(re.findall(r"`([a-z_0-9]+)`", m.group(1)))
+
+
+@pytest.mark.parametrize("reply", ["metrics", "health"])
+def test_the_json_replies_in_the_doc_are_the_rust_types(reply):
+    """Each field the Rust reply type (``transport/replies.rs``) serialises is named in the doc's
+    paragraph on that reply, and the paragraph names no field the type lacks."""
+    schema = _bone_sim.reply_schemas()[reply]
+    code = schema_fields(schema)
+    doc = _doc_paragraph_fields(reply)
+    assert doc - code == set(), f"{reply}: the doc names fields the reply does not have"
+    assert code - doc == set(), f"{reply}: the reply has fields the doc does not name"
+    # Every field is always written: a client can rely on each being there (an optional one
+    # as null, never left out).
+    for node in [schema, *schema.get("$defs", {}).values()]:
+        for name, field in node.get("properties", {}).items():
+            assert name in node.get("required", []) or "null" in field.get("type", []), (node.get("title"), name)

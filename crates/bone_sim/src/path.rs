@@ -112,6 +112,15 @@ impl PlannedPath {
         f64::from(self.segment.distance_to_local_point(&rel, true))
     }
 
+    /// Offset across the path (m): distance from `p` to the line through A and B, wherever along
+    /// it, so a tip past B counts its offset across the path but not its overshoot along it
+    /// (decision 0015).
+    #[must_use]
+    pub fn offset_from_line_m(&self, p: &Point3<f64>) -> f64 {
+        let rel = p - self.entry_m;
+        (rel - self.direction * rel.dot(&self.direction)).norm()
+    }
+
     /// The pristine layers along A → B, as a surgeon reads them off the planning CT: samples
     /// every `step_m` (m) from A to B (the last at most `step_m / 2` past B), merged into runs.
     ///

@@ -8,20 +8,25 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from dhg import _bone_sim
 from dhg.core.errors import InvalidInputError
 
 __all__ = ["PlannedPath", "TaskRules"]
 
+_RULES: dict[str, float] = _bone_sim.defaults()["task_rules"]
+"""The core's ``TaskRules::default()``: the one place the task's tolerances are defined."""
+
 
 @dataclass(frozen=True)
 class TaskRules:
-    """What counts as completing the drilling task A → B."""
+    """What counts as completing the drilling task A → B (DHG's tolerances: Fekri et al. 2021
+    state none)."""
 
-    max_target_distance_m: float = 3e-3
+    max_target_distance_m: float = _RULES["max_target_distance_m"]
     """The final tip must be this close to B (m)."""
-    max_deviation_m: float = 3e-3
+    max_deviation_m: float = _RULES["max_deviation_m"]
     """The tip may stray at most this far from the planned segment while in bone (m)."""
-    max_duration_s: float = 240.0
+    max_duration_s: float = _RULES["max_duration_s"]
     """The attempt must finish within this time (s)."""
 
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from dhg import _bone_sim
 
-__all__ = ["Server", "ServerSettings", "start_engine"]
+__all__ = ["Server", "ServerSettings", "reply_schemas", "start_engine"]
 
 
 _SERVER: dict[str, Any] = _bone_sim.defaults()["server"]
@@ -116,3 +116,10 @@ def start_engine(
             session=session_config.to_native() if session_config is not None else None,
         )
     )
+
+
+def reply_schemas() -> dict[str, dict[str, Any]]:
+    """The JSON schemas of the server's replies (``metrics``, ``health``), generated from their
+    Rust types by ``schemars``: the contract ``docs/protocol.md`` describes, for clients that
+    validate what they receive."""
+    return _bone_sim.reply_schemas()

@@ -31,11 +31,11 @@ from dhg.core import protocol
 from dhg.core.features import FEATURE_NAMES
 from dhg.core.layers import Layer
 from dhg.core.path import PlannedPath, TaskRules
+from dhg.core.skill import skill_metrics
 from dhg.data.dataset import EpisodeInput, write_dataset
 from dhg.data.synth import attempt_score
 from dhg.live.streams import Episode, EpisodeSplitter, PoseLog, RawParts, force_jerk
 from dhg.live.trainee import state_records
-from dhg.operators.metrics import skill_metrics
 
 __all__ = ["AllSessionsRecorder", "SessionRecorder"]
 

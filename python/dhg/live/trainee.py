@@ -20,9 +20,9 @@ import numpy.typing as npt
 from dhg.bone.planning import breakthrough_depth_from_runs
 from dhg.core.errors import InvalidInputError
 from dhg.core.path import PlannedPath, TaskRules
+from dhg.core.skill import skill_metrics
 from dhg.core.surgeon import SurgeonController
 from dhg.live.client import TraineeClient, feedback_tuple
-from dhg.operators.metrics import skill_metrics
 from dhg.operators.styles import sample_style
 
 __all__ = [
@@ -45,7 +45,7 @@ class TraineeRun:
     skill: str
     guidance_gain: float
     metrics: dict[str, Any]
-    """Skill metrics (as :func:`dhg.operators.metrics.skill_metrics`) from the server's state stream."""
+    """Skill metrics (as :func:`dhg.core.skill.skill_metrics`) from the server's state stream."""
     latency: dict[str, float]
     """Pose → force and pose → guidance latency quantiles (s) and message counts."""
     records: npt.NDArray[np.float64]
@@ -146,7 +146,7 @@ def drive_surgeon(client: TraineeClient, surgeon: SurgeonController, duration_s:
 
 
 def live_metrics(client: TraineeClient, surgeon: SurgeonController, states: list[dict[str, Any]]) -> dict[str, Any]:
-    """Skill metrics (:func:`dhg.operators.metrics.skill_metrics`, plus ``reached_target``) of the attempt
+    """Skill metrics (:func:`dhg.core.skill.skill_metrics`, plus ``reached_target``) of the attempt
     ``surgeon`` drilled through the client's session, from the server's ``states`` of it."""
     records = state_records(states)
     last = states[-1] if states else None

@@ -13,8 +13,8 @@ from dhg.bone.planning import planned_breakthrough_depth_m
 from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.protocol import WINDOW_RECORDS
 from dhg.core.session import DrillingSession
+from dhg.core.skill import skill_metrics
 from dhg.core.surgeon import CueMeaning, Skill, SurgeonController, SurgeonStyle
-from dhg.operators.metrics import skill_metrics
 
 __all__ = ["Episode", "drill_episode", "run_episode"]
 

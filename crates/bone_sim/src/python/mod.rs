@@ -8,6 +8,7 @@ mod convert;
 mod errors;
 mod server;
 mod session;
+mod skill;
 mod surgeon;
 mod volume;
 
@@ -33,6 +34,8 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(server::check_session_id, m)?)?;
     m.add_function(wrap_pyfunction!(server::defaults, m)?)?;
     m.add_function(wrap_pyfunction!(server::control_ops, m)?)?;
+    m.add_function(wrap_pyfunction!(server::reply_schemas, m)?)?;
+    m.add_function(wrap_pyfunction!(skill::skill_metrics, m)?)?;
     m.add("ERROR_KINDS", crate::error::SimError::KINDS.to_vec())?;
     let flags: Vec<(&str, u16)> = crate::protocol::flags::ALL.to_vec();
     m.add("FLAGS", flags)?;

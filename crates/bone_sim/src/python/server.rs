@@ -131,9 +131,15 @@ pub(crate) fn protocol_layouts(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     Ok(out)
 }
 
+/// The JSON schemas of the `metrics` and `health` replies (`transport::replies`).
+#[pyfunction]
+pub(crate) fn reply_schemas(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
+    to_python(py, &crate::transport::replies::schemas())
+}
+
 /// The core's defaults, the one definition Python's dataclasses read theirs from: `session`
 /// (`SessionConfig`, nested), `hu_mapping`, `server` (`ServerSettings`), `guidance`
-/// (`GuidanceParams`), `fading` (`FadingParams`).
+/// (`GuidanceParams`), `fading` (`FadingParams`), `task_rules` (`TaskRules`).
 #[pyfunction]
 pub(crate) fn defaults(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
     let all = serde_json::json!({
@@ -142,6 +148,7 @@ pub(crate) fn defaults(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
         "server": ServerSettings::default(),
         "guidance": crate::guidance::GuidanceParams::default(),
         "fading": crate::guidance::FadingParams::default(),
+        "task_rules": crate::skill::TaskRules::default(),
     });
     to_python(py, &all)
 }

@@ -185,7 +185,7 @@ impl Comm {
                 let payload = protocol::encode_predict(seq, &model_window(&o.window));
                 if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
                     if info.generation == generation {
-                        info.metrics.add_state(&msg);
+                        info.metrics.add_state(&msg, &info.path);
                     }
                 }
                 self.query(slot, generation, seq, pose_time_ns, payload);

@@ -12,6 +12,7 @@ use zenoh::query::Query;
 use zenoh::sample::{Locality, Sample};
 use zenoh::Wait;
 
+use super::replies::{HealthReply, MetricsReply, ModelHealth, Refused, ShortSlices};
 use super::{lock, Shared};
 use crate::engine::handoff::Command;
 use crate::error::{SimError, SimResult};
@@ -303,7 +304,7 @@ fn reset(reg: &mut super::registry::Registry, slot: u16) -> SimResult<()> {
     info.attempt_first_pose = info.poses_received;
     let next_gain = match info.fading.as_mut() {
         Some(f) if drilled => {
-            let (plunge_m, deviation_m) = info.metrics.worst_m();
+            let (plunge_m, deviation_m) = info.metrics.worst_m(&info.path);
             Some(f.finish_attempt(plunge_m, deviation_m))
         }
         _ => None,
@@ -402,16 +403,11 @@ pub(crate) fn apply(shared: &Shared, id: &str, body: &Value) -> SimResult<Value>
 }
 
 /// A session's metrics.
-pub(crate) fn metrics(shared: &Shared, id: &str) -> SimResult<Value> {
+pub(crate) fn metrics(shared: &Shared, id: &str) -> SimResult<MetricsReply> {
     let reg = lock(&shared.registry);
     let slot = reg.slot_of(id).ok_or_else(|| SimError::Engine(format!("no session {id:?}")))?;
     let info = &reg.slots[slot as usize];
-    let mut v = info.metrics.to_json(&info.path.target_m());
-    v["session"] = json!(id);
-    v["guidance_mode"] = json!(info.mode.name());
-    v["guidance_gain"] = json!(info.gain);
-    v["burr_radius_m"] = json!(info.burr_radius_m);
-    Ok(v)
+    Ok(info.metrics.reply(&info.path, id, info.mode.name(), info.gain, info.burr_radius_m))
 }
 
 fn quantile(sorted: &[f64], q: f64) -> f64 {
@@ -428,7 +424,7 @@ fn sorted_ids(by_id: &std::collections::HashMap<String, u16>) -> Vec<&String> {
 }
 
 /// The health report; tick quantiles cover the last `window_s` seconds (whole seconds).
-pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
+pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
     let now = super::comm::sample(shared);
     let (window, base) = {
         let h = lock(&shared.history);
@@ -447,59 +443,59 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> Value {
     let n = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
     let (workers, workers_refused) = {
         let pool = lock(&shared.pool);
-        (serde_json::to_value(pool.report(Instant::now())).unwrap_or_default(), pool.refused)
+        (pool.report(Instant::now()), pool.refused)
     };
     let reg = lock(&shared.registry);
-    json!({
-        "uptime_s": shared.started.elapsed().as_secs_f64(),
-        "sessions": reg.by_id.len(),
-        "session_ids": sorted_ids(&reg.by_id),
-        "max_sessions": reg.slots.len(),
-        "window_s": window,
-        "ticks": d.ticks,
-        "missed_ticks": d.missed,
-        "missed_ticks_total": now.missed,
-        "tick_lateness_p50_s": d.lateness.quantile_s(0.5),
-        "tick_lateness_p99_s": d.lateness.quantile_s(0.99),
-        "tick_lateness_p999_s": d.lateness.quantile_s(0.999),
-        "tick_busy_p99_s": d.busy.quantile_s(0.99),
-        "pose_to_tick_p50_s": d.pose_to_tick.quantile_s(0.5),
-        "pose_to_tick_p99_s": d.pose_to_tick.quantile_s(0.99),
-        "pose_to_tick_p999_s": d.pose_to_tick.quantile_s(0.999),
-        "pose_to_put_p50_s": d.pose_to_put.quantile_s(0.5),
-        "pose_to_put_p99_s": d.pose_to_put.quantile_s(0.99),
-        "pose_to_put_p999_s": d.pose_to_put.quantile_s(0.999),
-        "tick_lateness_max_s": n(&shared.stats.max_lateness_ns) as f64 * 1e-9,
-        "dropped_outputs": n(&shared.stats.dropped_outputs),
-        "tick_realtime": n(&shared.stats.realtime) == 1,
-        "short_slices": {
-            "tick": n(&shared.stats.short_slice) == 1,
-            "comm": n(&c.comm_short_slice) == 1,
-            "zenoh_io": n(&c.io_short_slices),
+    HealthReply {
+        uptime_s: shared.started.elapsed().as_secs_f64(),
+        sessions: reg.by_id.len(),
+        session_ids: sorted_ids(&reg.by_id).into_iter().cloned().collect(),
+        max_sessions: reg.slots.len(),
+        window_s: window,
+        ticks: d.ticks,
+        missed_ticks: d.missed,
+        missed_ticks_total: now.missed,
+        tick_lateness_p50_s: d.lateness.quantile_s(0.5),
+        tick_lateness_p99_s: d.lateness.quantile_s(0.99),
+        tick_lateness_p999_s: d.lateness.quantile_s(0.999),
+        tick_busy_p99_s: d.busy.quantile_s(0.99),
+        pose_to_tick_p50_s: d.pose_to_tick.quantile_s(0.5),
+        pose_to_tick_p99_s: d.pose_to_tick.quantile_s(0.99),
+        pose_to_tick_p999_s: d.pose_to_tick.quantile_s(0.999),
+        pose_to_put_p50_s: d.pose_to_put.quantile_s(0.5),
+        pose_to_put_p99_s: d.pose_to_put.quantile_s(0.99),
+        pose_to_put_p999_s: d.pose_to_put.quantile_s(0.999),
+        tick_lateness_max_s: n(&shared.stats.max_lateness_ns) as f64 * 1e-9,
+        dropped_outputs: n(&shared.stats.dropped_outputs),
+        tick_realtime: n(&shared.stats.realtime) == 1,
+        short_slices: ShortSlices {
+            tick: n(&shared.stats.short_slice) == 1,
+            comm: n(&c.comm_short_slice) == 1,
+            zenoh_io: n(&c.io_short_slices),
         },
-        "tick_wait": shared.wait.name(),
-        "poses": n(&c.poses),
-        "refused": {
-            "wrong_size": n(&c.wrong_size),
-            "wrong_version": n(&c.wrong_version),
-            "non_finite": n(&c.non_finite),
-            "oversized": n(&c.oversized),
-            "unknown_key": n(&c.unknown_key),
-            "sessions": n(&c.sessions_refused),
+        tick_wait: shared.wait.name(),
+        poses: n(&c.poses),
+        refused: Refused {
+            wrong_size: n(&c.wrong_size),
+            wrong_version: n(&c.wrong_version),
+            non_finite: n(&c.non_finite),
+            oversized: n(&c.oversized),
+            unknown_key: n(&c.unknown_key),
+            sessions: n(&c.sessions_refused),
         },
-        "model": {
-            "available": available,
-            "id": model.model_id,
-            "queries": n(&c.model_queries),
-            "replies": n(&c.model_replies),
-            "errors": n(&c.model_errors),
-            "ignored": n(&c.model_ignored),
-            "latency_p50_s": quantile(&lat, 0.5),
-            "latency_p99_s": quantile(&lat, 0.99),
-            "workers": workers,
-            "workers_refused": workers_refused,
+        model: ModelHealth {
+            available,
+            id: model.model_id.clone(),
+            queries: n(&c.model_queries),
+            replies: n(&c.model_replies),
+            errors: n(&c.model_errors),
+            ignored: n(&c.model_ignored),
+            latency_p50_s: quantile(&lat, 0.5),
+            latency_p99_s: quantile(&lat, 0.99),
+            workers,
+            workers_refused,
         },
-    })
+    }
 }
 
 /// Declares `<p>/session/*/<leaf>`, answering each query with `handle(shared, session id, query)`.
@@ -539,13 +535,13 @@ pub(crate) fn declare(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResu
         .wait()
         .map_err(err("the pose subscriber"))?;
     session_queryable(session, shared, "control", |s, id, q| query_json(q).and_then(|req| apply(s, id, &req)))?;
-    session_queryable(session, shared, "metrics", |s, id, _| metrics(s, id))?;
+    session_queryable(session, shared, "metrics", |s, id, _| metrics(s, id).map(|m| json!(m)))?;
     let s = shared.clone();
     session
         .declare_queryable(format!("{p}/server/health"))
         .callback(move |q| {
             let window = q.parameters().get("window").and_then(|w| w.parse::<f64>().ok()).unwrap_or(10.0);
-            reply(&q, Ok(health(&s, window)));
+            reply(&q, Ok(json!(health(&s, window))));
         })
         .background()
         .wait()

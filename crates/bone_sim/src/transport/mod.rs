@@ -17,6 +17,7 @@ mod control;
 pub mod metrics;
 mod pool;
 pub mod registry;
+pub mod replies;
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -316,10 +317,10 @@ impl Server {
         Ok(Self { shared, session, tick, comm: Some(comm) })
     }
 
-    /// Server health as JSON (see `docs/protocol.md`), with tick quantiles over the last
-    /// `window_s` seconds.
+    /// Server health (the `health` queryable's reply, `docs/protocol.md`), with tick quantiles
+    /// over the last `window_s` seconds.
     #[must_use]
-    pub fn health(&self, window_s: f64) -> Value {
+    pub fn health(&self, window_s: f64) -> replies::HealthReply {
         control::health(&self.shared, window_s)
     }
 
@@ -331,11 +332,11 @@ impl Server {
         ids
     }
 
-    /// A session's metrics as JSON.
+    /// A session's metrics (the `metrics` queryable's reply).
     ///
     /// # Errors
     /// Unknown session.
-    pub fn metrics(&self, id: &str) -> SimResult<Value> {
+    pub fn metrics(&self, id: &str) -> SimResult<replies::MetricsReply> {
         control::metrics(&self.shared, id)
     }
 

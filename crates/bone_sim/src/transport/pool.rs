@@ -33,20 +33,23 @@ pub(crate) enum Outcome {
 }
 
 /// One worker, as the engine sees it (reported in the health's `model.workers`).
-#[derive(Debug, Clone, Serialize)]
-pub(crate) struct Worker {
-    pub(crate) id: String,
+#[derive(Debug, Clone, Serialize, schemars::JsonSchema)]
+pub struct Worker {
+    /// The worker's id (its liveliness token's last chunk).
+    pub id: String,
     /// Queries sent and not yet ended.
-    pub(crate) in_flight: u32,
-    pub(crate) answered: u64,
-    pub(crate) failed: u64,
+    pub in_flight: u32,
+    /// Queries it answered.
+    pub answered: u64,
+    /// Queries it failed (an error, a bad reply or no reply in time).
+    pub failed: u64,
     /// Failures since its last good answer.
     #[serde(skip)]
     strikes: u32,
     #[serde(skip)]
     left_out_until: Option<Instant>,
     /// Whether it is being left out now (set when reported).
-    pub(crate) left_out: bool,
+    pub left_out: bool,
 }
 
 /// The workers whose tokens are alive.

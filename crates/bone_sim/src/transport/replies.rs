@@ -1,0 +1,203 @@
+//! The JSON replies of the `metrics` and `health` queryables, as types: serde writes them, and
+//! their JSON schemas (schemars) are what `docs/protocol.md` is checked against and what a
+//! client in another language may validate with ([`schemas`]).
+
+use schemars::JsonSchema;
+use serde::Serialize;
+use serde_json::Value;
+
+pub use super::pool::Worker;
+
+/// `get <p>/session/<id>/metrics`: one session's running metrics (SI units).
+#[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
+pub struct MetricsReply {
+    /// 10 Hz records since the session started or was reset.
+    pub records: u64,
+    /// Session time of the last record (s).
+    pub time_s: f64,
+    /// Deepest tip along A→B (m).
+    pub max_depth_m: f64,
+    /// Mean distance of the tip from the segment A→B while in bone (m).
+    pub mean_deviation_m: f64,
+    /// Largest distance of the tip from the segment A→B while in bone (m).
+    pub max_deviation_m: f64,
+    /// Largest offset of the tip across the path while in bone (m).
+    pub max_lateral_deviation_m: f64,
+    /// Distance of the last tip from B (m); null before the first record.
+    pub target_distance_m: Option<f64>,
+    /// RMS rate of change of the device force over the 10 Hz states (N/s).
+    pub force_jerk_n_per_s: f64,
+    /// Peak drill-tip temperature (°C).
+    pub peak_temperature_c: f64,
+    /// Time the tip spent above 47 °C (s).
+    pub time_above_47_s: f64,
+    /// The attempt's largest plunge (m): a later, smaller plunge must not hide the first.
+    pub plunge_depth_m: f64,
+    /// Cortical breakthroughs so far.
+    pub breakthroughs: u16,
+    /// Bone removed (kg).
+    pub removed_mass_kg: f64,
+    /// Bone volume removed (m³).
+    pub removed_volume_m3: f64,
+    /// Poses the session refused.
+    pub rejected_poses: u32,
+    /// Guidance messages published.
+    pub guidance_messages: u64,
+    /// Mean magnitude of the paper's guidance (N).
+    pub mean_guidance_n: f64,
+    /// Mean model query → reply time (s).
+    pub mean_model_latency_s: f64,
+    /// Longest model query → reply time (s).
+    pub max_model_latency_s: f64,
+    /// The session's id.
+    pub session: String,
+    /// The session's guidance mode.
+    pub guidance_mode: &'static str,
+    /// The session's guidance gain.
+    pub guidance_gain: f64,
+    /// The session's burr radius (m).
+    pub burr_radius_m: f64,
+}
+
+/// `get <p>/server/health?window=N`: the server's health, tick figures over the last N seconds.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct HealthReply {
+    /// Time since the server started (s).
+    pub uptime_s: f64,
+    /// Open sessions.
+    pub sessions: usize,
+    /// Their ids, sorted.
+    pub session_ids: Vec<String>,
+    /// Session slots.
+    pub max_sessions: usize,
+    /// The window the figures below cover (s).
+    pub window_s: f64,
+    /// Session ticks in the window, summed over sessions.
+    pub ticks: u64,
+    /// Periods a session's tick came a whole period or more past its deadline, in the window.
+    pub missed_ticks: u64,
+    /// The same since the server started.
+    pub missed_ticks_total: u64,
+    /// How late a session tick ran after it was due, median (s).
+    pub tick_lateness_p50_s: f64,
+    /// ... 99th percentile (s).
+    pub tick_lateness_p99_s: f64,
+    /// ... 99.9th percentile (s).
+    pub tick_lateness_p999_s: f64,
+    /// Work per wake-up of the tick thread, 99th percentile (s).
+    pub tick_busy_p99_s: f64,
+    /// A pose's arrival to the tick that used it, median (s).
+    pub pose_to_tick_p50_s: f64,
+    /// ... 99th percentile (s).
+    pub pose_to_tick_p99_s: f64,
+    /// ... 99.9th percentile (s).
+    pub pose_to_tick_p999_s: f64,
+    /// A pose's arrival to the put of the force computed from it, median (s).
+    pub pose_to_put_p50_s: f64,
+    /// ... 99th percentile (s).
+    pub pose_to_put_p99_s: f64,
+    /// ... 99.9th percentile (s).
+    pub pose_to_put_p999_s: f64,
+    /// Latest tick since the server started (s).
+    pub tick_lateness_max_s: f64,
+    /// Outputs the tick thread could not hand to the publisher.
+    pub dropped_outputs: u64,
+    /// Whether the tick thread got `SCHED_FIFO`.
+    pub tick_realtime: bool,
+    /// Which threads run on Linux 6.12's short time slice.
+    pub short_slices: ShortSlices,
+    /// `"sleep"` or `"spin"` (`dhg-serve --wait`).
+    pub tick_wait: &'static str,
+    /// Poses received.
+    pub poses: u64,
+    /// Puts refused, by reason.
+    pub refused: Refused,
+    /// The model's side.
+    pub model: ModelHealth,
+}
+
+/// Which threads run on the 0.1 ms slice of Linux 6.12's scheduler.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct ShortSlices {
+    /// The tick thread.
+    pub tick: bool,
+    /// The force publisher (comm thread).
+    pub comm: bool,
+    /// How many of Zenoh's I/O threads.
+    pub zenoh_io: u64,
+}
+
+/// Puts refused, by reason (each counted, never acted on).
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct Refused {
+    /// A payload of the wrong size for its key.
+    pub wrong_size: u64,
+    /// A protocol version other than ours.
+    pub wrong_version: u64,
+    /// A NaN or infinity in a pose.
+    pub non_finite: u64,
+    /// A payload over the size limit.
+    pub oversized: u64,
+    /// A put on a key the server does not take.
+    pub unknown_key: u64,
+    /// A session refused (bad id, every slot taken).
+    pub sessions: u64,
+}
+
+/// The model's side of the server.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct ModelHealth {
+    /// Whether a model replied in the last second.
+    pub available: bool,
+    /// The id of the model that replied last.
+    pub id: String,
+    /// Model queries sent.
+    pub queries: u64,
+    /// Replies applied.
+    pub replies: u64,
+    /// Replies that were errors.
+    pub errors: u64,
+    /// Replies not applied (a second worker's, a late or rogue one's).
+    pub ignored: u64,
+    /// Query → reply time, median (s).
+    pub latency_p50_s: f64,
+    /// ... 99th percentile (s).
+    pub latency_p99_s: f64,
+    /// The workers' pool.
+    pub workers: Vec<Worker>,
+    /// Worker tokens refused (a bad name, or beyond the pool's size).
+    pub workers_refused: u64,
+}
+
+/// The JSON schemas of the replies, by queryable (`metrics`, `health`).
+#[must_use]
+pub fn schemas() -> Value {
+    serde_json::json!({
+        "metrics": schemars::schema_for!(MetricsReply),
+        "health": schemars::schema_for!(HealthReply),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_schemas_name_every_field_serde_writes() {
+        let s = schemas();
+        let path = crate::path::PlannedPath::new([0.0; 3].into(), [0.0, 0.0, 0.04].into()).unwrap();
+        let reply = super::super::metrics::SessionMetrics::default().reply(&path, "s", "shaped", 1.0, 1e-3);
+        let written = serde_json::to_value(&reply).unwrap();
+        let keys = |v: &Value| v.as_object().unwrap().keys().cloned().collect::<Vec<_>>();
+        assert_eq!(keys(&s["metrics"]["properties"]), keys(&written));
+        assert_eq!(written["target_distance_m"], Value::Null, "no record yet: no distance");
+        for (reply, nested) in [("health", &["ShortSlices", "Refused", "ModelHealth", "Worker"][..]), ("metrics", &[])]
+        {
+            let defs = &s[reply]["$defs"];
+            assert_eq!(defs.as_object().map_or(0, serde_json::Map::len), nested.len(), "{reply}: {defs}");
+            for name in nested {
+                assert!(defs[name]["properties"].is_object(), "{reply}.{name}");
+            }
+        }
+    }
+}
