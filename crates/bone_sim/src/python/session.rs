@@ -12,7 +12,7 @@ use crate::error::SimError;
 use crate::guidance::GuidanceMode;
 use crate::path::PlannedPath;
 use crate::record::{Record, FEATURE_COUNT};
-use crate::session::{DrillingSession, Pose, SessionConfig, SessionState};
+use crate::session::{DrillingSession, Pose, SessionConfig};
 
 /// Columns of a pose row: x, y, z (m), qw, qx, qy, qz, `drill_on` (> 0.5 = on), `spindle_rpm`.
 pub(crate) const POSE_COLUMNS: usize = 9;
@@ -43,43 +43,6 @@ pub(crate) fn record_row(r: &Record) -> [f64; RECORD_COLUMNS] {
     row[1..=FEATURE_COUNT].copy_from_slice(&r.features);
     row[RECORD_COLUMNS - 1] = f64::from(u8::from(r.drill_on));
     row
-}
-
-fn state_dict<'py>(py: Python<'py>, s: &SessionState) -> PyResult<Bound<'py, PyDict>> {
-    let d = PyDict::new(py);
-    d.set_item("time_s", s.time_s)?;
-    d.set_item("ticks", s.ticks)?;
-    d.set_item("device_m", [s.device_m.x, s.device_m.y, s.device_m.z])?;
-    d.set_item("tip_m", [s.tip_m.x, s.tip_m.y, s.tip_m.z])?;
-    d.set_item("axis", [s.axis.x, s.axis.y, s.axis.z])?;
-    d.set_item("drill_on", s.drill_on)?;
-    d.set_item("spindle_rpm", s.spindle_rpm)?;
-    d.set_item("in_contact", s.in_contact)?;
-    d.set_item("cutting", s.cutting)?;
-    d.set_item("layer", s.layer.id())?;
-    d.set_item("depth_m", s.depth_m)?;
-    d.set_item("deviation_m", s.deviation_m)?;
-    d.set_item("feed_m_s", s.feed_m_s)?;
-    d.set_item("thrust_n", s.thrust_n)?;
-    d.set_item("torque_n_m", s.torque_n_m)?;
-    d.set_item("cutting_density_kg_m3", s.cutting_density_kg_m3)?;
-    d.set_item("force_n", [s.force_n.x, s.force_n.y, s.force_n.z])?;
-    d.set_item("temperature_c", s.temperature_c)?;
-    d.set_item("peak_temperature_c", s.peak_temperature_c)?;
-    d.set_item("time_above_47_s", s.time_above_47_s)?;
-    d.set_item("breakthroughs", s.breakthroughs)?;
-    d.set_item("plunging", s.plunging)?;
-    d.set_item("plunge_depth_m", s.plunge_depth_m)?;
-    d.set_item("removed_mass_kg", s.removed_mass_kg)?;
-    d.set_item("stale", s.stale)?;
-    d.set_item("rejected_poses", s.rejected_poses)?;
-    let o = s.registration_offset_m;
-    d.set_item("registration_offset_m", [o.x, o.y, o.z])?;
-    d.set_item("device_thermal_load", s.device_thermal_load)?;
-    d.set_item("guidance_n", [s.guidance_n.x, s.guidance_n.y, s.guidance_n.z])?;
-    d.set_item("feedback_n", [s.feedback_n.x, s.feedback_n.y, s.feedback_n.z])?;
-    d.set_item("model_available", s.model_available)?;
-    Ok(d)
 }
 
 /// Forces (N, 3) and records (M, 11) of a batch of ticks.
@@ -193,8 +156,8 @@ impl PySession {
     }
 
     /// The current state as a dict (SI units).
-    fn state<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        state_dict(py, self.inner.state())
+    fn state<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_python(py, self.inner.state())
     }
 
     /// Replaces the planned path (m).

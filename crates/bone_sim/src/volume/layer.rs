@@ -18,6 +18,13 @@ pub enum Layer {
     Necrosis = 4,
 }
 
+/// A layer is written as its id wherever it is serialised (the reports to Python, the wire).
+impl serde::Serialize for Layer {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.serialize_u8(self.id())
+    }
+}
+
 impl Layer {
     /// Every layer, in id order.
     pub const ALL: [Layer; 5] = [Layer::Outside, Layer::Cortical, Layer::Cancellous, Layer::Marrow, Layer::Necrosis];

@@ -1,6 +1,8 @@
 //! Small synthetic volumes shared by the integration tests.
 #![allow(dead_code)]
 
+pub mod engine;
+
 use std::sync::Arc;
 
 use bone_sim::{Grid, HuMapping, Layer, Volume};
