@@ -1,8 +1,12 @@
-"""Helpers the end-to-end tests share: servers in their own process, a session's entry pose, 1 kHz
-pose streams and waits on conditions (never on fixed times)."""
+"""Helpers the end-to-end tests share: servers and recorders in their own process, a session's entry
+pose, 1 kHz pose streams, waits on conditions (never on fixed times) and the fields of JSON replies."""
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 
@@ -93,3 +97,42 @@ def reply_fields(reply: object) -> set[str]:
         for value in reply:
             names |= reply_fields(value)
     return names
+
+
+def record_process(endpoint: str, *args: str) -> subprocess.Popen[str]:
+    """``dhg record --connect endpoint ARGS`` in its own process, output unbuffered on one pipe."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "dhg.cli.main", "record", "--connect", endpoint, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )
+
+
+def read_until(proc: subprocess.Popen[str], text: str, max_lines: int = 100) -> list[str]:
+    """Reads ``proc``'s output line by line until a line holds ``text``; returns the lines read."""
+    assert proc.stdout is not None
+    lines: list[str] = []
+    while len(lines) < max_lines:
+        line = proc.stdout.readline()
+        assert line, f"the process ended before saying {text!r}: {''.join(lines)}"
+        lines.append(line)
+        if text in line:
+            return lines
+    raise AssertionError(f"{text!r} not in the first {max_lines} lines: {''.join(lines)}")
+
+
+def ctrl_c(rec: subprocess.Popen[str]) -> str:
+    """Stops a recorder as Ctrl-C does; asserts it exits 0 and returns its output."""
+    rec.send_signal(signal.SIGINT)
+    output, _ = rec.communicate(timeout=30)
+    assert rec.returncode == 0, output
+    return output
+
+
+def stops_cleanly(proc: ServerProcess) -> None:
+    """Asserts that a server still runs, then stops with exit 0 and says so as its last line."""
+    assert proc.proc.poll() is None, f"the shared server died: {proc.lines[-5:]}"
+    assert proc.stop() == 0, proc.lines[-5:]
+    wait_until(lambda: proc.lines and "dhg-serve stopped" in proc.lines[-1], 10.0, "dhg-serve's last line")

@@ -192,70 +192,27 @@ def write_dataset(
     the whole old dataset or the whole new one at every moment. ``card_extra`` adds the volume,
     path and generator sections of the card. The 1 kHz stream comes from the episodes'
     ``raw_poses`` (one ``raw.parquet``) or, for a recording, from ``raw_parts``."""
-    pa = _pa()
     import pyarrow.parquet as pq
 
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise DatasetError(f"{out} exists and is not empty (pass overwrite to replace it)")
+    if any(ep.raw_poses is not None for ep in episodes) and raw_parts:
+        raise DatasetError("give the 1 kHz stream as the episodes' raw_poses or as raw_parts, not both")
+    table = _records_table(episodes)  # checks every episode before anything is written
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the dataset should not be
     try:
-        cols: dict[str, list[Any]] = {name: [] for name in records_schema().names}
-        card_eps = []
-        for eid, ep in enumerate(episodes):
-            r = np.asarray(ep.records, dtype=np.float64)
-            if r.ndim != 2 or r.shape[1] != 11:
-                raise DatasetError(f"episode {eid}: records must be (M, 11), got {r.shape}")
-            if not np.all(np.isfinite(r)):
-                raise DatasetError(f"episode {eid}: records contain NaN or infinite values")
-            m = len(r)
-            cols["episode_id"] += [eid] * m
-            cols["subject_id"] += [ep.subject_id] * m
-            cols["skill"] += [ep.skill] * m
-            cols["attempt"] += [int(ep.attempt)] * m
-            cols["time_s"] += r[:, 0].tolist()
-            for i, name in enumerate(FEATURE_NAMES):
-                cols[name] += (r[:, 1 + i].astype(np.int8) if name == "layer" else r[:, 1 + i]).tolist()
-            cols["drill_on"] += (r[:, 10] > 0.5).tolist()
-            card_eps.append(
-                {
-                    "episode_id": eid,
-                    "subject_id": ep.subject_id,
-                    "skill": ep.skill,
-                    "attempt": int(ep.attempt),
-                    "records": m,
-                    "best_of_subject": bool(ep.best_of_subject),
-                    "metrics": ep.metrics,
-                    "style": ep.style,
-                }
-            )
-        table = pa.Table.from_pydict(cols, schema=records_schema())
         pq.write_table(table, tmp / RECORDS_FILE)
         files = {RECORDS_FILE: {"rows": table.num_rows, "sha256": _sha256(tmp / RECORDS_FILE)}}
-        if any(ep.raw_poses is not None for ep in episodes) and raw_parts:
-            raise DatasetError("give the 1 kHz stream as the episodes' raw_poses or as raw_parts, not both")
         for part in raw_parts:
             _place_part(part, out, tmp)
             files[part.name] = {"rows": part.rows, "sha256": part.sha256}
         if any(ep.raw_poses is not None for ep in episodes):
-            raw: dict[str, list[Any]] = {name: [] for name in raw_schema().names}
-            for eid, ep in enumerate(episodes):
-                if ep.raw_poses is None or ep.raw_forces_n is None:
-                    continue
-                n = len(ep.raw_poses)
-                raw["episode_id"] += [eid] * n
-                raw["tick"] += list(range(n))
-                for i, name in enumerate(POSE_COLUMNS):
-                    raw[name] += ep.raw_poses[:, i].tolist()
-                for i, name in enumerate(FORCE_COLUMNS):
-                    raw[name] += ep.raw_forces_n[:, i].tolist()
-                for name in GUIDANCE_COLUMNS:  # a virtual surgeon drills without guidance
-                    raw[name] += [0.0] * n
-            raw_table = pa.Table.from_pydict(raw, schema=raw_schema())
+            raw_table = _raw_table(episodes)
             pq.write_table(raw_table, tmp / RAW_FILE)
             files[RAW_FILE] = {"rows": raw_table.num_rows, "sha256": _sha256(tmp / RAW_FILE)}
         card = {
@@ -266,7 +223,7 @@ def write_dataset(
             "layers": {str(int(layer)): layer.name.lower() for layer in Layer},
             "frame": "world frame LPS, metres; see docs/frames.md",
             **card_extra,
-            "episodes": card_eps,
+            "episodes": [_card_episode(eid, ep) for eid, ep in enumerate(episodes)],
             "files": files,
         }
         (tmp / CARD_FILE).write_text(json.dumps(card, indent=1))
@@ -276,6 +233,73 @@ def write_dataset(
         raise
     _install(tmp, out)
     return out
+
+
+def _card_episode(eid: int, ep: EpisodeInput) -> dict[str, Any]:
+    """An episode's entry in the dataset card."""
+    return {
+        "episode_id": eid,
+        "subject_id": ep.subject_id,
+        "skill": ep.skill,
+        "attempt": int(ep.attempt),
+        "records": len(ep.records),
+        "best_of_subject": bool(ep.best_of_subject),
+        "metrics": ep.metrics,
+        "style": ep.style,
+    }
+
+
+def _records_table(episodes: Sequence[EpisodeInput]) -> Any:
+    """The episodes' 10 Hz records as one Arrow table of :func:`records_schema`, built from numpy
+    columns (no Python list per value); refuses records of the wrong shape or not finite."""
+    pa = _pa()
+    blocks = []
+    for eid, ep in enumerate(episodes):
+        r = np.asarray(ep.records, dtype=np.float64)
+        if r.ndim != 2 or r.shape[1] != 11:
+            raise DatasetError(f"episode {eid}: records must be (M, 11), got {r.shape}")
+        if not np.all(np.isfinite(r)):
+            raise DatasetError(f"episode {eid}: records contain NaN or infinite values")
+        blocks.append(r)
+    r = np.concatenate(blocks) if blocks else np.zeros((0, 11))
+    counts = [len(b) for b in blocks]
+    eid = np.repeat(np.arange(len(blocks), dtype=np.int32), counts)
+
+    def per_episode(values: list[Any], kind: Any) -> Any:
+        # One value per episode, taken for each of its records.
+        return pa.array(values, kind).take(pa.array(eid))
+
+    schema = records_schema()
+    cols = [
+        pa.array(eid, pa.int32()),
+        per_episode([ep.subject_id for ep in episodes], pa.string()),
+        per_episode([ep.skill for ep in episodes], pa.string()),
+        pa.array(np.repeat(np.array([int(ep.attempt) for ep in episodes], dtype=np.int32), counts), pa.int32()),
+        pa.array(r[:, 0]),
+    ]
+    for i, name in enumerate(FEATURE_NAMES):
+        col = r[:, 1 + i]
+        cols.append(pa.array(col.astype(np.int8)) if name == "layer" else pa.array(col))
+    cols.append(pa.array(r[:, 10] > 0.5))
+    return pa.Table.from_arrays(cols, schema=schema)
+
+
+def _raw_table(episodes: Sequence[EpisodeInput]) -> Any:
+    """The episodes' 1 kHz streams (``raw_poses``, ``raw_forces_n``) as one Arrow table of
+    :func:`raw_schema`, from numpy columns; a virtual surgeon drills without guidance (zeros)."""
+    pa = _pa()
+    kept = [(eid, ep) for eid, ep in enumerate(episodes) if ep.raw_poses is not None and ep.raw_forces_n is not None]
+    poses = np.concatenate([np.asarray(ep.raw_poses, np.float64) for _, ep in kept]) if kept else np.zeros((0, 9))
+    forces = np.concatenate([np.asarray(ep.raw_forces_n, np.float64) for _, ep in kept]) if kept else np.zeros((0, 3))
+    counts = [len(ep.raw_poses) for _, ep in kept]
+    cols = [
+        pa.array(np.repeat(np.array([eid for eid, _ in kept], dtype=np.int32), counts), pa.int32()),
+        pa.array(np.concatenate([np.arange(n, dtype=np.int32) for n in counts]) if kept else np.zeros(0, np.int32)),
+    ]
+    cols += [pa.array(poses[:, i]) for i in range(len(POSE_COLUMNS))]
+    cols += [pa.array(forces[:, i]) for i in range(len(FORCE_COLUMNS))]
+    cols += [pa.array(np.zeros(len(poses))) for _ in GUIDANCE_COLUMNS]
+    return pa.Table.from_arrays(cols, schema=raw_schema())
 
 
 def _place_part(part: RawPart, out: Path, tmp: Path) -> None:

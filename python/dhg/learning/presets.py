@@ -1,5 +1,6 @@
-"""The model's configurations and the presets of the paper's Table 1 (see :mod:`dhg.learning.network`),
-without torch: the CLI lists and checks them before anything heavy is imported."""
+"""The model's configurations, the presets of the paper's Table 1 (see :mod:`dhg.learning.network`)
+and the training settings, without torch: the CLI takes its flags' defaults from them and checks
+them before anything heavy is imported."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from dhg.core.errors import InvalidInputError
 from dhg.core.features import FEATURE_NAMES
 from dhg.core.protocol import WINDOW_RECORDS
 
-__all__ = ["FORCES", "PRESETS", "ModelConfig", "preset"]
+__all__ = ["FORCES", "PRESETS", "ModelConfig", "TrainConfig", "preset"]
 
 FORCES = FEATURE_NAMES[0:3]
 
@@ -70,3 +71,36 @@ def preset(name: str) -> ModelConfig:
     if name not in PRESETS:
         raise InvalidInputError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
     return PRESETS[name]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings (paper defaults where the paper gives them)."""
+
+    learning_rate: float = 0.004
+    batch_size: int = 50
+    max_epochs: int = 60
+    patience: int = 8
+    """Epochs without a better validation RMSE before stopping."""
+    test_fraction: float = 0.135
+    val_fraction: float = 0.1
+    seed: int = 0
+    device: str = "cpu"
+    """``cpu``, ``cuda`` or ``auto`` (CUDA when present)."""
+    skill: str = "expert"
+    """Which episodes to learn from (the paper learns from experts)."""
+    best_only: bool = False
+    """Only each subject's best attempt (the paper's selection)."""
+    horizon: int = 1
+    """Records ahead of the window's last that the target lies: 1 is the next record (the paper,
+    0.1 s ahead); k predicts the expert's force k × 0.1 s ahead."""
+
+    def __post_init__(self) -> None:
+        if not (self.learning_rate > 0 and self.batch_size >= 1 and self.max_epochs >= 1 and self.patience >= 1):
+            raise InvalidInputError(f"invalid training settings {self}")
+        if not (0 < self.test_fraction < 0.5 and 0 < self.val_fraction < 0.5):
+            raise InvalidInputError("test_fraction and val_fraction must be in (0, 0.5)")
+        if self.device not in ("cpu", "cuda", "auto"):
+            raise InvalidInputError(f"device must be cpu, cuda or auto, got {self.device!r}")
+        if not 1 <= self.horizon <= 50:
+            raise InvalidInputError(f"horizon must be 1 to 50 records (0.1 to 5 s), got {self.horizon}")

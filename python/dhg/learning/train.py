@@ -33,41 +33,9 @@ from dhg.core.errors import InvalidInputError
 from dhg.core.features import FEATURE_NAMES
 from dhg.data.dataset import Dataset, load_dataset
 from dhg.learning.network import ForcePredictor, LSTMRegressor, MinMaxScaler, ModelConfig, preset
+from dhg.learning.presets import TrainConfig
 
-__all__ = ["Split", "TrainConfig", "make_windows", "split_windows", "train"]
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Optimisation settings (paper defaults where the paper gives them)."""
-
-    learning_rate: float = 0.004
-    batch_size: int = 50
-    max_epochs: int = 60
-    patience: int = 8
-    """Epochs without a better validation RMSE before stopping."""
-    test_fraction: float = 0.135
-    val_fraction: float = 0.1
-    seed: int = 0
-    device: str = "cpu"
-    """``cpu``, ``cuda`` or ``auto`` (CUDA when present)."""
-    skill: str = "expert"
-    """Which episodes to learn from (the paper learns from experts)."""
-    best_only: bool = False
-    """Only each subject's best attempt (the paper's selection)."""
-    horizon: int = 1
-    """Records ahead of the window's last that the target lies: 1 is the next record (the paper,
-    0.1 s ahead); k predicts the expert's force k × 0.1 s ahead."""
-
-    def __post_init__(self) -> None:
-        if not (self.learning_rate > 0 and self.batch_size >= 1 and self.max_epochs >= 1 and self.patience >= 1):
-            raise InvalidInputError(f"invalid training settings {self}")
-        if not (0 < self.test_fraction < 0.5 and 0 < self.val_fraction < 0.5):
-            raise InvalidInputError("test_fraction and val_fraction must be in (0, 0.5)")
-        if self.device not in ("cpu", "cuda", "auto"):
-            raise InvalidInputError(f"device must be cpu, cuda or auto, got {self.device!r}")
-        if not 1 <= self.horizon <= 50:
-            raise InvalidInputError(f"horizon must be 1 to 50 records (0.1 to 5 s), got {self.horizon}")
+__all__ = ["Split", "TrainConfig", "make_windows", "set_seed", "split_windows", "train"]
 
 
 def make_windows(ds: Dataset, window: int, skill: str | None = "expert", best_only: bool = False, horizon: int = 1):
@@ -142,6 +110,122 @@ def _rmse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(F.mse_loss(pred, target) + 1e-12)
 
 
+def set_seed(seed: int) -> None:
+    """Seeds the generators training draws from (Python's and torch's, on CPU and every CUDA
+    device), as lerobot's ``set_seed`` does: the one place a run's seed is applied. DHG's numpy
+    code takes explicit ``np.random.default_rng(seed)`` generators, never the global one."""
+    import random
+
+    random.seed(seed)
+    torch.manual_seed(seed)
+
+
+@dataclass(frozen=True)
+class _Ranks:
+    """This process's place in a ``torchrun`` job (one rank, world 1, when not under one)."""
+
+    ddp: bool
+    rank: int
+    world: int
+    device: torch.device
+
+    @classmethod
+    def start(cls, device_name: str) -> _Ranks:
+        """Joins the process group when ``WORLD_SIZE`` > 1 (NCCL on CUDA, else gloo)."""
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        rank = 0
+        if world > 1:
+            import torch.distributed as dist
+
+            dist.init_process_group("nccl" if device_name != "cpu" and torch.cuda.is_available() else "gloo")
+            rank = dist.get_rank()
+        device = _device(device_name)
+        if world > 1 and device.type == "cuda":
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        return cls(world > 1, rank, world, device)
+
+    def stop(self) -> None:
+        if self.ddp:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+
+    def epoch_order(self, n: int, seed: int, epoch: int) -> torch.Tensor:
+        """This rank's shuffled share of ``n`` training windows for ``epoch``: torch's
+        ``DistributedSampler`` with ``drop_last``, so every rank runs the same number of batches
+        (DDP's all-reduce would otherwise wait forever on a rank with one batch more)."""
+        from torch.utils.data.distributed import DistributedSampler
+
+        sampler = DistributedSampler(
+            range(n), num_replicas=self.world, rank=self.rank, shuffle=True, seed=seed, drop_last=True
+        )
+        sampler.set_epoch(epoch)
+        return torch.tensor(list(sampler), dtype=torch.long)
+
+
+@dataclass
+class _Windows:
+    """The dataset's windows, split and scaled for one model."""
+
+    x: torch.Tensor
+    """(N, T, 9) windows in SI units."""
+    y: torch.Tensor
+    """(N, 9) targets in SI units."""
+    split: Split
+    scaler: MinMaxScaler
+    xn: torch.Tensor
+    """(N, T, F_in) the model's inputs, scaled."""
+    yn: torch.Tensor
+    """(N, F_out) its outputs, scaled."""
+    force_pos: torch.Tensor
+    """Where the three force components lie among the outputs."""
+
+    @classmethod
+    def build(cls, ds: Dataset, mcfg: ModelConfig, cfg: TrainConfig) -> _Windows:
+        x_all, y_all, _ = make_windows(ds, mcfg.window, cfg.skill, cfg.best_only, cfg.horizon)
+        split = split_windows(len(x_all), mcfg.window + cfg.horizon - 1, cfg.test_fraction, cfg.val_fraction)
+        x = torch.as_tensor(x_all, dtype=torch.float32)
+        y = torch.as_tensor(y_all, dtype=torch.float32)
+        scaler = MinMaxScaler().fit(torch.cat([x[split.train].reshape(-1, 9), y[split.train]]))
+        in_idx = torch.tensor(mcfg.index(mcfg.input_features))
+        out_idx = torch.tensor(mcfg.index(mcfg.output_features))
+        force_pos = torch.tensor([mcfg.output_features.index(n) for n in FEATURE_NAMES[0:3]])
+        xn = scaler(x).index_select(2, in_idx)
+        yn = scaler(y).index_select(1, out_idx)
+        return cls(x, y, split, scaler, xn, yn, force_pos)
+
+
+def _train_epoch(
+    model: torch.nn.Module,
+    opt: torch.optim.Optimizer,
+    x_tr: torch.Tensor,
+    y_tr: torch.Tensor,
+    order: torch.Tensor,
+    batch_size: int,
+    device: torch.device,
+) -> float:
+    """One pass over ``order``'s windows in batches; returns the mean training RMSE."""
+    model.train()
+    total, count = 0.0, 0
+    for b in range(0, len(order), batch_size):
+        idx = order[b : b + batch_size]
+        xb, yb = x_tr[idx].to(device), y_tr[idx].to(device)
+        opt.zero_grad(set_to_none=True)
+        loss = _rmse(model(xb), yb)
+        loss.backward()
+        opt.step()
+        total += float(loss.detach()) * len(idx)
+        count += len(idx)
+    return total / max(count, 1)
+
+
+def _save_atomically(obj: Any, path: Path) -> None:
+    """``torch.save`` to a temporary file, then an atomic rename: a crash leaves the old file."""
+    tmp = path.with_suffix(".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
 def train(
     data_dir: str | os.PathLike[str],
     run_dir: str | os.PathLike[str],
@@ -153,42 +237,20 @@ def train(
     """Trains a model on a dataset folder and writes the run folder: ``checkpoint.pt``,
     ``metrics.json``, ``loss.png``, ``forces.png`` and the exported ``model.ts``.
     ``progress(epoch, max_epochs, train_rmse, val_rmse)`` is called after each epoch."""
-    from dhg.data.plots import plot_forces, plot_losses
-    from dhg.learning.torchscript import export_model
-
     cfg = cfg or TrainConfig()
     mcfg = preset(model_cfg) if isinstance(model_cfg, str) else model_cfg
-    ddp = int(os.environ.get("WORLD_SIZE", "1")) > 1
-    rank = 0
-    if ddp:
-        import torch.distributed as dist
-
-        backend = "nccl" if cfg.device != "cpu" and torch.cuda.is_available() else "gloo"
-        dist.init_process_group(backend)
-        rank = dist.get_rank()
-    device = _device(cfg.device)
-    if ddp and device.type == "cuda":
-        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    ranks = _Ranks.start(cfg.device)
+    device = ranks.device
     run = Path(run_dir)
-    if rank == 0:
+    if ranks.rank == 0:
         run.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(cfg.seed)
+    set_seed(cfg.seed)
 
     ds = load_dataset(data_dir)
-    x_all, y_all, _ = make_windows(ds, mcfg.window, cfg.skill, cfg.best_only, cfg.horizon)
-    split = split_windows(len(x_all), mcfg.window + cfg.horizon - 1, cfg.test_fraction, cfg.val_fraction)
-    x = torch.as_tensor(x_all, dtype=torch.float32)  # (N, T, 9)
-    y = torch.as_tensor(y_all, dtype=torch.float32)  # (N, 9)
-    scaler = MinMaxScaler().fit(torch.cat([x[split.train].reshape(-1, 9), y[split.train]]))
-    in_idx = torch.tensor(mcfg.index(mcfg.input_features))
-    out_idx = torch.tensor(mcfg.index(mcfg.output_features))
-    force_pos = torch.tensor([mcfg.output_features.index(n) for n in FEATURE_NAMES[0:3]])
-    xn = scaler(x).index_select(2, in_idx)  # (N, T, F_in)
-    yn = scaler(y).index_select(1, out_idx)  # (N, F_out)
-
+    w = _Windows.build(ds, mcfg, cfg)
     net = LSTMRegressor(mcfg).to(device)
     model: torch.nn.Module = net
-    if ddp:
+    if ranks.ddp:
         model = torch.nn.parallel.DistributedDataParallel(
             net, device_ids=[device.index] if device.type == "cuda" else None
         )
@@ -205,37 +267,22 @@ def train(
         history, bad_epochs = ckpt["history"], ckpt["bad_epochs"]
         torch.set_rng_state(ckpt["torch_rng"])
 
-    x_tr, y_tr = xn[split.train], yn[split.train]
-    world = int(os.environ.get("WORLD_SIZE", "1"))
+    x_tr, y_tr = w.xn[w.split.train], w.yn[w.split.train]
     t0 = time.perf_counter()
     for epoch in range(start_epoch, cfg.max_epochs):
         if bad_epochs >= cfg.patience:
             break
-        model.train()
-        g = torch.Generator().manual_seed(cfg.seed * 100_003 + epoch)
-        order = torch.randperm(len(x_tr), generator=g)
-        # Each rank takes an equal share, so all ranks run the same number of batches (DDP's
-        # all-reduce would otherwise wait forever on the rank with one batch more).
-        order = order[: len(order) - len(order) % world][rank::world]
-        total, count = 0.0, 0
-        for b in range(0, len(order), cfg.batch_size):
-            idx = order[b : b + cfg.batch_size]
-            xb, yb = x_tr[idx].to(device), y_tr[idx].to(device)
-            opt.zero_grad(set_to_none=True)
-            loss = _rmse(model(xb), yb)
-            loss.backward()
-            opt.step()
-            total += float(loss.detach()) * len(idx)
-            count += len(idx)
-        val = _evaluate(net, xn[split.val], yn[split.val], force_pos, device)["rmse_normalized"]
-        history.append({"epoch": epoch, "train_rmse": total / max(count, 1), "val_rmse": val})
+        order = ranks.epoch_order(len(x_tr), cfg.seed, epoch)
+        train_rmse = _train_epoch(model, opt, x_tr, y_tr, order, cfg.batch_size, device)
+        val = _evaluate(net, w.xn[w.split.val], w.yn[w.split.val], w.force_pos, device)["rmse_normalized"]
+        history.append({"epoch": epoch, "train_rmse": train_rmse, "val_rmse": val})
         if val < best_val - 1e-6:
             best_val, bad_epochs = val, 0
             best_state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
         else:
             bad_epochs += 1
-        if rank == 0:
-            ckpt = {
+        if ranks.rank == 0:
+            checkpoint = {
                 "model": net.state_dict(),
                 "optimizer": opt.state_dict(),
                 "model_config": mcfg.to_dict(),
@@ -247,46 +294,56 @@ def train(
                 "bad_epochs": bad_epochs,
                 "torch_rng": torch.get_rng_state(),
             }
-            tmp = ckpt_path.with_suffix(".tmp")
-            torch.save(ckpt, tmp)
-            os.replace(tmp, ckpt_path)
+            _save_atomically(checkpoint, ckpt_path)
         if progress is not None:
-            progress(epoch + 1, cfg.max_epochs, history[-1]["train_rmse"], val)
+            progress(epoch + 1, cfg.max_epochs, train_rmse, val)
     train_time = time.perf_counter() - t0
     if best_state is not None:
         net.load_state_dict(best_state)
     net = net.cpu().eval()
-    cpu = torch.device("cpu")
     metrics: dict[str, Any] = {
         "preset": mcfg.preset,
         "model_config": mcfg.to_dict(),
         "train_config": asdict(cfg),
-        "samples": split.sizes(),
+        "samples": w.split.sizes(),
         "epochs": len(history),
         "best_epoch": int(np.argmin([h["val_rmse"] for h in history])) if history else -1,
         "train_time_s": train_time,
         "data": {"path": str(ds.path), "records_sha256": ds.card["files"]["records.parquet"]["sha256"]},
         "parameters": sum(p.numel() for p in net.parameters()),
     }
-    for name, sl in (("train", split.train), ("val", split.val), ("test", split.test)):
-        metrics[name] = _evaluate(net, xn[sl], yn[sl], force_pos, cpu, scaler.span[0:3])
-    if rank == 0:
-        plot_losses(history, run / "loss.png", title=f"{mcfg.preset}: RMSE (normalised) per epoch")
-        predictor = ForcePredictor(net, scaler, mcfg).eval()
-        test_x = x[split.test][:1000]
-        with torch.no_grad():
-            predicted = predictor(test_x).numpy()
-        plot_forces(y[split.test][:1000, 0:3].numpy(), predicted, run / "forces.png", title=f"{mcfg.preset}: test set")
-        export_model(predictor, mcfg, metrics, run / "model.ts", profiles=_profiles(ds))
-        # Last: a run with metrics.json is finished (dhg ablate reuses it), so it must have the rest.
-        tmp = run / "metrics.json.tmp"
-        tmp.write_text(json.dumps(metrics, indent=1))
-        os.replace(tmp, run / "metrics.json")
-    if ddp:
-        import torch.distributed as dist
-
-        dist.destroy_process_group()
+    for name, sl in (("train", w.split.train), ("val", w.split.val), ("test", w.split.test)):
+        metrics[name] = _evaluate(net, w.xn[sl], w.yn[sl], w.force_pos, torch.device("cpu"), w.scaler.span[0:3])
+    if ranks.rank == 0:
+        _write_run(run, net, w, mcfg, metrics, history, ds)
+    ranks.stop()
     return TrainResult(run, metrics, history)
+
+
+def _write_run(
+    run: Path,
+    net: LSTMRegressor,
+    w: _Windows,
+    mcfg: ModelConfig,
+    metrics: dict[str, Any],
+    history: list[dict[str, float]],
+    ds: Dataset,
+) -> None:
+    """The run folder's plots, the TorchScript model (with the demonstration profiles) and, last,
+    ``metrics.json``: a run with it is finished (``dhg ablate`` reuses it), so it must have the rest."""
+    from dhg.data.plots import plot_forces, plot_losses
+    from dhg.learning.torchscript import export_model
+
+    plot_losses(history, run / "loss.png", title=f"{mcfg.preset}: RMSE (normalised) per epoch")
+    predictor = ForcePredictor(net, w.scaler, mcfg).eval()
+    test_x = w.x[w.split.test][:1000]
+    with torch.no_grad():
+        predicted = predictor(test_x).numpy()
+    plot_forces(w.y[w.split.test][:1000, 0:3].numpy(), predicted, run / "forces.png", title=f"{mcfg.preset}: test set")
+    export_model(predictor, mcfg, metrics, run / "model.ts", profiles=_profiles(ds))
+    tmp = run / "metrics.json.tmp"
+    tmp.write_text(json.dumps(metrics, indent=1))
+    os.replace(tmp, run / "metrics.json")
 
 
 def _evaluate(

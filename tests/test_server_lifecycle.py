@@ -1,0 +1,220 @@
+"""A server's and its clients' lives end to end: crashes, Ctrl-C, a lost model worker, bad flags
+and configuration files, no server to talk to. Each test starts (or fails to start) its own processes."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from dhg.core import protocol
+from dhg.live.client import TraineeClient
+from dhg.live.demo import free_port
+from support import ctrl_c, read_until, record_process
+from support import entry as _entry
+from support import serve as _serve
+from support import stream as _stream
+from support import wait_until as _wait
+
+
+def test_record_survives_a_server_crash_and_keeps_everything_on_ctrl_c(tmp_path):
+    from dhg.data.dataset import load_dataset, load_raw
+
+    proc, endpoint = _serve("--idle-timeout", "5.0")
+    out = tmp_path / "rec"
+    started = time.monotonic()
+    rec = record_process(
+        endpoint, "--session", "crash-1", "--out", str(out), "--raw", "--flush-every", "0.5", "--status-every", "0.5"
+    )
+    try:
+        assert rec.stdout is not None and "recording" in rec.stdout.readline()
+        with TraineeClient(endpoint, "crash-1") as c:
+            a, d, q = _entry(c)
+            _stream(c, a + d * np.linspace(-2e-3, 4e-3, 1500)[:, None], q)
+            states = len(c.states)
+            proc.proc.send_signal(signal.SIGKILL)  # the server dies mid-session
+            proc.proc.wait(timeout=10)
+            killed = time.monotonic() - started
+        # The recorder keeps running against a dead server: it still reports 1 s after the kill
+        # (its status clock starts after `started`, and prints whole seconds).
+        while True:
+            line = read_until(rec, " s: ")[-1]
+            if float(line.split(" s:")[0]) >= killed + 1.5:
+                break
+        assert rec.poll() is None, "the recorder died with the server"
+        output = ctrl_c(rec)  # a final flush, then a clean exit
+    finally:
+        for p in (rec, proc.proc):
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        proc.stop()
+    ds = load_dataset(out)
+    (ep,) = ds.episodes
+    # Every 10 Hz state the trainee saw before the crash is in the dataset (the recorder is a
+    # second subscriber: allow for one record in flight at the kill).
+    assert len(ep.times_s) >= states - 1 >= 10, (len(ep.times_s), states)
+    assert np.ptp(ep.features[:, 7]) > 0.5e-3, "the recorded tip never moved"
+    # Ctrl-C joined the 1 kHz parts into one raw.parquet.
+    assert sorted(ds.card["files"]) == ["raw.parquet", "records.parquet"]
+    assert "1 kHz stream:" in output
+    raw = load_raw(ds)
+    assert raw.num_rows >= 1400 and raw.column("tick")[raw.num_rows - 1].as_py() * 1e-3 >= ep.times_s[-1] - 0.1
+
+
+def test_trainee_course_refuses_bad_flags():
+    for flags, needle in (
+        (["--attempts", "0"], "--attempts"),
+        (["--probe-every", "2"], "--probe-every needs --fading"),
+        (["--fading", "--guidance", "off"], "--fading"),
+    ):
+        r = subprocess.run(
+            [sys.executable, "-m", "dhg.cli.main", "trainee", *flags], capture_output=True, text=True, timeout=60
+        )
+        assert r.returncode == 3 and needle in r.stderr and "Traceback" not in r.stderr, (flags, r.stderr)
+
+
+def test_trainee_without_a_server_fails_clearly():
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "dhg.cli.main",
+            "trainee",
+            "--connect",
+            f"tcp/127.0.0.1:{free_port()}",
+            "--duration",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 5, r.stderr
+    assert "error:" in r.stderr and "Traceback" not in r.stderr
+    bad = subprocess.run(
+        [sys.executable, "-m", "dhg.cli.main", "trainee", "--drill-mm", "-2"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert bad.returncode == 3 and "--drill-mm" in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
+
+
+def test_serve_with_a_missing_model_exits_with_a_clear_message(tmp_path):
+    r = subprocess.run(
+        [sys.executable, "-m", "dhg.cli.serve", "--model", str(tmp_path / "nope.ts"), "--listen", "tcp/127.0.0.1:1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 3
+    assert "no such model file" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
+    engine, endpoint = _serve("--role", "sim", "--model-timeout", "0.1")
+    worker, _ = _serve("--role", "model", endpoint=endpoint)
+    stop = threading.Event()
+    try:
+        with TraineeClient(endpoint, "fault-1") as c:
+            a, d, q = _entry(c)
+
+            def hold() -> None:  # keep the session fresh: 1 kHz poses pressing on the cortex
+                p = a + d * 0.5e-3
+                while not stop.is_set():
+                    c.send_pose(p, q, True, 1250.0)
+                    time.sleep(0.001)
+
+            pump = threading.Thread(target=hold, daemon=True)
+            pump.start()
+            _wait(lambda: c.force is not None and c.force["flags"] & protocol.FLAGS["model_available"], 5.0)
+            worker.proc.send_signal(signal.SIGKILL)
+            assert worker.stop() == -signal.SIGKILL
+            _wait(lambda: not c.force["flags"] & protocol.FLAGS["model_available"], 15.0, "model unavailable")
+            _wait(lambda: np.linalg.norm(c.force["guidance_n"]) == 0.0, 15.0, "guidance faded to zero")
+            n0 = c.forces_received
+            _wait(lambda: c.forces_received - n0 >= 400, 15.0, "400 more forces without the model")
+            assert c.force["flags"] & protocol.FLAGS["model_available"] == 0
+            worker, _ = _serve("--role", "model", endpoint=endpoint)
+            _wait(lambda: c.force["flags"] & protocol.FLAGS["model_available"], 30.0, "the restarted model answering")
+            stop.set()
+            pump.join()
+    finally:
+        stop.set()
+        worker.stop()
+        code = engine.stop()
+    assert code == 0
+
+
+def test_ctrl_c_stops_a_busy_server_cleanly_with_a_zenoh_config_file(tmp_path):
+    """Ctrl-C while a trainee streams: the server closes its sessions and exits 0, promptly."""
+    conf = tmp_path / "zenoh.json5"
+    conf.write_text("{ scouting: { multicast: { enabled: false } }, timestamping: { enabled: { router: true } } }")
+    proc, endpoint = _serve("--zenoh-config", str(conf))
+    stop = threading.Event()
+    with TraineeClient(endpoint, "busy-1") as c:
+        a, d, q = _entry(c)
+
+        def pump() -> None:
+            while not stop.is_set():
+                c.send_pose(a, q, True, 1250.0)
+                time.sleep(0.001)
+
+        t = threading.Thread(target=pump, daemon=True)
+        t.start()
+        _wait(lambda: c.forces_received > 200, 10.0)
+        proc.proc.send_signal(signal.SIGINT)
+        code = proc.proc.wait(timeout=30)  # a generous deadline, not a speed target
+        stop.set()
+        t.join()
+    assert proc.stop() == code == 0
+    assert any("closing 1 session(s)" in line for line in proc.lines), proc.lines[-5:]
+    assert proc.lines[-1] == "dhg-serve stopped"
+
+
+def test_a_bad_zenoh_config_file_is_a_clear_error(tmp_path):
+    conf = tmp_path / "broken.json5"
+    conf.write_text("{ this is not json5")
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    r = subprocess.run(
+        [sys.executable, "-m", "dhg.cli.serve", "--zenoh-config", str(conf), "--listen", listen],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 3, r.stderr
+    assert "zenoh config" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["trainee", "--duration", "1"],
+        ["record", "--session", "x-1", "--out", "OUT", "--duration", "1"],
+        ["study", "--out", "OUT", "--seeds", "1", "--arms", "none", "--train", "1", "--live", "ENDPOINT"],
+    ],
+    ids=["trainee", "record", "study-live"],
+)
+def test_every_networked_command_reads_its_zenoh_config(tmp_path, command):
+    """Issue 21, item 7: dhg trainee, record and study --live take --zenoh-config (and say what is
+    wrong with a broken one, exit 3, instead of ignoring it)."""
+    conf = tmp_path / "broken.json5"
+    conf.write_text("{ this is not json5")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    args = [a.replace("OUT", str(tmp_path / "out")).replace("ENDPOINT", endpoint) for a in command]
+    if "--live" not in args:
+        args += ["--connect", endpoint]
+    r = subprocess.run(
+        [sys.executable, "-m", "dhg.cli.main", *args, "--zenoh-config", str(conf)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 3, r.stderr
+    assert "zenoh config" in r.stderr and "Traceback" not in r.stderr
