@@ -41,7 +41,7 @@ MAX_PAYLOAD_BYTES: int = _bone_sim.MAX_PAYLOAD_BYTES
 
 FLAGS: dict[str, int] = dict(_bone_sim.FLAGS)
 """Flag bits of the force and state headers (bit 0 of a pose: drill on), as the core defines them
-(``protocol.rs``, ``flags``)."""
+(``protocol/``, ``flags``)."""
 
 _CODES = {"u8": "B", "u16": "H", "u32": "I", "u64": "Q", "f32": "f", "f64": "d"}
 

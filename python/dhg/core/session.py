@@ -47,7 +47,7 @@ __all__ = [
 
 GuidanceMode = Literal["paper", "corridor", "brake", "shaped"]
 GUIDANCE_MODES: tuple[str, ...] = tuple(_bone_sim.GUIDANCE_MODES)
-"""The guidance modes, as the core defines them (``crates/bone_sim/src/guidance.rs``)."""
+"""The guidance modes, as the core defines them (``crates/bone_sim/src/guidance/``)."""
 
 MAX_SPINDLE_RPM: float = float(_bone_sim.MAX_SPINDLE_RPM)
 """Fastest spindle speed a pose may ask for (rpm); a faster one is refused and counted (the
@@ -349,7 +349,7 @@ class DrillingSession:
     @property
     def guidance_params(self) -> dict[str, Any]:
         """Every guidance limit and force law of the core (``GuidanceParams`` in
-        ``crates/bone_sim/src/guidance.rs``: device newtons, SI units), e.g. ``corridor_deadband_m``,
+        ``crates/bone_sim/src/guidance/``: device newtons, SI units), e.g. ``corridor_deadband_m``,
         ``brake_hold_n``, ``warning_n``."""
         return self._s.guidance_params()
 
@@ -360,7 +360,7 @@ class DrillingSession:
 
     def set_fading(self, params: dict[str, Any] | None = None, *, enabled: bool = True) -> None:
         """Fades the guidance gain over attempts, assisting as needed
-        (``crates/bone_sim/src/guidance.rs``, ``Fading``): each :meth:`reset` after a drilled
+        (``crates/bone_sim/src/guidance/fading.rs``, ``Fading``): each :meth:`reset` after a drilled
         attempt sets the next attempt's gain from its largest plunge and lateral deviation, and
         every ``probe_every``-th attempt is guidance-free. ``params`` overrides the core's
         defaults (``start_gain``, ``max_gain``, ``forget``, ``learn``, ``plunge_tolerance_m``,

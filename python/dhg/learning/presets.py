@@ -26,7 +26,7 @@ class ModelConfig:
     layers: int = 2
     hidden: int = 256
     window: int = WINDOW_RECORDS
-    """Time steps e of the input window (10 Hz records): the engine's window (``protocol.rs``)."""
+    """Time steps e of the input window (10 Hz records): the engine's window (``protocol/``)."""
 
     def __post_init__(self) -> None:
         for group, names in (("input_features", self.input_features), ("output_features", self.output_features)):

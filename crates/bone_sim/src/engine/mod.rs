@@ -65,7 +65,7 @@ pub const EARLY_PERIODS: f64 = 0.3;
 /// How long (in periods) a slot whose client has sent a pose waits past its deadline (its budget
 /// holding a period) for the next pose before ticking without one. A whole period: with 16
 /// clients on 2 cores, 3–5 % of poses came more than 0.55 ms after their predecessor's period
-/// (recorded traces; one is replayed in `tests/engine.rs`). With 0.3 periods the slot ticked
+/// (recorded traces; one is replayed in `tests/schedule.rs`). With 0.3 periods the slot ticked
 /// without them, and the pose that followed found no budget and waited for a later deadline.
 ///
 /// Why this value: `docs/decisions/0001-grace-period.md`.
@@ -106,7 +106,7 @@ const DUE_SLACK_PERIODS: f64 = 1e-6;
 /// How late (in periods) the tick thread may wake past a slot's tick without a pose and still
 /// lose no time: the budget banks this much past that point, and drops the rest (a stall buys
 /// no burst of ticks). Without it each late wake-up cost its lateness: a replay of two recorded
-/// clients waking 100 µs late ran 0.2 % slow (`tests/engine.rs`, `wake_up_latency_costs_no_ticks`).
+/// clients waking 100 µs late ran 0.2 % slow (`tests/schedule.rs`, `wake_up_latency_costs_no_ticks`).
 ///
 /// Why this value: `docs/decisions/0002-lock-rate.md`.
 pub const WAKE_SLACK_PERIODS: f64 = 0.3;

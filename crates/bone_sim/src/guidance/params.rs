@@ -76,7 +76,7 @@ impl Default for GuidanceParams {
             // An arm that holds the tip off the line against the spring is pulled further over
             // about a second, as assistance that grows with a persisting error does (Wolbrecht et
             // al. 2008, adaptive assist-as-needed with forgetting): tuning seeds 3-8, instructed
-            // operator, max offset across the path -45 % -> -52 % against no guidance (impedance
+            // operator, max offset across the path -44 % -> -52 % against no guidance (impedance
             // -61 % -> -62 %); 2 s and 3 s did less (docs/results.md).
             corridor_integral_s: 1.0,
             corridor_profile_n_per_m: Vec::new(),
