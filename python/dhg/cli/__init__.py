@@ -1,2 +1,3 @@
-"""The command lines: ``dhg`` (:mod:`~dhg.cli.main`), ``dhg-serve`` and the live subcommands
+"""The command lines: ``dhg`` (:mod:`~dhg.cli.main`, its offline commands in
+:mod:`~dhg.cli.commands`, those that talk to a server in :mod:`~dhg.cli.live`), ``dhg-serve``
 (:mod:`~dhg.cli.serve`), and what they share (:mod:`~dhg.cli.common`)."""

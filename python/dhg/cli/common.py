@@ -1,23 +1,30 @@
-"""What every command line of DHG shares (``dhg`` in :mod:`dhg.cli.main`, ``dhg-serve`` and the live
-commands in :mod:`dhg.cli.serve`): exit codes, the error-to-exit-code mapping, loading the bone,
-progress bars. Both import from here, never from each other's modules in both directions."""
+"""What every command line of DHG shares (``dhg`` in :mod:`dhg.cli.main`, ``dhg-serve`` in
+:mod:`dhg.cli.serve`, the live commands in :mod:`dhg.cli.live`): exit codes, the error-to-exit-code
+mapping, loading the bone, progress bars, stopping on a signal. They import from here, never from
+each other in both directions."""
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from dhg.core.errors import DhgError, TransportError
 
 __all__ = [
+    "NETWORK_EPILOG",
     "EXIT_BAD_INPUT",
     "EXIT_INTERNAL",
     "EXIT_NETWORK",
     "EXIT_OK",
     "EXIT_USAGE",
     "load_volume",
+    "stop_on_signals",
     "progress",
     "run_command",
 ]
@@ -82,3 +89,30 @@ def run_command(func: Callable[[argparse.Namespace], int], args: argparse.Namesp
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+NETWORK_EPILOG = """\
+exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input (CT, model file, values),
+5 network trouble (endpoint in use, no server answering).
+endpoints look like tcp/127.0.0.1:7447 (loopback) or tcp/0.0.0.0:7447 (every interface).
+key expressions and payloads: docs/protocol.md. Units: SI (m, N, s, °C).
+"""
+"""The epilog of every command that talks over Zenoh."""
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[threading.Event]:
+    """An event set by SIGINT (Ctrl-C) or SIGTERM, instead of an exception at a random place."""
+    stop = threading.Event()
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def handler(signum: int, _frame: Any) -> None:
+        stop.set()
+
+    for s in previous:
+        signal.signal(s, handler)
+    try:
+        yield stop
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)

@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_study,
     ):
         add(sub)
-    from dhg.cli.serve import add_commands
+    from dhg.cli.live import add_commands
 
     add_commands(sub, "")
     return parser

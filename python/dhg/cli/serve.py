@@ -1,4 +1,5 @@
-"""``dhg-serve`` and the ``dhg`` subcommands that talk to a running server: ``trainee``, ``record``.
+"""``dhg-serve``: its options, grouped, and the server's run (the ``dhg`` subcommands that talk to a
+running server are in :mod:`dhg.cli.live`).
 
 Exit codes (shared with ``dhg``): 0 success; 1 internal error; 2 usage error; 3 bad input
 (unreadable CT or model file, invalid values); 5 network trouble (the listen endpoint is in use, no
@@ -9,54 +10,24 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
-import signal
 import sys
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
-from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
-from dhg.cli.common import EXIT_INTERNAL, EXIT_OK, load_volume
+from dhg.cli.common import EXIT_OK, NETWORK_EPILOG, load_volume, stop_on_signals
 from dhg.cli.common import run_command as _run
 from dhg.core.session import GUIDANCE_MODES
 
-__all__ = ["add_commands", "serve_main", "serve_parser"]
-
-EPILOG = """\
-exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input (CT, model file, values),
-5 network trouble (endpoint in use, no server answering).
-endpoints look like tcp/127.0.0.1:7447 (loopback) or tcp/0.0.0.0:7447 (every interface).
-key expressions and payloads: docs/protocol.md. Units: SI (m, N, s, °C).
-"""
-
-
-@contextmanager
-def _stop_on_signals() -> Iterator[threading.Event]:
-    """An event set by SIGINT (Ctrl-C) or SIGTERM, instead of an exception at a random place."""
-    stop = threading.Event()
-    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-
-    def handler(signum: int, _frame: Any) -> None:
-        stop.set()
-
-    for s in previous:
-        signal.signal(s, handler)
-    try:
-        yield stop
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+__all__ = ["serve_main", "serve_parser"]
 
 
 # -- dhg-serve --------------------------------------------------------------------------------
 def serve_parser() -> argparse.ArgumentParser:
     """The ``dhg-serve`` argument parser."""
     from dhg.core.server import ServerSettings
-    from dhg.live.runner import DEFAULT_ENDPOINT, ROLES
+    from dhg.live.runner import DEFAULT_ENDPOINT
 
     d = ServerSettings()
     p = argparse.ArgumentParser(
@@ -64,8 +35,9 @@ def serve_parser() -> argparse.ArgumentParser:
         description=(
             "The real-time haptic guidance server. Trainees' stylus poses come in over Zenoh; a 1 kHz "
             "engine drills each trainee's own copy of the bone and sends back the force to render; every "
-            "100 ms the last 20 records go to the LSTM model, and guidance (predicted expert force minus "
-            "the trainee's force) is mixed into the force.\n\n"
+            "100 ms the last 20 records go to the LSTM model, and the guidance it drives (by default "
+            "'shaped': a corridor around the planned path, a brake at the breakthrough and a warning before "
+            "it; see --guidance-mode) is mixed into the force.\n\n"
             "  dhg-serve                                   # phantom femur + bundled model on "
             f"{DEFAULT_ENDPOINT}\n"
             "  dhg-serve --listen tcp/0.0.0.0:7447 --ct scan.nii.gz --model runs/x/model.ts\n"
@@ -73,68 +45,109 @@ def serve_parser() -> argparse.ArgumentParser:
             "  dhg-serve --role model --connect tcp/ENGINE:7447    # model worker on a GPU machine\n\n"
             "Then drive it: 'dhg trainee --connect ENDPOINT', record it: 'dhg record ...'."
         ),
-        epilog=EPILOG,
+        epilog=NETWORK_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--role", choices=ROLES, default="all", help="what this process runs (default: all)")
-    p.add_argument(
-        "--ct",
-        metavar="PATH",
-        help="bone to drill: a prepared volume (.npz), DICOM folder or NIfTI file; default: the phantom femur",
-    )
-    p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="voxel size (default 0.5)")
-    p.add_argument(
-        "--entry-mm", metavar="X,Y,Z", help="entry point A of the default path (mm, LPS; a CT's own path by default)"
-    )
-    p.add_argument("--target-mm", metavar="X,Y,Z", help="target point B of the default path (mm, LPS)")
-    p.add_argument("--model", metavar="FILE.ts", help="TorchScript model from 'dhg train'; default: the bundled one")
-    p.add_argument(
-        "--device", choices=("auto", "cpu", "cuda"), default="auto", help="where the model runs (default: auto)"
-    )
-    p.add_argument(
-        "--model-threads",
-        type=int,
-        metavar="N",
-        help="torch CPU threads (default: a quarter of the cores, at least 1, so the 1 kHz engine keeps a core)",
-    )
-    p.add_argument(
+    for add in (_network_args, _bone_args, _model_args, _session_args):
+        add(p, d)
+    return p
+
+
+def _network_args(p: argparse.ArgumentParser, d: Any) -> None:
+    """``dhg-serve``'s options for the network (``d``: the default :class:`ServerSettings`)."""
+    from dhg.live.runner import DEFAULT_ENDPOINT, ROLES
+
+    g = p.add_argument_group("the network", "this process's role and its Zenoh endpoints")
+    g.add_argument("--role", choices=ROLES, default="all", help="what this process runs (default: all)")
+    g.add_argument(
         "--listen",
         action="append",
         default=[],
         metavar="ENDPOINT",
         help=f"endpoint to listen on, repeatable (default for all/sim: {DEFAULT_ENDPOINT})",
     )
-    p.add_argument(
+    g.add_argument(
         "--connect",
         action="append",
         default=[],
         metavar="ENDPOINT",
         help=f"endpoint to connect to, repeatable (default for --role model: {DEFAULT_ENDPOINT})",
     )
-    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (scouting, TLS, ...)")
-    p.add_argument("--prefix", default="dhg", help="first chunk of every key expression (default: dhg)")
-    p.add_argument("--max-sessions", type=int, default=d.max_sessions, metavar="N", help="trainee slots (default 16)")
-    p.add_argument(
-        "--lab",
-        metavar="FILE.toml",
-        help="the lab file of dhg lab-config: each station may hold at most [server] sessions_per_station "
-        "sessions (default 2), named after it",
+    g.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (scouting, TLS, ...)")
+    g.add_argument("--prefix", default="dhg", help="first chunk of every key expression (default: dhg)")
+
+
+def _bone_args(p: argparse.ArgumentParser, d: Any) -> None:
+    """``dhg-serve``'s options for the bone (``d``: the default :class:`ServerSettings`)."""
+    g = p.add_argument_group("the bone", "what is drilled: the volume and the default planned path")
+    g.add_argument(
+        "--ct",
+        metavar="PATH",
+        help="bone to drill: a prepared volume (.npz), DICOM folder or NIfTI file; default: the phantom femur",
     )
-    p.add_argument(
-        "--idle-timeout",
-        type=float,
-        default=d.idle_timeout_s,
-        metavar="S",
-        help=f"free a session after this many seconds without poses (default {d.idle_timeout_s:g})",
+    g.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="voxel size (default 0.5)")
+    g.add_argument(
+        "--entry-mm", metavar="X,Y,Z", help="entry point A of the default path (mm, LPS; a CT's own path by default)"
     )
-    p.add_argument(
+    g.add_argument("--target-mm", metavar="X,Y,Z", help="target point B of the default path (mm, LPS)")
+
+
+def _model_args(p: argparse.ArgumentParser, d: Any) -> None:
+    """``dhg-serve``'s options for the model (``d``: the default :class:`ServerSettings`)."""
+    g = p.add_argument_group("the model", "the LSTM that predicts the expert's force, and its workers")
+    g.add_argument("--model", metavar="FILE.ts", help="TorchScript model from 'dhg train'; default: the bundled one")
+    g.add_argument(
+        "--device", choices=("auto", "cpu", "cuda"), default="auto", help="where the model runs (default: auto)"
+    )
+    g.add_argument(
+        "--model-threads",
+        type=int,
+        metavar="N",
+        help="torch CPU threads (default: a quarter of the cores, at least 1, so the 1 kHz engine keeps a core)",
+    )
+    g.add_argument(
         "--model-timeout",
         type=float,
         default=d.model_timeout_s,
         metavar="S",
         help=f"give up on one model query after S seconds (default {d.model_timeout_s:g})",
     )
-    p.add_argument(
+    g.add_argument(
+        "--worker-id",
+        metavar="NAME",
+        help="this model service's name in the engine's worker pool (default: the Zenoh user name of "
+        "--zenoh-config, else the Zenoh session id); several workers share the queries and take over "
+        "from one that stops",
+    )
+
+
+def _session_args(p: argparse.ArgumentParser, d: Any) -> None:
+    """``dhg-serve``'s options for sessions and guidance (``d``: the default :class:`ServerSettings`)."""
+
+    g = p.add_argument_group(
+        "sessions and guidance", "trainee slots, timeouts, the guidance new sessions get, the tick thread's wait"
+    )
+    g.add_argument(
+        "--max-sessions",
+        type=int,
+        default=d.max_sessions,
+        metavar="N",
+        help=f"trainee slots (default {d.max_sessions})",
+    )
+    g.add_argument(
+        "--lab",
+        metavar="FILE.toml",
+        help="the lab file of dhg lab-config: each station may hold at most [server] sessions_per_station "
+        "sessions (default 2), named after it",
+    )
+    g.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=d.idle_timeout_s,
+        metavar="S",
+        help=f"free a session after this many seconds without poses (default {d.idle_timeout_s:g})",
+    )
+    g.add_argument(
         "--guidance-mode",
         choices=GUIDANCE_MODES,
         default=d.guidance_mode,
@@ -145,14 +158,14 @@ def serve_parser() -> argparse.ArgumentParser:
         "soft resistance ramp over the last mm before the planned breakthrough. Each trainee can change "
         "theirs with the set_guidance control request",
     )
-    p.add_argument(
+    g.add_argument(
         "--guidance-gain",
         type=float,
         default=d.guidance_gain,
         metavar="G",
         help="guidance gain of new sessions, 0..4; 0 = computed and published but not felt (default 1)",
     )
-    p.add_argument(
+    g.add_argument(
         "--wait",
         choices=("sleep", "spin"),
         default=d.wait,
@@ -162,15 +175,7 @@ def serve_parser() -> argparse.ArgumentParser:
         "instead while a session is open, keeping two cores at 100 %%: use it on a machine with cores to "
         "spare that cannot give the tick thread SCHED_FIFO, never on a 2-core machine",
     )
-    p.add_argument(
-        "--worker-id",
-        metavar="NAME",
-        help="this model service's name in the engine's worker pool (default: the Zenoh user name of "
-        "--zenoh-config, else the Zenoh session id); several workers share the queries and take over "
-        "from one that stops",
-    )
-    p.add_argument("--status-every", type=float, default=5.0, metavar="S", help="status line period (default 5 s)")
-    return p
+    g.add_argument("--status-every", type=float, default=5.0, metavar="S", help="status line period (default 5 s)")
 
 
 def _point_mm(text: str, option: str) -> Any:
@@ -253,7 +258,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         if path is None:
             raise ValueError(f"{args.ct}: this volume has no planned path; give --entry-mm and --target-mm")
         described.append(f"volume {volume}")
-    with _stop_on_signals() as stop:
+    with stop_on_signals() as stop:
         with runner.start(options, volume, path, model) as running:
             where = "listening on" if options.listen or args.role != "model" else "connected to"
             print(
@@ -277,330 +282,6 @@ def serve_main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``dhg-serve``."""
     args = serve_parser().parse_args(argv)
     return _run(_cmd_serve, args)
-
-
-# -- dhg trainee ------------------------------------------------------------------------------
-def add_commands(sub: Any, epilog: str) -> None:
-    """Adds ``trainee`` and ``record`` to the ``dhg`` subcommands."""
-    from dhg.live.runner import DEFAULT_ENDPOINT
-
-    fmt = argparse.RawDescriptionHelpFormatter
-    p = sub.add_parser(
-        "trainee",
-        help="a virtual trainee that drills through a running dhg-serve",
-        description="Connects to a running dhg-serve, creates a session and drills A→B as a virtual "
-        "surgeon (the operator model of 'dhg synth') who feels the force the server renders, guidance "
-        "included, and reads the guidance as an instruction. In the paper's mode it leans into a cue that "
-        "pushes the drill back (the expert pressed harder) and eases off one that pulls it in; in the other "
-        "modes (corridor, brake, shaped) it yields to the cue, easing off where it resists. An expert eases "
-        "off shortly before "
-        "the depth where the session's planned layers (from the server's CT) show the burr leaving the "
-        "first cortex. Prints the skill metrics and the "
-        "pose→force and pose→guidance latencies at the end.\n\n"
-        "  dhg trainee --skill novice --guidance on  --seed 3\n"
-        "  dhg trainee --skill novice --guidance off --seed 3   # the same hand, unguided\n"
-        "  dhg trainee --attempts 6 --fading --probe-every 3    # faded training, every 3rd attempt unguided\n\n"
-        "With --attempts N the trainee drills N attempts, the session reset between them (a recorder "
-        "starts a new episode for each), and learns from the plunge and deviation it felt in each, as the "
-        "novices of 'dhg study' do. With --fading the server's fading schedule sets each attempt's gain "
-        "from the last attempt's errors (assistance as needed) and makes every --probe-every-th attempt "
-        "guidance-free.",
-        epilog=EPILOG + epilog,
-        formatter_class=fmt,
-    )
-    p.add_argument(
-        "--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help=f"server (default {DEFAULT_ENDPOINT})"
-    )
-    p.add_argument("--session", metavar="ID", help="session id (default: trainee-<random>)")
-    p.add_argument("--skill", choices=("novice", "expert"), default="novice", help="operator model (default novice)")
-    p.add_argument("--guidance", choices=("on", "off"), default="on", help="feel the guidance force (default on)")
-    p.add_argument("--gain", type=float, default=1.0, metavar="G", help="guidance gain when on (default 1)")
-    p.add_argument(
-        "--guidance-mode",
-        choices=GUIDANCE_MODES,
-        help="the session's guidance mode (default: the server's, shaped unless dhg-serve --guidance-mode)",
-    )
-    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="longest run in seconds (default 20)")
-    p.add_argument(
-        "--drill-mm",
-        type=float,
-        metavar="D",
-        help="drill (burr) diameter in mm, e.g. 3.2 for a large guide wire (default: the server's, 2.5 mm)",
-    )
-    p.add_argument("--seed", type=int, default=0, help="the surgeon's style and tremor (default 0)")
-    p.add_argument("--attempts", type=int, default=1, metavar="N", help="attempts, the bone reset between (default 1)")
-    p.add_argument(
-        "--fading",
-        action="store_true",
-        help="let the server fade the gain over the attempts (starting from --gain; docs/protocol.md, set_fading)",
-    )
-    p.add_argument(
-        "--probe-every",
-        type=int,
-        metavar="K",
-        help="with --fading, every Kth attempt is guidance-free (default: the server's, 4; 0: none)",
-    )
-    p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
-    p.add_argument("--json", metavar="FILE", help="also write metrics and latencies (of every attempt) as JSON")
-    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (TLS, credentials, ...)")
-    p.set_defaults(func=_cmd_trainee)
-
-    p = sub.add_parser(
-        "record",
-        help="record a live session into a demonstrations dataset",
-        description="Subscribes to one session's 10 Hz state on a running dhg-serve and writes it in the "
-        "dataset format of 'dhg synth' (records.parquet + card.json), rewriting the folder atomically "
-        "every second: stopping it (Ctrl-C) or the server crashing keeps everything up to the last "
-        "second. A reset of the session's bone starts a new attempt. With --raw it also keeps the 1 kHz "
-        "stream (raw.parquet: every tick's pose, device force and guidance share), written in "
-        "10-second parts that are joined when it stops cleanly. Train on it with "
-        "'dhg train --data DIR' (label experts with --skill expert). With --all it records every "
-        "session on the server, each into DIR/<session id> as it appears: one recorder for a class.\n\n"
-        "  dhg record --session alice-01 --skill expert --raw --out data/alice\n"
-        "  dhg record --all --skill novice --out data/class-3",
-        epilog=EPILOG + epilog,
-        formatter_class=fmt,
-    )
-    p.add_argument(
-        "--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help=f"server (default {DEFAULT_ENDPOINT})"
-    )
-    which = p.add_mutually_exclusive_group(required=True)
-    which.add_argument("--session", metavar="ID", help="the session to record")
-    which.add_argument("--all", action="store_true", help="record every session, each into DIR/<session id>")
-    p.add_argument("--out", required=True, metavar="DIR", help="dataset folder (replaced on every flush)")
-    p.add_argument("--skill", default="unknown", help="label of the subject: expert, novice, ... (default unknown)")
-    p.add_argument("--subject", metavar="NAME", help="subject id (default: the session id)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
-    p.add_argument("--flush-every", type=float, default=1.0, metavar="S", help="seconds between writes (default 1)")
-    p.add_argument(
-        "--status-every",
-        type=float,
-        default=5.0,
-        metavar="S",
-        help="print what has been recorded every S seconds, or which sessions the server has while the one "
-        "asked for sends nothing (default 5; 0: quiet)",
-    )
-    p.add_argument(
-        "--raw", action="store_true", help="also keep the 1 kHz pose/force stream (raw.parquet, about 4 MB a minute)"
-    )
-    p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
-    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (TLS, credentials, ...)")
-    p.set_defaults(func=_cmd_record)
-
-    p = sub.add_parser(
-        "live-demo",
-        help="the whole product: dhg-serve plus a guided and an unguided virtual novice (make demo)",
-        description="Starts dhg-serve (phantom femur, bundled model) on a free loopback port, runs a virtual "
-        "novice with guidance and the same novice (same seed) without, each for up to --duration seconds, "
-        "prints both runs' skill metrics and the guidance and latency figures side by side, writes the "
-        "guided session's X-ray views (top/front/side.png) and live.png (force, guidance and temperature "
-        "over time) into --out, and stops the server.",
-        epilog=EPILOG + epilog,
-        formatter_class=fmt,
-    )
-    p.add_argument("--out", default="out/demo", metavar="DIR", help="folder for the PNGs (default out/demo)")
-    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds per run (default 20)")
-    p.add_argument("--seed", type=int, default=7, help="the novice's hand (default 7)")
-    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config for the server and both trainees")
-    p.set_defaults(func=_cmd_live_demo)
-
-
-def _cmd_trainee(args: argparse.Namespace) -> int:
-    from dhg.live.client import TraineeClient
-    from dhg.live.trainee import TraineeRun, run_course
-
-    if args.duration <= 0:
-        raise ValueError("--duration must be positive")
-    if args.attempts < 1:
-        raise ValueError(f"--attempts must be at least 1, got {args.attempts}")
-    if args.probe_every is not None and (not args.fading or args.probe_every < 0):
-        raise ValueError("--probe-every needs --fading and is 0 (no probes) or a positive count")
-    if args.fading and args.guidance == "off":
-        raise ValueError("--fading fades the guidance: it needs --guidance on")
-    if args.drill_mm is not None and not 0.0 < args.drill_mm <= 40.0:
-        raise ValueError(f"--drill-mm must be a diameter in (0, 40] mm, got {args.drill_mm}")
-    burr_radius_m = None if args.drill_mm is None else args.drill_mm / 2 * 1e-3
-    gain = args.gain if args.guidance == "on" else 0.0
-    with TraineeClient(args.connect, args.session, prefix=args.prefix, zenoh_config_file=args.zenoh_config) as client:
-        client.health(1.0)  # fails fast, with a clear message, when no server answers
-        fading = None
-        if args.fading:
-            fading = {} if args.probe_every is None else {"probe_every": args.probe_every}
-
-        def finished(run: TraineeRun) -> None:
-            if args.attempts > 1:
-                m = run.metrics
-                print(
-                    f"  attempt {run.attempt + 1}: gain {run.guidance_gain:.2f}{' (probe)' if run.probe else ''}, "
-                    f"plunge {m['plunge_depth_m'] * 1e3:.2f} mm, max deviation {m['max_deviation_m'] * 1e3:.2f} mm, "
-                    f"reached B {'yes' if m['reached_target'] else 'no'}",
-                    flush=True,
-                )
-
-        runs = run_course(
-            client,
-            args.attempts,
-            args.skill,
-            gain,
-            args.duration,
-            args.seed,
-            fading=fading,
-            burr_radius_m=burr_radius_m,
-            guidance_mode=args.guidance_mode,
-            on_start=lambda mode: print(
-                f"session {client.session_id}: {args.skill}, guidance {args.guidance} ({mode}, gain {gain:g}"
-                f"{', fading' if args.fading else ''}), seed {args.seed}",
-                flush=True,
-            ),
-            on_attempt=finished,
-        )
-    run = runs[-1]
-    if args.attempts > 1:
-        print(f"last attempt ({args.attempts}):")
-    print(f"  drill diameter         {run.burr_radius_m * 2e3:g} mm")
-    planned = run.planned_breakthrough_depth_m
-    print(
-        f"  planned breakthrough   {'none (no cortex on the path)' if planned is None else f'{planned * 1e3:.3f} mm'}"
-    )
-    report = {
-        "session": run.session_id,
-        "burr_radius_m": run.burr_radius_m,
-        "planned_breakthrough_depth_m": run.planned_breakthrough_depth_m,
-        "guidance_mode": run.guidance_mode,
-        "metrics": run.metrics,
-        "latency": run.latency,
-        "poses": run.poses_sent,
-        "attempts": [
-            {
-                "attempt": r.attempt,
-                "guidance_gain": r.guidance_gain,
-                "probe": r.probe,
-                "fading": r.fading,
-                "metrics": r.metrics,
-                "poses": r.poses_sent,
-            }
-            for r in runs
-        ],
-    }
-    for k, v in run.metrics.items():
-        print(f"  {k:22s} {v}")
-    lat = run.latency
-    print(
-        f"  pose→force    p50 {lat['pose_to_force_p50_s'] * 1e3:.2f} ms  p99 {lat['pose_to_force_p99_s'] * 1e3:.2f} ms "
-        f"({lat['forces']} forces for {run.poses_sent} poses)"
-    )
-    print(
-        f"  pose→guidance p50 {lat['pose_to_guidance_p50_s'] * 1e3:.2f} ms  "
-        f"p99 {lat['pose_to_guidance_p99_s'] * 1e3:.2f} ms ({lat['guidance']} messages)"
-    )
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(report, fh, indent=1)
-    return EXIT_OK
-
-
-def _cmd_record(args: argparse.Namespace) -> int:
-    from dhg.live.recorder import SessionRecorder
-
-    if args.flush_every <= 0:
-        raise ValueError(f"--flush-every must be positive, got {args.flush_every}")
-    if args.status_every < 0:
-        raise ValueError(f"--status-every must be 0 (quiet) or positive, got {args.status_every}")
-    if args.all:
-        if args.subject:
-            raise ValueError("--subject names one subject; with --all each session's id is its subject")
-        return _record_all(args)
-    rec = SessionRecorder(
-        args.connect,
-        args.session,
-        args.out,
-        args.prefix,
-        args.subject,
-        args.skill,
-        args.flush_every,
-        zenoh_config_file=args.zenoh_config,
-        raw=args.raw,
-    )
-    print(f"recording session {args.session} into {args.out} (Ctrl-C to stop)", flush=True)
-
-    def status(t: float) -> None:
-        if rec.records == 0:
-            ids = rec.server_sessions()
-            where = "no server answers" if ids is None else f"sessions on the server now: {', '.join(ids) or 'none'}"
-            print(f"  {t:5.0f} s: nothing from session {args.session} yet ({where})", flush=True)
-        else:
-            ticks = f", {rec.raw_rows} ticks written" if args.raw else ""
-            print(f"  {t:5.0f} s: {rec.records} records in {rec.attempts} attempt(s){ticks}", flush=True)
-
-    _run_recorder(rec, args, status)
-    print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}{_left_out(rec)}")
-    if args.raw:
-        print(
-            f"  1 kHz stream: {rec.raw_rows} ticks; {rec.raw_ticks_without_pose} without their pose (lost in "
-            f"transport), {rec.raw_rows_without_records} in attempts too short for a record"
-        )
-    return EXIT_OK
-
-
-def _left_out(rec: Any) -> str:
-    """What a recorder (one session or ``--all``) left out, as "; ..." clauses; "" when nothing."""
-
-    def n(name: str) -> int:
-        return int(getattr(rec, name, 0))
-
-    parts = [
-        f"{n('invalid_messages')} impossible messages left out" if n("invalid_messages") else "",
-        f"{n('refused_ids')} ids the server does not have ({n('unconfirmed_messages')} messages)"
-        if n("refused_ids")
-        else "",
-        f"{n('flush_errors')} failed flushes (last: {rec.last_flush_error})" if n("flush_errors") else "",
-        f"{n('lost_states')} states lost in transport (not recoverable)" if n("lost_states") else "",
-    ]
-    return "".join(f"; {p}" for p in parts if p)
-
-
-def _record_all(args: argparse.Namespace) -> int:
-    from dhg.live.recorder import AllSessionsRecorder
-
-    def found(session_id: str, folder: Path) -> None:
-        print(f"  recording session {session_id} into {folder}", flush=True)
-
-    rec = AllSessionsRecorder(
-        args.connect,
-        args.out,
-        args.prefix,
-        args.skill,
-        args.flush_every,
-        zenoh_config_file=args.zenoh_config,
-        raw=args.raw,
-        on_new_session=found,
-    )
-    print(f"recording every session into {args.out}/<session id> (Ctrl-C to stop)", flush=True)
-
-    def status(t: float) -> None:
-        print(f"  {t:5.0f} s: {len(rec.sessions)} sessions, {rec.records} records{_left_out(rec)}", flush=True)
-
-    _run_recorder(rec, args, status)
-    print(f"recorded {rec.records} records of {len(rec.sessions)} sessions to {args.out}{_left_out(rec)}")
-    return EXIT_OK
-
-
-def _run_recorder(rec: Any, args: argparse.Namespace, status: Callable[[float], None]) -> None:
-    """Runs a recorder until Ctrl-C, SIGTERM or ``--duration``; it flushes a last time and closes."""
-    try:
-        with _stop_on_signals() as stop:
-            rec.run(stop, args.duration, status, args.status_every)
-    finally:
-        rec.close()
-
-
-def _cmd_live_demo(args: argparse.Namespace) -> int:
-    from dhg.live.demo import run_live_demo
-
-    if args.duration <= 0:
-        raise ValueError("--duration must be positive")
-    code = run_live_demo(args.out, args.duration, args.seed, zenoh_config_file=args.zenoh_config)
-    return EXIT_OK if code == 0 else EXIT_INTERNAL
 
 
 if __name__ == "__main__":

@@ -226,6 +226,65 @@ def _save_atomically(obj: Any, path: Path) -> None:
     os.replace(tmp, path)
 
 
+@dataclass
+class _Progress:
+    """Where a run stands: its epochs so far, the best validation RMSE and the weights that gave it,
+    and the epochs since (for early stopping). What ``checkpoint.pt`` holds besides the model and
+    the optimiser, so a resumed run goes on exactly where it stopped."""
+
+    next_epoch: int = 0
+    best_val: float = math.inf
+    best_state: dict[str, torch.Tensor] | None = None
+    history: list[dict[str, float]] = field(default_factory=list)
+    bad_epochs: int = 0
+
+    def record(self, epoch: int, train_rmse: float, val_rmse: float, net: torch.nn.Module) -> None:
+        """Adds an epoch; keeps the weights when the validation RMSE improved by more than 1e-6."""
+        self.history.append({"epoch": epoch, "train_rmse": train_rmse, "val_rmse": val_rmse})
+        self.next_epoch = epoch + 1
+        if val_rmse < self.best_val - 1e-6:
+            self.best_val, self.bad_epochs = val_rmse, 0
+            self.best_state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
+        else:
+            self.bad_epochs += 1
+
+    def checkpoint(
+        self, net: torch.nn.Module, opt: torch.optim.Optimizer, mcfg: ModelConfig, cfg: TrainConfig
+    ) -> dict[str, Any]:
+        """What ``checkpoint.pt`` holds after the last recorded epoch."""
+        return {
+            "model": net.state_dict(),
+            "optimizer": opt.state_dict(),
+            "model_config": mcfg.to_dict(),
+            "train_config": asdict(cfg),
+            "epoch": self.next_epoch - 1,
+            "best_val": self.best_val,
+            "best_state": self.best_state,
+            "history": self.history,
+            "bad_epochs": self.bad_epochs,
+            "torch_rng": torch.get_rng_state(),
+        }
+
+    @classmethod
+    def resume(
+        cls,
+        path: Path,
+        net: torch.nn.Module,
+        opt: torch.optim.Optimizer,
+        mcfg: ModelConfig,
+        device: torch.device,
+    ) -> _Progress:
+        """Loads ``path`` into ``net`` and ``opt`` (and torch's generator); refuses a checkpoint
+        of another model configuration."""
+        ckpt = torch.load(path, map_location=device, weights_only=False)
+        if ckpt["model_config"] != mcfg.to_dict():
+            raise InvalidInputError(f"{path} was trained with {ckpt['model_config']}, not {mcfg.to_dict()}")
+        net.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        torch.set_rng_state(ckpt["torch_rng"])
+        return cls(ckpt["epoch"] + 1, ckpt["best_val"], ckpt["best_state"], ckpt["history"], ckpt["bad_epochs"])
+
+
 def train(
     data_dir: str | os.PathLike[str],
     run_dir: str | os.PathLike[str],
@@ -255,51 +314,28 @@ def train(
             net, device_ids=[device.index] if device.type == "cuda" else None
         )
     opt = torch.optim.Adam(model.parameters(), lr=cfg.learning_rate)
-    start_epoch, best_val, best_state, history, bad_epochs = 0, math.inf, None, [], 0
     ckpt_path = run / "checkpoint.pt"
+    done = _Progress()
     if resume and ckpt_path.is_file():
-        ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
-        if ckpt["model_config"] != mcfg.to_dict():
-            raise InvalidInputError(f"{ckpt_path} was trained with {ckpt['model_config']}, not {mcfg.to_dict()}")
-        net.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
-        start_epoch, best_val, best_state = ckpt["epoch"] + 1, ckpt["best_val"], ckpt["best_state"]
-        history, bad_epochs = ckpt["history"], ckpt["bad_epochs"]
-        torch.set_rng_state(ckpt["torch_rng"])
+        done = _Progress.resume(ckpt_path, net, opt, mcfg, device)
 
     x_tr, y_tr = w.xn[w.split.train], w.yn[w.split.train]
     t0 = time.perf_counter()
-    for epoch in range(start_epoch, cfg.max_epochs):
-        if bad_epochs >= cfg.patience:
+    for epoch in range(done.next_epoch, cfg.max_epochs):
+        if done.bad_epochs >= cfg.patience:
             break
         order = ranks.epoch_order(len(x_tr), cfg.seed, epoch)
         train_rmse = _train_epoch(model, opt, x_tr, y_tr, order, cfg.batch_size, device)
         val = _evaluate(net, w.xn[w.split.val], w.yn[w.split.val], w.force_pos, device)["rmse_normalized"]
-        history.append({"epoch": epoch, "train_rmse": train_rmse, "val_rmse": val})
-        if val < best_val - 1e-6:
-            best_val, bad_epochs = val, 0
-            best_state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
-        else:
-            bad_epochs += 1
+        done.record(epoch, train_rmse, val, net)
         if ranks.rank == 0:
-            checkpoint = {
-                "model": net.state_dict(),
-                "optimizer": opt.state_dict(),
-                "model_config": mcfg.to_dict(),
-                "train_config": asdict(cfg),
-                "epoch": epoch,
-                "best_val": best_val,
-                "best_state": best_state,
-                "history": history,
-                "bad_epochs": bad_epochs,
-                "torch_rng": torch.get_rng_state(),
-            }
-            _save_atomically(checkpoint, ckpt_path)
+            _save_atomically(done.checkpoint(net, opt, mcfg, cfg), ckpt_path)
         if progress is not None:
             progress(epoch + 1, cfg.max_epochs, train_rmse, val)
     train_time = time.perf_counter() - t0
-    if best_state is not None:
-        net.load_state_dict(best_state)
+    history = done.history
+    if done.best_state is not None:
+        net.load_state_dict(done.best_state)
     net = net.cpu().eval()
     metrics: dict[str, Any] = {
         "preset": mcfg.preset,

@@ -390,27 +390,43 @@ impl SurgeonController {
         }
         let tick = self.tick;
         let t = tick as f64 * TICK_S;
-        let dt = TICK_S;
         let d = self.d;
         *self.felt_mut(tick) = Felt { seen: *now, cue_axial_n: cue_n.dot(&d), force_axial_n: 0.0, hand_s_m: self.s };
         let delayed = tick.saturating_sub(self.delay);
         let seen = self.felt(delayed).seen;
         self.max_plunge_m = self.max_plunge_m.max(now.plunge_depth_m);
-        // Aim wander (Ornstein–Uhlenbeck) and signal-dependent push noise (low-passed ~5 Hz).
+        self.wander();
+        let intent_s = self.intent(t, &seen)?;
+        self.felt_mut(tick).force_axial_n = force_n.dot(&d);
+        let drive = self.axial_drive(intent_s, delayed);
+        let p = self.move_hand(t, drive, force_n);
+        self.tick += 1;
+        let (on, rpm) = if self.drill_on { (1.0, self.style.spindle_rpm) } else { (0.0, 0.0) };
+        let q = self.quat;
+        Some([p.x, p.y, p.z, q[0], q[1], q[2], q[3], on, rpm])
+    }
+
+    /// One tick of the aim's wander (Ornstein–Uhlenbeck) and of the signal-dependent push noise
+    /// (low-passed ~5 Hz).
+    fn wander(&mut self) {
         let (n_u, n_v, n_push): (f64, f64, f64) =
             (self.rng.sample(StandardNormal), self.rng.sample(StandardNormal), self.rng.sample(StandardNormal));
         self.drift_u += -self.k_ou * self.drift_u + self.ou_kick * n_u;
         self.drift_v += -self.k_ou * self.drift_v + self.ou_kick * n_v;
         self.noise_state += 0.03 * (n_push - self.noise_state);
+    }
 
-        let intent_s = match self.phase {
+    /// The phase machine at time `t` (s) on what was `seen` a reaction delay ago: `Some(Some(s))`
+    /// to hold the hand at `s` along the path, `Some(None)` to push, `None` once finished.
+    fn intent(&mut self, t: f64, seen: &Perception) -> Option<Option<f64>> {
+        match self.phase {
             Phase::Approach => {
                 let into = t - self.phase_t0;
                 if into >= self.approach_s {
                     self.phase = Phase::Align;
                     self.phase_t0 = t;
                 }
-                Some(START_S_M + (ALIGNED_S_M - START_S_M) * min_jerk(into, self.approach_s))
+                Some(Some(START_S_M + (ALIGNED_S_M - START_S_M) * min_jerk(into, self.approach_s)))
             }
             Phase::Align => {
                 self.drill_on = true;
@@ -420,9 +436,9 @@ impl SurgeonController {
                     self.push = 0.0;
                     self.drill_on_t = Some(t);
                 }
-                Some(ALIGNED_S_M)
+                Some(Some(ALIGNED_S_M))
             }
-            Phase::Feed => self.feed(t, &seen),
+            Phase::Feed => Some(self.feed(t, seen)),
             Phase::Stop => {
                 self.drill_on = false;
                 self.drill_off_t.get_or_insert(t);
@@ -430,37 +446,45 @@ impl SurgeonController {
                     self.phase = Phase::Done;
                     return None;
                 }
-                Some(self.stop_s)
+                Some(Some(self.stop_s))
             }
-            Phase::Done => return None,
-        };
+            Phase::Done => None,
+        }
+    }
 
-        // Hand dynamics (semi-implicit Euler at 1 kHz).
+    /// The arm's drive along the path (N): a spring to the intended position, or the push,
+    /// bounded by the resistance felt a reaction delay ago (`delayed`, a tick).
+    fn axial_drive(&mut self, intent_s: Option<f64>, delayed: usize) -> f64 {
+        if let Some(intent) = intent_s {
+            self.aim_s = self.s;
+            return TRACK_STIFFNESS_N_PER_M * (intent - self.s);
+        }
+        // Nobody pushes much harder than the resistance they feel: a push that meets no
+        // resistance (a device that has derated, a bone that gave way) is not kept up. The
+        // lean into a guidance cue comes on top: it is what the subject was told to do.
         let style = &self.style;
-        let f_ax = force_n.dot(&d);
+        let then = self.felt(delayed);
+        let felt_resistance = (-then.force_axial_n).max(0.0);
+        let own = self.push.min(felt_resistance + PUSH_MARGIN_N);
+        let mut push = (own + self.lean).clamp(0.0, MAX_PUSH_N);
+        push *= 1.0 + style.noise_fraction * self.noise_state * 5.0;
+        // The arm pushes towards an aim that moves on at the preferred feed and follows,
+        // slowly, where the hand was felt one reaction delay ago: its stiffness resists travel
+        // ahead of the aim, so a sudden give is caught after about push / stiffness. (An aim
+        // that followed the felt position at once would make a delayed, unstable loop.)
+        let hand_then = then.hand_s_m;
+        self.aim_s += style.feed_m_s * TICK_S + (hand_then - self.aim_s) * TICK_S / AIM_FOLLOW_S;
+        push - self.style.arm_stiffness_n_per_m * (self.s - self.aim_s).max(0.0)
+    }
+
+    /// The hand's mass, damping and lateral stiffness under `drive` (N, along the path) and the
+    /// device force, one tick of semi-implicit Euler at 1 kHz; returns the stylus position (m).
+    fn move_hand(&mut self, t: f64, drive: f64, force_n: &Vector3<f64>) -> Point3<f64> {
+        let dt = TICK_S;
+        let style = &self.style;
+        let f_ax = force_n.dot(&self.d);
         let f_u = force_n.dot(&self.e1);
         let f_v = force_n.dot(&self.e2);
-        let slots = self.history.len();
-        self.history[tick % slots].force_axial_n = f_ax;
-        let drive = if let Some(intent) = intent_s {
-            self.aim_s = self.s;
-            TRACK_STIFFNESS_N_PER_M * (intent - self.s)
-        } else {
-            // Nobody pushes much harder than the resistance they feel: a push that meets no
-            // resistance (a device that has derated, a bone that gave way) is not kept up. The
-            // lean into a guidance cue comes on top: it is what the subject was told to do.
-            let then = self.felt(delayed);
-            let felt_resistance = (-then.force_axial_n).max(0.0);
-            let own = self.push.min(felt_resistance + PUSH_MARGIN_N);
-            let mut push = (own + self.lean).clamp(0.0, MAX_PUSH_N);
-            push *= 1.0 + style.noise_fraction * self.noise_state * 5.0;
-            // The arm pushes towards an aim that moves on at the preferred feed and follows,
-            // slowly, where the hand was felt one reaction delay ago: its stiffness resists travel
-            // ahead of the aim, so a sudden give is caught after about push / stiffness. (An aim
-            // that followed the felt position at once would make a delayed, unstable loop.)
-            self.aim_s += style.feed_m_s * dt + (then.hand_s_m - self.aim_s) * dt / AIM_FOLLOW_S;
-            push - style.arm_stiffness_n_per_m * (self.s - self.aim_s).max(0.0)
-        };
         let (damping, mass, k_lat) =
             (style.hand_damping_n_s_per_m, style.hand_mass_kg, style.lateral_stiffness_n_per_m);
         self.vs += (drive + f_ax - damping * self.vs) / mass * dt;
@@ -478,11 +502,7 @@ impl SurgeonController {
         self.u += self.vu * dt;
         self.v += self.vv * dt;
         let s_axial = self.s + tremor(self.tremor_phase[2], style.tremor_m * 0.3);
-        let p = self.entry + d * s_axial + self.e1 * self.u + self.e2 * self.v;
-        self.tick += 1;
-        let (on, rpm) = if self.drill_on { (1.0, style.spindle_rpm) } else { (0.0, 0.0) };
-        let q = self.quat;
-        Some([p.x, p.y, p.z, q[0], q[1], q[2], q[3], on, rpm])
+        self.entry + self.d * s_axial + self.e1 * self.u + self.e2 * self.v
     }
 
     /// The feed phase's decisions at time `t` (s) on what was perceived a reaction delay ago:
