@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dhg.data.dataset import DatasetError, EpisodeInput, load_dataset, load_raw, write_dataset
-from dhg.live.streams import RAW_COLUMNS, Episode, EpisodeSplitter, PoseLog, RawParts, force_jerk
+from dhg.live.streams import RAW_COLUMNS, EpisodeSplitter, PoseLog, RawParts, RecordingEpisode, force_jerk
 
 
 def _ids(split: EpisodeSplitter, stream: str, ticks: list[int]) -> list[int]:
@@ -75,7 +75,7 @@ def _rows(ticks: np.ndarray, force: np.ndarray) -> np.ndarray:
 
 
 def test_force_jerk_counts_only_consecutive_ticks():
-    ep = Episode()
+    ep = RecordingEpisode()
     ticks = np.array([0, 1, 2, 10, 11])
     force = np.zeros((5, 3))
     force[:, 2] = [0.0, 0.001, 0.002, 1.0, 1.001]  # 1 N/s, and a jump across the gap

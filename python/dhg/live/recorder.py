@@ -34,7 +34,7 @@ from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.skill import skill_metrics
 from dhg.data.dataset import EpisodeInput, write_dataset
 from dhg.data.synth import attempt_score
-from dhg.live.streams import Episode, EpisodeSplitter, PoseLog, RawParts, force_jerk
+from dhg.live.streams import EpisodeSplitter, PoseLog, RawParts, RecordingEpisode, force_jerk
 from dhg.live.trainee import state_records
 
 __all__ = ["AllSessionsRecorder", "SessionRecorder"]
@@ -265,12 +265,14 @@ class SessionRecorder(_FlushLoop):
         except Exception:  # zenoh errors, a closed session or a malformed reply: try again next flush
             pass
 
-    def _take(self, final: bool) -> tuple[list[tuple[Episode, list[dict[str, Any]]]], list[tuple[Episode, list]]]:
+    def _take(
+        self, final: bool
+    ) -> tuple[list[tuple[RecordingEpisode, list[dict[str, Any]]]], list[tuple[RecordingEpisode, list]]]:
         """Under the lock: the episodes with records (and a copy of them), and the raw rows now
         ready to write. Rows of an episode the states passed by without a record are dropped;
         an episode still waiting for its first record holds back its rows and every later one's."""
         state_at = self._split.at("state")
-        ready: list[tuple[Episode, list]] = []
+        ready: list[tuple[RecordingEpisode, list]] = []
         for i, ep in enumerate(self._split.episodes):
             if ep.episode_id is None:
                 if i < state_at or final:
@@ -332,7 +334,7 @@ class SessionRecorder(_FlushLoop):
             self._finished = final
             return True
 
-    def _write(self, episodes: list[tuple[Episode, list[dict[str, Any]]]], final: bool) -> None:
+    def _write(self, episodes: list[tuple[RecordingEpisode, list[dict[str, Any]]]], final: bool) -> None:
         self._fetch_path()
         rules = TaskRules()
         inputs = []

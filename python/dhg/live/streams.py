@@ -24,7 +24,7 @@ import numpy.typing as npt
 
 from dhg.data.dataset import RAW_FILE, RAW_PART_FILE, RawPart, parquet_bytes, raw_schema
 
-__all__ = ["RAW_COLUMNS", "Episode", "EpisodeSplitter", "PoseLog", "RawParts", "force_jerk"]
+__all__ = ["RAW_COLUMNS", "RecordingEpisode", "EpisodeSplitter", "PoseLog", "RawParts", "force_jerk"]
 
 RAW_COLUMNS = len(raw_schema().names) - 1
 """Columns of a raw row as the recorder holds it: the schema's less ``episode_id``."""
@@ -39,7 +39,7 @@ Stream = Literal["force", "state"]
 
 
 @dataclass
-class Episode:
+class RecordingEpisode:
     """One episode (attempt) of the recorded session as both streams fill it."""
 
     last: dict[str, int] = field(default_factory=dict)
@@ -67,14 +67,14 @@ class EpisodeSplitter:
     """
 
     def __init__(self) -> None:
-        self.episodes: list[Episode] = []
+        self.episodes: list[RecordingEpisode] = []
         self._at: dict[str, int] = {"force": -1, "state": -1}
 
     def at(self, stream: Stream) -> int:
         """Index of the episode ``stream`` is in (-1 before its first message)."""
         return self._at[stream]
 
-    def place(self, stream: Stream, tick: int) -> Episode:
+    def place(self, stream: Stream, tick: int) -> RecordingEpisode:
         """The episode of a ``stream`` message at ``tick``."""
         other: Stream = "state" if stream == "force" else "force"
         i = self._at[stream]
@@ -90,7 +90,7 @@ class EpisodeSplitter:
                 break
             j += 1
         if j == len(self.episodes):
-            self.episodes.append(Episode())
+            self.episodes.append(RecordingEpisode())
         self._at[stream] = j
         ep = self.episodes[j]
         ep.last[stream] = tick
@@ -139,7 +139,7 @@ class PoseLog:
         return len(self._rows)
 
 
-def force_jerk(ep: Episode, rows: npt.NDArray[np.float64]) -> None:
+def force_jerk(ep: RecordingEpisode, rows: npt.NDArray[np.float64]) -> None:
     """Adds new rows of ``ep`` (tick first, device force in columns 10–12) to its RMS rate of
     change of the device force (N/s), counting only consecutive ticks: a tick the transport
     dropped leaves a gap, not a jump."""
