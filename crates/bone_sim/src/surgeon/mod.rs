@@ -84,6 +84,17 @@ const COOL_HYSTERESIS_C: f64 = 2.0;
 /// How long the surgeon holds still at the stop before finishing (s).
 const STOP_HOLD_S: f64 = 0.5;
 
+/// What the surgeon means to do this tick.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Intent {
+    /// Hold the hand at this position along the path (m from A).
+    Hold(f64),
+    /// Push (the feed phase's regulated push).
+    Push,
+    /// The attempt is over.
+    Finished,
+}
+
 /// Where the surgeon is in the attempt.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Phase {
@@ -396,7 +407,11 @@ impl SurgeonController {
         let seen = self.felt(delayed).seen;
         self.max_plunge_m = self.max_plunge_m.max(now.plunge_depth_m);
         self.wander();
-        let intent_s = self.intent(t, &seen)?;
+        let intent_s = match self.intent(t, &seen) {
+            Intent::Hold(s) => Some(s),
+            Intent::Push => None,
+            Intent::Finished => return None,
+        };
         self.felt_mut(tick).force_axial_n = force_n.dot(&d);
         let drive = self.axial_drive(intent_s, delayed);
         let p = self.move_hand(t, drive, force_n);
@@ -416,9 +431,8 @@ impl SurgeonController {
         self.noise_state += 0.03 * (n_push - self.noise_state);
     }
 
-    /// The phase machine at time `t` (s) on what was `seen` a reaction delay ago: `Some(Some(s))`
-    /// to hold the hand at `s` along the path, `Some(None)` to push, `None` once finished.
-    fn intent(&mut self, t: f64, seen: &Perception) -> Option<Option<f64>> {
+    /// The phase machine at time `t` (s) on what was `seen` a reaction delay ago.
+    fn intent(&mut self, t: f64, seen: &Perception) -> Intent {
         match self.phase {
             Phase::Approach => {
                 let into = t - self.phase_t0;
@@ -426,7 +440,7 @@ impl SurgeonController {
                     self.phase = Phase::Align;
                     self.phase_t0 = t;
                 }
-                Some(Some(START_S_M + (ALIGNED_S_M - START_S_M) * min_jerk(into, self.approach_s)))
+                Intent::Hold(START_S_M + (ALIGNED_S_M - START_S_M) * min_jerk(into, self.approach_s))
             }
             Phase::Align => {
                 self.drill_on = true;
@@ -436,19 +450,19 @@ impl SurgeonController {
                     self.push = 0.0;
                     self.drill_on_t = Some(t);
                 }
-                Some(Some(ALIGNED_S_M))
+                Intent::Hold(ALIGNED_S_M)
             }
-            Phase::Feed => Some(self.feed(t, seen)),
+            Phase::Feed => self.feed(t, seen).map_or(Intent::Push, Intent::Hold),
             Phase::Stop => {
                 self.drill_on = false;
                 self.drill_off_t.get_or_insert(t);
                 if t - self.phase_t0 >= STOP_HOLD_S {
                     self.phase = Phase::Done;
-                    return None;
+                    return Intent::Finished;
                 }
-                Some(Some(self.stop_s))
+                Intent::Hold(self.stop_s)
             }
-            Phase::Done => None,
+            Phase::Done => Intent::Finished,
         }
     }
 
