@@ -389,19 +389,20 @@ def test_a_silent_client_gets_its_force_ramped_to_zero_and_its_session_freed(ser
         a, d, q = _entry(c)
         path = a + d * np.linspace(-1e-3, 4e-3, 600)[:, None]
         _stream(c, path[:-1], q)
-        # The last pose, sent again (with a new seq) should the transport drop it on a loaded
-        # machine: poses are best-effort, so the test waits for the server to have used it.
-        deadline = time.monotonic() + 10.0
-        while True:
-            silent_from = time.monotonic()  # before the last pose: it cannot arrive earlier
-            last = c.send_pose(path[-1], q, True, 1250.0)
-            try:
-                used = lambda s=last: c.force is not None and c.force["pose_seq"] == s  # noqa: E731
-                _wait(used, 0.5, "the force for the last pose")
-                break
-            except AssertionError:
-                if time.monotonic() > deadline:
-                    raise
+        # The last pose, sent again (with a new seq) every 0.5 s until the server has used it:
+        # poses are best-effort, and a loaded machine's transport may drop one.
+        last = {"seq": -1, "sent": -1e9}
+
+        def last_pose_used() -> bool:
+            if c.force is not None and c.force["pose_seq"] == last["seq"]:
+                return True
+            if time.monotonic() - last["sent"] > 0.5:
+                last["sent"] = time.monotonic()  # before the pose: it cannot arrive earlier
+                last["seq"] = c.send_pose(path[-1], q, True, 1250.0)
+            return False
+
+        _wait(last_pose_used, 10.0, "the force for the last pose")
+        silent_from = last["sent"]
         pressing = np.linalg.norm(c.force["force_n"])
         assert pressing > 0.05, "the test never pressed on bone"
         # Silence: after the device profile's stale time (50 ms) the force is ramped to zero.

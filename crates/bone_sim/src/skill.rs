@@ -1,5 +1,5 @@
 //! Skill metrics of a drilling attempt: the one definition behind an offline attempt's metrics
-//! (Python's `dhg.operators.metrics.skill_metrics`), a recorded live attempt's (`dhg record`) and
+//! (Python's `dhg.core.skill.skill_metrics`), a recorded live attempt's (`dhg record`) and
 //! the server's per-session metrics (`transport::metrics`). `docs/dataset.md` lists them.
 
 use nalgebra::{Point3, Vector3};
@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{SimError, SimResult};
 use crate::path::PlannedPath;
+use crate::record::{RECORD_PERIOD_TICKS, TICK_S};
 
 /// What counts as completing the drilling task A → B.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -124,9 +125,8 @@ impl Jerk {
 }
 
 /// The 10 Hz record period (s) the record forces are differenced over.
-const RECORD_PERIOD_S: f64 = 0.1;
-/// The 1 kHz tick (s) the stream's forces are differenced over.
-const TICK_S: f64 = 1e-3;
+#[allow(clippy::cast_precision_loss)] // 100 ticks
+const RECORD_PERIOD_S: f64 = RECORD_PERIOD_TICKS as f64 * TICK_S;
 
 impl SkillTally {
     /// Folds in one 10 Hz record: the tip (m), its depth along A→B (m; in bone when > 0) and the

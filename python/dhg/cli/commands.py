@@ -290,7 +290,8 @@ def cmd_study(args: argparse.Namespace) -> int:
     import json
 
     from dhg.learning.weights import default_model_path
-    from dhg.study.runner import Protocol, parse_arms, run_study
+    from dhg.study.design import Protocol, parse_arms
+    from dhg.study.runner import run_study
 
     arms = parse_arms(args.arms)
     if args.seeds:

@@ -321,7 +321,7 @@ def _add_lab_config(sub: Any) -> None:
 
 def _add_study(sub: Any) -> None:
     """``dhg study``."""
-    from dhg.study.runner import Protocol
+    from dhg.study.design import Protocol
 
     d = Protocol()
     p = sub.add_parser(

@@ -32,8 +32,8 @@ def skill_metrics(
     (``force_jerk_n_per_s``) is the RMS rate of change of the device force (N/s) over the 1 kHz
     ``forces_n`` (N, 3) when given, else over the 10 Hz records.
 
-    Raises :class:`~dhg.core.errors.ShapeMismatchError` for records or forces of the wrong width,
-    :class:`~dhg.core.errors.InvalidParameterError` for a non-positive rule."""
+    Raises :class:`~dhg.core.errors.ShapeError` for records or forces of the wrong width,
+    :class:`~dhg.core.errors.InvalidInputError` for a non-positive rule."""
     rec = np.ascontiguousarray(records, dtype=np.float64)
     if rec.size == 0:
         rec = rec.reshape(0, 11)

@@ -289,12 +289,12 @@ def _raw_table(episodes: Sequence[EpisodeInput]) -> Any:
     :func:`raw_schema`, from numpy columns; a virtual surgeon drills without guidance (zeros)."""
     pa = _pa()
     kept = [(eid, ep) for eid, ep in enumerate(episodes) if ep.raw_poses is not None and ep.raw_forces_n is not None]
-    poses = np.concatenate([np.asarray(ep.raw_poses, np.float64) for _, ep in kept]) if kept else np.zeros((0, 9))
-    forces = np.concatenate([np.asarray(ep.raw_forces_n, np.float64) for _, ep in kept]) if kept else np.zeros((0, 3))
+    poses = np.concatenate([np.zeros((0, len(POSE_COLUMNS)))] + [np.asarray(ep.raw_poses) for _, ep in kept])
+    forces = np.concatenate([np.zeros((0, len(FORCE_COLUMNS)))] + [np.asarray(ep.raw_forces_n) for _, ep in kept])
     counts = [len(ep.raw_poses) for _, ep in kept]
     cols = [
         pa.array(np.repeat(np.array([eid for eid, _ in kept], dtype=np.int32), counts), pa.int32()),
-        pa.array(np.concatenate([np.arange(n, dtype=np.int32) for n in counts]) if kept else np.zeros(0, np.int32)),
+        pa.array(np.concatenate([np.zeros(0, np.int32)] + [np.arange(n, dtype=np.int32) for n in counts])),
     ]
     cols += [pa.array(poses[:, i]) for i in range(len(POSE_COLUMNS))]
     cols += [pa.array(forces[:, i]) for i in range(len(FORCE_COLUMNS))]
