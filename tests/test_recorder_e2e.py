@@ -152,6 +152,38 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
         assert raw.num_rows >= 0.95 * 1200 and ds.card["generator"]["session"] == session_id
 
 
+def test_record_all_keeps_the_start_of_a_session_the_server_is_slow_to_confirm(server, tmp_path, monkeypatch):
+    """A loaded server may take a while to list a new session: the 1 kHz messages that arrive
+    meanwhile wait (a few seconds of them), and none is lost once it answers. (A 600-message
+    waiting room lost the first tenth of a session in a CI run.)"""
+    from dhg.data.dataset import load_dataset, load_raw
+    from dhg.live import recorder as recorder_mod
+
+    _, endpoint = server
+    answering = [False]
+    asked = [0]
+    real = recorder_mod._server_sessions
+
+    def slow_server(*args: object, **kwargs: object) -> list[str] | None:
+        asked[0] += 1
+        return real(*args, **kwargs) if answering[0] else None  # None: no answer yet
+
+    monkeypatch.setattr(recorder_mod, "_server_sessions", slow_server)
+    rec = recorder_mod.AllSessionsRecorder(endpoint, tmp_path / "class", raw=True)
+    try:
+        with TraineeClient(endpoint, "slow-1") as c:
+            a, d, q = _entry(c)
+            _stream(c, a + d * np.linspace(-2e-3, 1e-3, 2500)[:, None], q)  # 2.5 s: 5000 messages and more
+        assert asked[0] >= 1 and "slow-1" not in rec.sessions  # it asked, and heard nothing
+        answering[0] = True
+        _wait(lambda: "slow-1" in rec.sessions, 30, "the session confirmed")
+        rec.flush(final=True)
+    finally:
+        rec.close()
+    ds = load_dataset(tmp_path / "class" / "slow-1")  # (earlier tests' ended sessions are refused: not counted here)
+    assert load_raw(ds).num_rows >= 0.95 * 2500, load_raw(ds).num_rows
+
+
 def test_record_all_writes_only_sessions_the_server_has_and_survives_impossible_states(server, tmp_path):
     """Issue 21, items 2 and 6: ids named ``.`` or ``..`` are refused; fake ids put by a peer make
     no folder; NaN, infinite and absurd-clock states are counted and left out, and the recording

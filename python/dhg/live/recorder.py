@@ -49,6 +49,12 @@ PENDING_IDS = 64
 """:class:`AllSessionsRecorder`: unconfirmed session ids held at once, awaiting the server's word."""
 PENDING_PER_ID = 600
 """Messages held per unconfirmed id (a minute of 10 Hz states): older ones make way."""
+PENDING_PER_ID_RAW = 12_000
+"""The same with ``raw``: six seconds of a session's 1 kHz pose and force streams and its
+states, so a server slow to confirm a new session (a loaded machine) costs none of its start."""
+PENDING_TOTAL = 100_000
+"""Messages held over all unconfirmed ids at once: a flood of fake ids cannot grow the memory
+past this; a message that does not fit is counted in ``unconfirmed_messages``."""
 
 
 def recorded_subscriber(z: Any, key: str, callback: Callable[[Any], None], on_miss: Callable[[int], None]) -> Any:
@@ -412,7 +418,8 @@ class AllSessionsRecorder(_FlushLoop):
     has to know the session ids beforehand. A session is recorded once the server confirms it
     (its health report lists the id): messages under ids the server does not have (any peer can
     put on any key in open mode) make no folder. Until then its messages wait, at most
-    :data:`PENDING_PER_ID` for each of at most :data:`PENDING_IDS` ids; ids the server still
+    :data:`PENDING_PER_ID` (:data:`PENDING_PER_ID_RAW` with ``raw``) for each of at most
+    :data:`PENDING_IDS` ids and :data:`PENDING_TOTAL` in all; ids the server still
     does not list at the second check after their first message are dropped and counted
     (:attr:`refused_ids`, :attr:`unconfirmed_messages`). ``on_new_session(session_id, folder)``
     is called for each session recorded."""
@@ -448,6 +455,8 @@ class AllSessionsRecorder(_FlushLoop):
         self._lock = threading.Lock()
         self.sessions: dict[str, SessionRecorder] = {}
         self._pending: dict[str, tuple[int, deque[tuple[str, Any]]]] = {}  # id -> (checks seen, samples)
+        self._pending_per_id = PENDING_PER_ID_RAW if raw else PENDING_PER_ID
+        self._pending_total = 0
         self._refused: set[str] = set()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -486,11 +495,17 @@ class AllSessionsRecorder(_FlushLoop):
                     if len(self._pending) >= PENDING_IDS:
                         self.unconfirmed_messages += 1
                         return
-                    waiting = self._pending[session_id] = (0, deque(maxlen=PENDING_PER_ID))
+                    waiting = self._pending[session_id] = (0, deque(maxlen=self._pending_per_id))
                     self._wake.set()
-                if len(waiting[1]) == PENDING_PER_ID:
+                held = waiting[1]
+                if len(held) == held.maxlen:
+                    self.unconfirmed_messages += 1  # the oldest makes way
+                elif self._pending_total >= PENDING_TOTAL:
                     self.unconfirmed_messages += 1
-                waiting[1].append((leaf, sample))
+                    return
+                else:
+                    self._pending_total += 1
+                held.append((leaf, sample))
                 return
         rec.on_sample(leaf, sample)
 
@@ -533,12 +548,14 @@ class AllSessionsRecorder(_FlushLoop):
                         rec.on_sample(leaf, sample)
                     self.sessions[sid] = rec
                     del self._pending[sid]
+                    self._pending_total -= len(samples)
                     started.append(rec)
                 elif checks >= 1:
                     self.refused_ids += 1
                     self.unconfirmed_messages += len(samples)
                     self._remember_refused(sid)
                     del self._pending[sid]
+                    self._pending_total -= len(samples)
                 else:
                     self._pending[sid] = (checks + 1, samples)
         if self.on_new_session is not None:
