@@ -18,7 +18,7 @@ export CARGO_TARGET_DIR ?= $(DHG_CACHE)/target
 export VIRTUAL_ENV := $(abspath $(VENV))
 PURELIB := import sysconfig; print(sysconfig.get_paths()["purelib"])
 
-.PHONY: help venv build demo test test-all test-rust test-python lint bench clean fuzz
+.PHONY: help venv build browser demo test test-all test-rust test-python lint bench clean fuzz
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -50,10 +50,21 @@ venv: $(VENV)/.clone-ready-$(LOCK_HASH) ## create .venv with the pinned dependen
 build: venv ## build the Rust extension into .venv (maturin develop --release)
 	PIP_QUIET=1 $(VENV)/bin/maturin develop --release -q
 
-demo: build ## dhg-serve on the phantom + bundled model, a guided and an unguided virtual novice
+demo: build browser ## dhg-serve on the phantom + bundled model, a guided and an unguided virtual novice
 	$(VENV)/bin/dhg live-demo --out out/demo
 
-test: build ## cargo test + pytest (without the tests marked slow or gpu)
+BROWSER_PKGS := chromium chromium-driver
+browser: ## Debian's Chromium and its driver, for the viewer's browser tests and demo screenshot (apt-get, once)
+	@if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then \
+	  echo ">> installing $(BROWSER_PKGS) (the viewer's tests drive a real headless Chromium)"; \
+	  SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+	  $$SUDO apt-get install -y -q --no-install-recommends $(BROWSER_PKGS) >/dev/null 2>&1 || \
+	  { $$SUDO apt-get update -q >/dev/null && \
+	    $$SUDO apt-get install -y -q --no-install-recommends $(BROWSER_PKGS) >/dev/null; } || \
+	  { echo "cannot install $(BROWSER_PKGS): install them by hand (Debian/Ubuntu packages)"; exit 1; }; \
+	fi
+
+test: build browser ## cargo test + pytest (without the tests marked slow or gpu)
 	cargo test --workspace -q
 	$(VPY) -m pytest -q
 

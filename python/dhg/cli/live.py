@@ -1,5 +1,6 @@
 """The ``dhg`` subcommands that talk to a running ``dhg-serve``: ``trainee`` (a virtual trainee),
-``record`` (a live session into a dataset) and ``live-demo`` (the whole product, ``make demo``)."""
+``record`` (a live session into a dataset), ``view`` (the live pages in a browser) and
+``live-demo`` (the whole product, ``make demo``)."""
 
 from __future__ import annotations
 
@@ -17,8 +18,8 @@ __all__ = ["add_commands"]
 
 # -- dhg trainee ------------------------------------------------------------------------------
 def add_commands(sub: Any, epilog: str) -> None:
-    """Adds ``trainee``, ``record`` and ``live-demo`` to the ``dhg`` subcommands."""
-    for add in (_add_trainee, _add_record, _add_live_demo):
+    """Adds ``trainee``, ``record``, ``view`` and ``live-demo`` to the ``dhg`` subcommands."""
+    for add in (_add_trainee, _add_record, _add_view, _add_live_demo):
         add(sub, epilog)
 
 
@@ -134,6 +135,67 @@ def _add_record(sub: Any, epilog: str) -> None:
     p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (TLS, credentials, ...)")
     p.set_defaults(func=_cmd_record)
+
+
+def _add_view(sub: Any, epilog: str) -> None:
+    """``dhg view``."""
+    from dhg.live.runner import DEFAULT_ENDPOINT
+
+    p = sub.add_parser(
+        "view",
+        help="the live pages in a browser: a trainee's bone, drill and X-rays, or the instructor's class",
+        description="Serves the live view of a running dhg-serve on a local web page. With --session, one "
+        "trainee's page: the bone's layers in 3D (cortex see-through, cancellous bone, the lesion) "
+        "re-meshed where the drill cuts, the planned path A->B, the drill at the tip's pose (30 Hz), "
+        "force and guidance arrows, the numbers the hand feels (force, guidance share, thrust, "
+        "temperature against 47 C, depth, lateral deviation, layer, a plunge warning, guidance mode and "
+        "gain), a 20 s timeline, X-rays from the top, front and side on demand, and after each attempt "
+        "(a reset) its skill metrics and plot. Without --session, the instructor's page on --port: every "
+        "session on the server with its live state and metrics, each with a link to its own page (on the "
+        "ports after --port). The viewer is one more Zenoh client: it never runs in the server's "
+        "process. Open the printed URL in a browser; Ctrl-C stops it.\n\n"
+        "  dhg view --session alice-01            # http://127.0.0.1:8080\n"
+        "  dhg view --port 9000                   # the instructor's page, sessions on 9001, 9002, ...\n"
+        "  dhg view --connect tls/lab-server:7447 --zenoh-config instructor.json5",
+        epilog=NETWORK_EPILOG + epilog,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help=f"server (default {DEFAULT_ENDPOINT})"
+    )
+    p.add_argument("--session", metavar="ID", help="one trainee's page (default: the instructor's page)")
+    p.add_argument("--port", type=int, default=8080, help="the page's port (default 8080; 0: any free port)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine)")
+    p.add_argument("--frame-hz", type=float, default=30.0, metavar="HZ", help="drill updates a second (default 30)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
+    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (the lab's instructor or station file)")
+    p.set_defaults(func=_cmd_view)
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    from dhg.view import Viewer
+
+    if args.duration is not None and args.duration <= 0:
+        raise ValueError(f"--duration must be positive, got {args.duration}")
+    with (
+        stop_on_signals() as stop,
+        Viewer(
+            args.connect,
+            port=args.port,
+            session_id=args.session,
+            host=args.host,
+            prefix=args.prefix,
+            zenoh_config_file=args.zenoh_config,
+            frame_hz=args.frame_hz,
+        ) as viewer,
+    ):
+        what = f"session {args.session}" if args.session else "the instructor's page (every session)"
+        print(f"dhg view: {what} at {viewer.url} (Ctrl-C to stop)", flush=True)
+        stop.wait(args.duration)
+        pages = len(viewer.pages)
+    print(f"dhg view stopped ({pages} trainee page(s) served)", flush=True)
+    return EXIT_OK
 
 
 def _add_live_demo(sub: Any, epilog: str) -> None:

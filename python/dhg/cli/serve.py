@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import signal
+import subprocess
 import sys
 import time
 from collections.abc import Sequence
@@ -48,9 +50,26 @@ def serve_parser() -> argparse.ArgumentParser:
         epilog=NETWORK_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    for add in (_network_args, _bone_args, _model_args, _session_args):
+    for add in (_network_args, _bone_args, _model_args, _session_args, _view_args):
         add(p, d)
     return p
+
+
+def _view_args(p: argparse.ArgumentParser, d: Any) -> None:
+    """``dhg-serve``'s options for the live view (the all-in-one case of ``dhg view``)."""
+    g = p.add_argument_group("the live view", "a 'dhg view' beside the server, in its own process")
+    g.add_argument(
+        "--view",
+        type=int,
+        metavar="PORT",
+        help="also serve the live pages: the instructor's on http://127.0.0.1:PORT, each session's on the "
+        "ports after it (the viewer is its own process, a Zenoh client of this server)",
+    )
+    g.add_argument(
+        "--view-zenoh-config",
+        metavar="FILE",
+        help="the viewer's Zenoh client config (with --lab: an instructor's file, required)",
+    )
 
 
 def _network_args(p: argparse.ArgumentParser, d: Any) -> None:
@@ -270,12 +289,39 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 hint = runner.scheduling_hint(running.engine.health(), os.cpu_count() or 1)
                 if hint:
                     print(f"note: {hint}", flush=True)
-            while not stop.wait(args.status_every):
-                print(time.strftime("%H:%M:%S ") + running.status_line(), flush=True)
+            viewer = _start_viewer(args, running.endpoints) if args.view is not None else None
+            try:
+                while not stop.wait(args.status_every):
+                    print(time.strftime("%H:%M:%S ") + running.status_line(), flush=True)
+            finally:
+                if viewer is not None:
+                    _stop_viewer(viewer)
             sessions = running.engine.sessions() if running.engine is not None else []
             print(f"dhg-serve stopping: closing {len(sessions)} session(s)", flush=True)
     print("dhg-serve stopped", flush=True)
     return EXIT_OK
+
+
+def _start_viewer(args: argparse.Namespace, endpoints: Sequence[str]) -> subprocess.Popen[bytes]:
+    """``dhg view`` for this server, in its own process (it cannot slow the 1 kHz loop)."""
+    if args.lab and not args.view_zenoh_config:
+        raise ValueError("with --lab, --view needs --view-zenoh-config (an instructor's client file)")
+    connect = [e.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]") for e in endpoints]
+    cmd = [sys.executable, "-m", "dhg.cli.main", "view", "--port", str(args.view), "--prefix", args.prefix]
+    cmd += ["--connect", connect[0]]
+    config = args.view_zenoh_config or (None if args.lab else args.zenoh_config)
+    if config:
+        cmd += ["--zenoh-config", config]
+    return subprocess.Popen(cmd)
+
+
+def _stop_viewer(viewer: subprocess.Popen[bytes]) -> None:
+    viewer.send_signal(signal.SIGTERM)
+    try:
+        viewer.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        viewer.kill()
+        viewer.wait()
 
 
 def serve_main(argv: Sequence[str] | None = None) -> int:

@@ -84,6 +84,11 @@ class Server:
         """The (top, front, side) X-ray line integrals of a session's bone as drilled now."""
         return self._native.xray(session_id, timeout_s)
 
+    def bricks(self, session_id: str, timeout_s: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """A session's drilled bricks as drilled now: origins (n, 3) voxel (i, j, k), uint32, and
+        material (n, 8, 8, 8) [k][j][i], uint16 (65535 = full). Every other voxel is pristine."""
+        return self._native.bricks(session_id, timeout_s)
+
     def stop(self) -> None:
         """Stops the threads and closes the engine's Zenoh session (idempotent)."""
         self._native.stop()

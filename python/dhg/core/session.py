@@ -28,6 +28,7 @@ if TYPE_CHECKING:
     from dhg.core.surgeon import SurgeonController
 
 __all__ = [
+    "FADING_DEFAULTS",
     "GUIDANCE_DEFAULTS",
     "GUIDANCE_MODES",
     "MAX_BURR_RADIUS_M",
@@ -61,6 +62,9 @@ MAX_BURR_RADIUS_M: float = float(_bone_sim.MAX_BURR_RADIUS_M)
 """Largest burr radius (m) a session takes (a 40 mm drill); defined in the core."""
 GUIDANCE_DEFAULTS: dict[str, Any] = _bone_sim.defaults()["guidance"]
 """The core's guidance laws and their defaults (``GuidanceParams``; :meth:`DrillingSession.set_guidance_params`)."""
+
+FADING_DEFAULTS: dict[str, Any] = _bone_sim.defaults()["fading"]
+"""The core's fading schedule defaults (``FadingParams``): tolerances in m, gains (1)."""
 
 _DEFAULTS: dict[str, Any] = _bone_sim.defaults()["session"]
 """The core's ``SessionConfig::default()`` (nested): the one place the defaults below are defined."""

@@ -436,6 +436,11 @@ class DrilledVolume:
         """X-ray line integrals of the bone as drilled (cost grows with what was drilled)."""
         return XRayViews(*self._bone.xray())
 
+    def bricks(self) -> tuple[npt.NDArray[np.uint32], npt.NDArray[np.uint16]]:
+        """The drilled bricks: origins (n, 3) voxel (i, j, k) and material (n, 8, 8, 8)
+        [k][j][i], uint16 (65535 = full); every other voxel is pristine."""
+        return self._bone.bricks()
+
     def reset(self) -> None:
         """Restores the undrilled bone (cost grows with what was drilled)."""
         self._bone.reset()

@@ -24,7 +24,7 @@ import numpy.typing as npt
 from dhg.core import protocol
 from dhg.core.errors import ERROR_KINDS, DhgError, EngineError, TransportError
 
-__all__ = ["ForceGuard", "TraineeClient", "all_finite", "feedback_tuple"]
+__all__ = ["ForceGuard", "TraineeClient", "all_finite", "feedback_tuple", "get_json", "get_replies"]
 
 _FORCE_FLOATS = ("force_n", "guidance_n", "tip_m", "depth_m", "deviation_m", "temperature_c", "plunge_depth_m")
 
@@ -124,6 +124,31 @@ def _refusal(key: str, body: str) -> DhgError:
         return EngineError(f"{key}: {body}")
     cls = ERROR_KINDS.get(str(reply.get("kind")), EngineError)
     return cls(f"{key}: {reply.get('error', body)}")
+
+
+def get_replies(z: Any, key: str, payload: bytes | None = None, timeout_s: float = 2.0) -> list[tuple[str, bytes]]:
+    """The (key, payload) of every good reply to a query on Zenoh session ``z``. Only error
+    replies raise the class of their ``kind`` with the server's reason; none at all raises
+    :class:`TransportError`."""
+    replies = z.get(key, payload=payload, timeout=timeout_s)
+    out, errors = [], []
+    for r in replies:
+        if r.ok is not None:
+            out.append((str(r.ok.key_expr), r.ok.payload.to_bytes()))
+        else:
+            errors.append(r.err.payload.to_string())
+    if errors and not out:
+        raise _refusal(key, errors[0])
+    if not out:
+        raise TransportError(f"{key}: no reply within {timeout_s} s (is the server running and reachable?)")
+    return out
+
+
+def get_json(z: Any, key: str, request: dict[str, Any] | None = None, timeout_s: float = 2.0) -> dict[str, Any]:
+    """The first good reply to a JSON query (``request`` as its body), decoded."""
+    payload = json.dumps(request).encode() if request is not None else None
+    ((_, body),) = get_replies(z, key, payload, timeout_s)[:1]
+    return json.loads(body)
 
 
 class TraineeClient:
@@ -271,23 +296,10 @@ class TraineeClient:
 
     # -- queries ---------------------------------------------------------------------------
     def _get(self, key: str, payload: bytes | None = None, timeout_s: float = 2.0) -> list[tuple[str, bytes]]:
-        replies = self._z.get(key, payload=payload, timeout=timeout_s)
-        out, errors = [], []
-        for r in replies:
-            if r.ok is not None:
-                out.append((str(r.ok.key_expr), r.ok.payload.to_bytes()))
-            else:
-                errors.append(r.err.payload.to_string())
-        if errors and not out:
-            raise _refusal(key, errors[0])
-        if not out:
-            raise TransportError(f"{key}: no reply within {timeout_s} s (is the server running and reachable?)")
-        return out
+        return get_replies(self._z, key, payload, timeout_s)
 
     def _json(self, key: str, request: dict[str, Any] | None = None, timeout_s: float = 2.0) -> dict[str, Any]:
-        payload = json.dumps(request).encode() if request is not None else None
-        ((_, body),) = self._get(key, payload, timeout_s)[:1]
-        return json.loads(body)
+        return get_json(self._z, key, request, timeout_s)
 
     def control(self, op: str, timeout_s: float = 2.0, **fields: Any) -> dict[str, Any]:
         """Sends a control request (``op``: create, reset, set_path, set_guidance, set_fading, set_drill, close,

@@ -72,6 +72,8 @@ __all__ = ["Identity", "Lab", "acl", "load_lab", "make_certs", "write_lab"]
 ROLES = ("station", "instructor", "model_worker")
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,47}")
 SERVER_IDENTITY = "dhg-server"
+_HEARD = ("pose", "force", "guidance", "state", "guidance/**", "state/**")
+"""A station's own streams it may subscribe to (its pose too: the viewer at a station draws the drill)."""
 """The user name of the server's own services (model, X-rays) when they connect to its engine."""
 
 
@@ -176,7 +178,7 @@ def acl(lab: Lab) -> dict[str, Any]:
         rules.extend(granted)
         policies.append({"rules": [r["id"] for r in granted], "subjects": [who]})
 
-    health = f"{p}/server/health"
+    health, volume = f"{p}/server/health", f"{p}/server/volume"
     for st in lab.of("station"):
         n = st.name
         own = [f"{p}/session/{n}", f"{p}/session/{n}-$*"]
@@ -188,20 +190,20 @@ def acl(lab: Lab) -> dict[str, Any]:
                 f"{n}:ask",
                 ["query"],
                 ["ingress"],
-                [health] + [f"{s}/{leaf}" for s in own for leaf in ("control", "metrics", "xray/*")],
+                [health, volume] + [f"{s}/{leaf}" for s in own for leaf in ("control", "metrics", "xray/*", "bone")],
             ),
-            _rule(f"{n}:replies", ["reply"], ["egress"], [health] + [f"{s}/**" for s in own]),
+            _rule(f"{n}:replies", ["reply"], ["egress"], [health, volume] + [f"{s}/**" for s in own]),
             _rule(
                 f"{n}:hear",
                 ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
                 ["ingress"],
-                [f"{s}/{leaf}" for s in own for leaf in ("force", "guidance", "state", "guidance/**", "state/**")],
+                [f"{s}/{leaf}" for s in own for leaf in _HEARD],
             ),
             _rule(
                 f"{n}:outputs",
                 ["put", "liveliness_token"],
                 ["egress"],
-                [f"{s}/{leaf}" for s in own for leaf in ("force", "guidance", "state", "guidance/**", "state/**")],
+                [f"{s}/{leaf}" for s in own for leaf in _HEARD],
             ),
             _rule(
                 f"{n}:recover",
@@ -227,7 +229,7 @@ def acl(lab: Lab) -> dict[str, Any]:
     # queryable), and may serve the shared key the engine queries while the pool is empty.
     for n in [i.name for i in lab.of("model_worker")] + [SERVER_IDENTITY]:
         own = f"{p}/model/workers/{n}"
-        extra = [f"{p}/session/*/xray/*"] if n == SERVER_IDENTITY else []
+        extra = [f"{p}/session/*/xray/*", f"{p}/session/*/bone", volume] if n == SERVER_IDENTITY else []
         grant(
             f"worker:{n}",
             [n],

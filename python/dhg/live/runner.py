@@ -24,7 +24,7 @@ from typing import Any
 
 from dhg.core.errors import InvalidInputError, TransportError
 from dhg.core.server import Server, ServerSettings, start_engine
-from dhg.live.services import ModelService, XRayService
+from dhg.live.services import BoneService, ModelService, XRayService
 from dhg.live.zenoh_config import (
     SERVER_MAX_MESSAGE_BYTES,
     open_zenoh,
@@ -121,6 +121,7 @@ class RunningServer:
         self.zenoh: Any = None
         self.model_service: ModelService | None = None
         self.xray_service: XRayService | None = None
+        self.bone_service: BoneService | None = None
         self.endpoints: list[str] = []
         self.started = time.monotonic()
 
@@ -166,10 +167,10 @@ class RunningServer:
     def close(self) -> None:
         """Stops the services, closes the Python Zenoh session, then stops the engine (which closes
         its sessions and its own Zenoh session). Safe to call twice."""
-        for svc in (self.xray_service, self.model_service):
+        for svc in (self.bone_service, self.xray_service, self.model_service):
             if svc is not None:
                 svc.close()
-        self.xray_service = self.model_service = None
+        self.bone_service = self.xray_service = self.model_service = None
         if self.zenoh is not None:
             try:
                 self.zenoh.close()
@@ -248,6 +249,7 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
             )
         if engine_role:
             run.xray_service = XRayService(run.zenoh, run.engine, volume, options.prefix)
+            run.bone_service = BoneService(run.zenoh, run.engine, volume, options.prefix)
     except BaseException:
         run.close()
         raise

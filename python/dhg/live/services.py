@@ -1,4 +1,5 @@
-"""The model service and the X-ray service: the Python halves of ``dhg-serve`` on Zenoh."""
+"""The model service, the X-ray service and the bone service: the Python halves of ``dhg-serve``
+on Zenoh."""
 
 from __future__ import annotations
 
@@ -17,7 +18,24 @@ from dhg.core import protocol
 from dhg.core.errors import InvalidInputError
 from dhg.core.protocol import check_session_id
 
-__all__ = ["ModelService", "XRayService"]
+__all__ = ["BoneService", "ModelService", "XRayService", "decode_npz", "encode_npz"]
+
+MAX_NPZ_BYTES = 12 * 1024 * 1024
+"""The largest bone or volume reply (bytes): clients take messages up to 16 MiB."""
+
+
+def encode_npz(**arrays: np.ndarray) -> bytes:
+    """Arrays as a compressed ``.npz`` (the bone and volume replies' format)."""
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
+
+
+def decode_npz(payload: bytes) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` reply (no pickled objects)."""
+    with np.load(io.BytesIO(payload), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
 
 log = logging.getLogger("dhg.live.runner")
 
@@ -236,3 +254,59 @@ class XRayService:
             self._queryable.undeclare()
         except Exception:
             pass
+
+
+class BoneService:
+    """What a viewer meshes. ``<prefix>/server/volume`` answers with the pristine volume (npz:
+    ``labels`` (nz, ny, nx) uint8 layer ids, ``spacing_m``, ``origin_m``, ``direction``), and
+    ``<prefix>/session/<id>/bone`` with that session's drilled bricks as drilled now (npz:
+    ``origins`` (n, 3) uint32 voxel (i, j, k), ``material`` (n, 8, 8, 8) uint16 [k][j][i], 65535
+    full; every other voxel is pristine). A brick snapshot is taken by the tick thread between
+    two ticks (a copy of what the session drilled)."""
+
+    def __init__(self, session: Any, server: Any, volume: Any, prefix: str = "dhg"):
+        self.server = server
+        self.prefix = prefix
+        self._volume = encode_npz(
+            labels=volume.labels(),
+            spacing_m=np.asarray(volume.spacing_m),
+            origin_m=np.asarray(volume.origin_m),
+            direction=np.asarray(volume.direction),
+        )
+        self._queryables = [
+            session.declare_queryable(f"{prefix}/server/volume", self._on_volume),
+            session.declare_queryable(f"{prefix}/session/*/bone", self._on_bone),
+        ]
+
+    def _on_volume(self, query: Any) -> None:
+        try:
+            if len(self._volume) > MAX_NPZ_BYTES:
+                raise InvalidInputError(
+                    f"the volume is {len(self._volume)} bytes compressed, over the {MAX_NPZ_BYTES} a reply may hold"
+                )
+            query.reply(f"{self.prefix}/server/volume", self._volume, encoding="application/octet-stream")
+        except Exception as exc:
+            query.reply_err(json.dumps({"error": str(exc)}))
+        finally:
+            query.drop()
+
+    def _on_bone(self, query: Any) -> None:
+        try:
+            sid = check_session_id(str(query.key_expr).split("/")[-2])
+            origins, material = self.server.bricks(sid)
+            payload = encode_npz(origins=origins, material=material)
+            if len(payload) > MAX_NPZ_BYTES:
+                raise InvalidInputError(f"session {sid}'s bricks are {len(payload)} bytes, over {MAX_NPZ_BYTES}")
+            query.reply(f"{self.prefix}/session/{sid}/bone", payload, encoding="application/octet-stream")
+        except Exception as exc:  # every failure becomes an error reply, never a dead callback
+            query.reply_err(json.dumps({"error": str(exc)}))
+        finally:
+            query.drop()
+
+    def close(self) -> None:
+        """Undeclares the queryables."""
+        for q in self._queryables:
+            try:
+                q.undeclare()
+            except Exception:
+                pass

@@ -9,7 +9,7 @@ use pyo3::types::{PyDict, PyList};
 use super::convert::{detached, from_python, to_python};
 use super::errors::IntoPyResult;
 use super::session::config_from_dict;
-use super::volume::{xray_tuple, PyVolume, Views};
+use super::volume::{bricks_arrays, xray_tuple, Bricks, PyVolume, Views};
 use crate::error::SimError;
 use crate::path::PlannedPath;
 use crate::protocol::LAYOUTS;
@@ -93,6 +93,17 @@ impl PyServer {
         let timeout = Duration::from_secs_f64(timeout_s.min(60.0));
         let p = detached(py, || server.snapshot(session_id, timeout).map(|bone| bone.xray())).py()?;
         Ok(xray_tuple(py, &p))
+    }
+
+    /// The bricks a session has drilled, as drilled now: origins (n, 3) voxel (i, j, k) and
+    /// material (n, 8, 8, 8) u16 [k][j][i] (65535 = full); every other voxel is pristine.
+    #[pyo3(signature = (session_id, timeout_s=1.0))]
+    fn bricks<'py>(&self, py: Python<'py>, session_id: &str, timeout_s: f64) -> PyResult<Bricks<'py>> {
+        let server = self.server()?;
+        crate::error::positive("timeout_s", timeout_s).py()?;
+        let timeout = Duration::from_secs_f64(timeout_s.min(60.0));
+        let bone = detached(py, || server.snapshot(session_id, timeout)).py()?;
+        Ok(bricks_arrays(py, &bone))
     }
 
     /// Stops the engine and closes its Zenoh session (idempotent; waits at most a few ms).

@@ -2,8 +2,10 @@
 
 use std::sync::Arc;
 
-use numpy::ndarray::{Array1, Array2, Array3};
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
+use numpy::ndarray::{Array1, Array2, Array3, Array4};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArray3, PyArray4, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods,
+};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -12,6 +14,7 @@ use super::errors::IntoPyResult;
 use crate::error::SimError;
 use crate::path::PlannedPath;
 use crate::removal::{Burr, Cut};
+use crate::volume::bricks::BRICK_EDGE;
 use crate::volume::drilled::DrilledVolume;
 use crate::volume::grid::Grid;
 use crate::volume::material::HuMapping;
@@ -27,6 +30,24 @@ pub struct PyVolume {
 
 fn mapping_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<HuMapping> {
     dict.map_or_else(|| Ok(HuMapping::default()), |d| from_python(d.as_any(), "HU mapping"))
+}
+
+/// A session's drilled bricks handed to Python: origins (n, 3) as voxel (i, j, k) and material
+/// (n, 8, 8, 8) `u16` indexed [k][j][i] within the brick.
+pub(crate) type Bricks<'py> = (Bound<'py, PyArray2<u32>>, Bound<'py, PyArray4<u16>>);
+
+/// The drilled bricks of `bone` as numpy arrays (see [`Bricks`]).
+pub(crate) fn bricks_arrays<'py>(py: Python<'py>, bone: &DrilledVolume) -> Bricks<'py> {
+    let (mut origins, mut material) = (Vec::new(), Vec::new());
+    for (o, b) in bone.bricks() {
+        origins.extend(o.map(|v| u32::try_from(v).unwrap_or(u32::MAX)));
+        material.extend_from_slice(b);
+    }
+    let n = origins.len() / 3;
+    let e = BRICK_EDGE;
+    let origins = Array2::from_shape_vec((n, 3), origins).expect("3 per brick");
+    let material = Array4::from_shape_vec((n, e, e, e), material).expect("BRICK_VOXELS per brick");
+    (origins.into_pyarray(py), material.into_pyarray(py))
 }
 
 /// The (top, front, side) images handed to Python.
@@ -351,6 +372,11 @@ impl PyDrilledVolume {
     #[getter]
     fn drilled_bricks(&self) -> usize {
         self.inner.overlay().owned_count()
+    }
+
+    /// The drilled bricks: origins (n, 3) voxel (i, j, k), material (n, 8, 8, 8) u16 [k][j][i].
+    fn bricks<'py>(&self, py: Python<'py>) -> Bricks<'py> {
+        bricks_arrays(py, &self.inner)
     }
 
     /// Bytes this session holds beyond the shared volume.

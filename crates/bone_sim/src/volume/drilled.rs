@@ -51,6 +51,13 @@ impl DrilledVolume {
         &self.overlay
     }
 
+    /// The bricks this session has drilled (owns), in no particular order: each one's first voxel
+    /// (i, j, k) and its material (`u16`, 65535 = full), local index `(lk·8 + lj)·8 + li`. Every
+    /// other voxel is pristine. A viewer re-meshes only these.
+    pub fn bricks(&self) -> impl Iterator<Item = ([usize; 3], &super::bricks::Brick)> + '_ {
+        self.overlay.owned().map(|(id, b)| (self.overlay.brick_origin(id), b))
+    }
+
     /// Material fraction (0..=1) left in voxel (i, j, k).
     #[inline]
     #[must_use]

@@ -1,0 +1,91 @@
+"""A real headless Chromium for the viewer's tests and for ``make demo``'s screenshot: Debian's
+``chromium`` and ``chromium-driver`` driven by Selenium, WebGL drawn in software (SwiftShader),
+since recent Chrome no longer falls back to it by itself and our machines have no GPU.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["BrowserMissingError", "canvas_pixels", "chromium", "find_chromium", "wait_for"]
+
+CHROMIUM_FLAGS = (
+    "--headless=new",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--no-sandbox",  # root in a container has no user namespace for the sandbox
+    "--disable-dev-shm-usage",
+    "--window-size=1100,720",
+)
+
+
+class BrowserMissingError(RuntimeError):
+    """No Chromium or no chromedriver on this machine (``apt-get install chromium chromium-driver``)."""
+
+
+def find_chromium() -> tuple[str, str]:
+    """The paths of Chromium and its driver; raises :class:`BrowserMissingError` without them."""
+    browser = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    driver = shutil.which("chromedriver")
+    if browser is None or driver is None:
+        raise BrowserMissingError(
+            "the viewer's browser checks need Chromium and its driver: apt-get install chromium chromium-driver"
+            f" (found browser {browser}, driver {driver})"
+        )
+    return browser, driver
+
+
+@contextmanager
+def chromium(width: int = 1100, height: int = 720) -> Iterator[Any]:
+    """A headless Chromium (a Selenium ``WebDriver``), quit on exit."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    browser, driver_path = find_chromium()
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = browser
+    for flag in CHROMIUM_FLAGS:
+        opts.add_argument(flag if not flag.startswith("--window-size") else f"--window-size={width},{height}")
+    driver = webdriver.Chrome(service=Service(executable_path=driver_path), options=opts)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def wait_for(cond: Callable[[], Any], timeout_s: float, what: str) -> Any:
+    """Polls ``cond`` every 0.1 s until it returns something true (or an array) and returns that; raises
+    :class:`TimeoutError` naming ``what`` after ``timeout_s`` (a generous deadline)."""
+    deadline = time.monotonic() + timeout_s
+    last_exc: Exception | None = None
+    while time.monotonic() < deadline:
+        try:
+            value = cond()
+            if isinstance(value, np.ndarray) or value:  # an array (pixels) counts as found
+                return value
+        except Exception as exc:  # the page may still be loading
+            last_exc = exc
+        time.sleep(0.1)
+    raise TimeoutError(f"{what} not seen within {timeout_s} s" + (f" (last error: {last_exc})" if last_exc else ""))
+
+
+def canvas_pixels(driver: Any, out: str | Path | None = None) -> np.ndarray:
+    """The page's 3D canvas as an RGB array (a screenshot of that element; saved as PNG to
+    ``out`` when given)."""
+    import io
+
+    from PIL import Image
+    from selenium.webdriver.common.by import By
+
+    png = driver.find_element(By.TAG_NAME, "canvas").screenshot_as_png
+    if out is not None:
+        Path(out).write_bytes(png)
+    with Image.open(io.BytesIO(png)) as im:
+        return np.asarray(im.convert("RGB"))

@@ -1,0 +1,580 @@
+"""The browser pages of ``dhg view``: a trainee's live bone, drill and X-rays, and the
+instructor's list of every session. Each page is its own viser server (viser serves one page per
+port); ``docs/viewer.md`` says why viser.
+
+The 3D scene is drawn in millimetres (world metres × :data:`SCENE_MM_PER_M`), in the volume's
+world frame with +z up.
+"""
+
+from __future__ import annotations
+
+import html
+import io
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from dhg.core.layers import Layer
+from dhg.core.session import FADING_DEFAULTS
+from dhg.view.feed import SessionFeed, VolumeData, server_sessions
+from dhg.view.surfaces import ChunkMesh, LayerSurfaces
+
+__all__ = ["SCENE_MM_PER_M", "InstructorPage", "TraineePage"]
+
+log = logging.getLogger(__name__)
+
+SCENE_MM_PER_M = 1000.0
+"""Scene units per metre: the scene is in millimetres, the scale a surgeon reads."""
+
+ARROW_MM_PER_N = 10.0
+"""Force arrows: millimetres of arrow per newton."""
+
+SHAFT_LENGTH_M = 0.06
+SHAFT_RADIUS_M = 0.8e-3
+"""The drawn drill shaft behind the burr (m): a 60 mm shank, 1.6 mm across."""
+
+PLUNGE_WARNING_M = float(FADING_DEFAULTS["plunge_tolerance_m"])
+"""A plunge past this is shown as a warning (m): the fading schedule's tolerance, from the core."""
+
+NECROSIS_C = 47.0
+"""Bone necrosis threshold (°C; Eriksson & Albrektsson 1983), drawn on the temperature plot."""
+
+_LAYER_NAMES = {int(layer): layer.name.lower() for layer in Layer}
+
+
+def _png_array(png: bytes) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(io.BytesIO(png)) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+def _quiet_viser() -> None:
+    # viser logs every connection at INFO through its own rich handler; a page keeps quiet.
+    logging.getLogger("viser").setLevel(logging.WARNING)
+
+
+def _viser_server(host: str, port: int, label: str) -> Any:
+    """A viser server without the banner it prints on stdout (``dhg view`` prints the URL)."""
+    import contextlib
+
+    import viser
+
+    _quiet_viser()
+    with contextlib.redirect_stdout(io.StringIO()):
+        return viser.ViserServer(host=host, port=port, label=label, verbose=False)
+
+
+def _stop_quietly(server: Any) -> None:
+    import contextlib
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        server.stop()
+
+
+def _add_bone(server: Any, surfaces: LayerSurfaces, meshes: dict[str, Any], piece: ChunkMesh) -> None:
+    """Shows (or replaces, or removes when empty) one chunk's piece of a surface."""
+    name = f"/bone/{piece.name}"
+    if len(piece.faces) == 0:
+        old = meshes.pop(name, None)
+        if old is not None:
+            old.remove()
+        return
+    s = next(s for s in surfaces.surfaces if s.name == piece.surface)
+    meshes[name] = server.scene.add_mesh_simple(
+        name,
+        piece.vertices_m * SCENE_MM_PER_M,
+        piece.faces,
+        color=s.color,
+        opacity=None if s.opacity >= 1.0 else s.opacity,
+        side="double" if s.opacity < 1.0 else "front",
+    )
+
+
+def _look_at(client: Any, volume: VolumeData) -> None:
+    """Points a new browser's camera at the bone, from the front and a little above."""
+    lo = volume.origin_m
+    hi = volume.origin_m + volume.direction @ (volume.spacing_m * np.array(volume.labels.shape[::-1]))
+    c, extent = (lo + hi) / 2 * SCENE_MM_PER_M, float(np.linalg.norm(hi - lo) * SCENE_MM_PER_M)
+    client.camera.up_direction = (0.0, 0.0, 1.0)
+    client.camera.position = tuple(c + np.array([1.0, -1.2, 0.4]) * extent * 0.45)
+    client.camera.look_at = tuple(c)
+
+
+class TraineePage:
+    """One session's page: the bone's layers (re-meshed where drilled), the planned path A→B,
+    the drill at the tip's pose (``frame_hz``), force and guidance arrows, the numbers a hand
+    feels, a 20 s timeline, X-rays on demand and the summary of the last attempt.
+
+    ``z`` is an open Zenoh session (client mode) the page shares with others; ``volume`` the
+    server's (:func:`dhg.view.feed.fetch_volume`). The page's counters (:attr:`frames`,
+    :attr:`bone_updates`, :attr:`remeshed_chunks`) tell what it sent."""
+
+    def __init__(
+        self,
+        z: Any,
+        session_id: str,
+        volume: VolumeData,
+        port: int,
+        host: str = "127.0.0.1",
+        prefix: str = "dhg",
+        frame_hz: float = 30.0,
+        bone_hz: float = 4.0,
+    ) -> None:
+        if not (1.0 <= frame_hz <= 120.0) or not (0.2 <= bone_hz <= 30.0):
+            raise ValueError(
+                f"frame_hz must be within [1, 120] and bone_hz within [0.2, 30], got {frame_hz}, {bone_hz}"
+            )
+        self.session_id = session_id
+        self.feed = SessionFeed(z, session_id, prefix)
+        self.surfaces = LayerSurfaces(volume.labels, volume.spacing_m, volume.origin_m, volume.direction)
+        self.frame_hz, self.bone_hz = frame_hz, bone_hz
+        self.frames = 0
+        """Drill updates sent."""
+        self.bone_updates = 0
+        """Bone queries answered."""
+        self.remeshed_chunks = 0
+        """Chunks re-meshed after drilling (the first full meshing not counted)."""
+        self.bone_errors = 0
+        self._info: dict[str, Any] | None = None
+        self._metrics: dict[str, Any] | None = None
+        self._last_metrics: dict[str, Any] | None = None  # the attempt before the last reset
+        self._shown_attempts = 0
+        self._last_removed = -1.0
+        self._stop = threading.Event()
+
+        self.server = _viser_server(host, port, f"DHG: {session_id}")
+        self.url = f"http://{host}:{self.server.get_port()}"
+        self.server.scene.set_up_direction("+z")
+        self._meshes: dict[str, Any] = {}
+        self._build_scene(volume)
+        self._build_gui()
+        self.server.on_client_connect(lambda client: _look_at(client, volume))
+        self._threads = [
+            threading.Thread(target=self._frame_loop, name=f"view-frames-{session_id}", daemon=True),
+            threading.Thread(target=self._bone_loop, name=f"view-bone-{session_id}", daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+
+    # -- the scene -------------------------------------------------------------------------
+    def _build_scene(self, volume: VolumeData) -> None:
+        sc = self.server.scene
+        self._volume = volume
+        for chunk in self.surfaces.all_chunks():
+            for piece in self.surfaces.mesh(chunk):
+                self._show(piece)
+        self._drill = sc.add_frame("/drill", show_axes=False)
+        self._burr = sc.add_icosphere("/drill/burr", radius=1.25, color=(90, 90, 100), subdivisions=2)
+        self._shaft = sc.add_cylinder(
+            "/drill/shaft",
+            radius=SHAFT_RADIUS_M * SCENE_MM_PER_M,
+            height=SHAFT_LENGTH_M * SCENE_MM_PER_M,
+            color=(170, 170, 180),
+            position=(0.0, 0.0, -(1.25 + SHAFT_LENGTH_M * SCENE_MM_PER_M / 2)),
+        )
+        self._drill.visible = False
+
+    def _show(self, piece: ChunkMesh) -> None:
+        _add_bone(self.server, self.surfaces, self._meshes, piece)
+
+    def _show_path(self, info: dict[str, Any]) -> None:
+        a = np.array(info["entry_m"]) * SCENE_MM_PER_M
+        b = np.array(info["target_m"]) * SCENE_MM_PER_M
+        sc = self.server.scene
+        sc.add_line_segments("/path/line", np.array([[a, b]]), colors=(40, 160, 60), thickness=0.4)
+        sc.add_icosphere("/path/entry", radius=1.2, color=(40, 160, 60), position=tuple(a))
+        sc.add_icosphere("/path/target", radius=1.2, color=(30, 90, 200), position=tuple(b))
+        r_mm = float(info["burr_radius_m"]) * SCENE_MM_PER_M
+        self._burr = sc.add_icosphere("/drill/burr", radius=r_mm, color=(90, 90, 100), subdivisions=2)
+        self._shaft.position = (0.0, 0.0, -(r_mm + SHAFT_LENGTH_M * SCENE_MM_PER_M / 2))
+
+    # -- the panel -------------------------------------------------------------------------
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
+        self._title = gui.add_markdown(f"**Session `{html.escape(self.session_id)}`**: waiting for the server")
+        self._readout = gui.add_html(self._readout_html(None, None))
+        with gui.add_folder("X-ray"):
+            self._xray_buttons = gui.add_button_group("View", ("top", "front", "side"))
+            self._xray_image = gui.add_image(np.full((8, 8, 3), 240, np.uint8), label="press a view", visible=False)
+            self._xray_buttons.on_click(lambda event: self._take_xray(event.target.value))
+        with gui.add_folder("Attempt"):
+            self._summary_button = gui.add_button("Summary of this attempt")
+            self._summary_button.on_click(lambda _: self._summarize(finished=False))
+            self._summary = gui.add_markdown("The summary of an attempt shows here when it ends (a reset).")
+            self._summary_plot = gui.add_image(np.full((8, 8, 3), 255, np.uint8), visible=False)
+        with gui.add_folder("Timeline (last 20 s)"):
+            self._plots = self._add_plots()
+
+    def _add_plots(self) -> dict[str, Any]:
+        from viser import uplot
+
+        empty = np.zeros(0)
+        out = {}
+        for key, title, labels in (
+            ("force", "Force (N)", ("|F| device", "thrust", "guidance share")),
+            ("temperature", "Tip temperature (°C)", ("temperature", "47 °C")),
+            ("depth", "Depth and deviation (mm)", ("depth along A→B", "lateral deviation")),
+        ):
+            colours = ("#1f4e79", "#c0392b", "#e67e22")
+            series = (uplot.Series(label="time (s)"),) + tuple(
+                uplot.Series(label=lab, stroke=colours[i], width=1.5) for i, lab in enumerate(labels)
+            )
+            out[key] = self.server.gui.add_uplot(
+                (empty,) * (len(labels) + 1), series, title=title, aspect=2.2, scales={"x": uplot.Scale(time=False)}
+            )
+        return out
+
+    @staticmethod
+    def _readout_html(snap: dict[str, Any] | None, info: dict[str, Any] | None) -> str:
+        f = (snap or {}).get("force")
+        st = (snap or {}).get("state")
+
+        def row(key: str, label: str, value: str, style: str = "") -> str:
+            return f'<tr><td>{label}</td><td id="dhg-{key}" style="text-align:right;{style}">{value}</td></tr>'
+
+        if f is None:
+            body = row("status", "Session", "no force yet: is a trainee drilling?")
+            return f'<table id="dhg-readout" style="width:100%">{body}</table>'
+        force = np.asarray(f["force_n"], dtype=float)
+        guide = np.asarray(f["guidance_n"], dtype=float)
+        fn, gn = float(np.linalg.norm(force)), float(np.linalg.norm(guide))
+        share = 100.0 * gn / fn if fn > 1e-9 else 0.0
+        hot = f["temperature_c"] >= NECROSIS_C
+        rows = [
+            row("force", "Force on the hand", f"{fn:.2f} N"),
+            row("guidance", "of which guidance", f"{gn:.2f} N ({share:.0f} %)"),
+            row("thrust", "Thrust", f"{st['thrust_n']:.2f} N" if st else "–"),
+            row(
+                "temperature",
+                "Tip temperature",
+                f"{f['temperature_c']:.1f} °C (limit {NECROSIS_C:.0f})",
+                "color:#c0392b;font-weight:bold" if hot else "",
+            ),
+            row("depth", "Depth along A→B", f"{f['depth_m'] * 1e3:.2f} mm"),
+            row("deviation", "Lateral deviation", f"{f['deviation_m'] * 1e3:.2f} mm"),
+            row("layer", "Layer at the tip", _LAYER_NAMES.get(int(f["layer"]), "?")),
+            row("removed", "Bone removed", f"{st['removed_volume_m3'] * 1e9:.1f} mm³" if st else "–"),
+            row("breakthroughs", "Breakthroughs", str(int(f["breakthroughs"]))),
+        ]
+        if info is not None:
+            gain = st["guidance_gain"] if st else info["guidance_gain"]
+            rows.append(row("mode", "Guidance", f"{info['guidance_mode']}, gain {gain:.2f}"))
+        plunge = float(f["plunge_depth_m"])
+        warn = (
+            f'<div id="dhg-plunge" style="background:#c0392b;color:white;padding:4px;font-weight:bold">'
+            f"PLUNGE {plunge * 1e3:.1f} mm past the breakthrough</div>"
+            if plunge > PLUNGE_WARNING_M
+            else '<div id="dhg-plunge" style="display:none"></div>'
+        )
+        return f'{warn}<table id="dhg-readout" style="width:100%">{"".join(rows)}</table>'
+
+    def _update_plots(self) -> None:
+        states = self.feed.timeline_states()
+        if not states:
+            return
+        t = np.array([s["time_s"] for s in states])
+        feats = np.array([s["features"] for s in states], dtype=float)
+        thrust = np.array([s["thrust_n"] for s in states])
+        dev = np.array([s["deviation_m"] for s in states]) * 1e3
+        self._plots["force"].data = (t, np.linalg.norm(feats[:, 0:3], axis=1), thrust, self._guidance_norms(t))
+        self._plots["temperature"].data = (t, feats[:, 8], np.full_like(t, NECROSIS_C))
+        self._plots["depth"].data = (t, feats[:, 7] * 1e3, dev)
+
+    def _guidance_norms(self, t: np.ndarray) -> np.ndarray:
+        g = self.feed.snapshot()["guidance"]
+        # The guidance stream is 10 Hz like the states; its newest value stands for the window.
+        return np.full_like(t, float(np.linalg.norm(g["guidance_n"])) if g else 0.0)
+
+    # -- actions ---------------------------------------------------------------------------
+    def _take_xray(self, view: str) -> None:
+        try:
+            img = _png_array(self.feed.xray(view))
+            self._xray_image.image = img
+            self._xray_image.label = f"{view} view, as drilled now"
+        except Exception as exc:  # no session yet, a refusal: say so on the page
+            self._xray_image.label = f"no {view} X-ray: {exc}"
+        self._xray_image.visible = True
+
+    def _summarize(self, finished: bool) -> None:
+        """Shows an attempt's skill metrics (the server's) and the plot ``dhg inspect --plot``
+        draws (10 Hz records)."""
+        import tempfile
+
+        from dhg.data.plots import plot_timeline
+
+        states = self.feed.attempt_states(finished)
+        metrics = self._last_metrics if finished else self._metrics
+        if not states:
+            self._summary.content = "No states of this attempt yet."
+            return
+        t = np.array([s["time_s"] for s in states])
+        feats = np.array([s["features"] for s in states], dtype=float)
+        with tempfile.TemporaryDirectory() as d:
+            out = plot_timeline(t, feats[:, 0:3], t, feats, f"{d}/attempt.png", f"{self.session_id}: attempt (10 Hz)")
+            self._summary_plot.image = _png_array(out.read_bytes())
+        self._summary_plot.visible = True
+        self._summary.content = self._metrics_markdown(metrics, "the attempt that ended" if finished else "so far")
+
+    @staticmethod
+    def _metrics_markdown(m: dict[str, Any] | None, which: str) -> str:
+        if not m:
+            return f"Skill metrics ({which}): none from the server yet."
+
+        def mm(key: str) -> str:
+            v = m.get(key)
+            return "–" if v is None else f"{v * 1e3:.2f} mm"
+
+        lines = [
+            f"**Skill metrics, {which}** (the server's, `docs/protocol.md`)",
+            "",
+            "| metric | value |",
+            "|---|---|",
+            f"| time | {m['time_s']:.1f} s |",
+            f"| deepest along A→B | {mm('max_depth_m')} |",
+            f"| largest plunge | {mm('plunge_depth_m')} |",
+            f"| largest lateral deviation | {mm('max_lateral_deviation_m')} |",
+            f"| distance to B at the end | {mm('target_distance_m')} |",
+            f"| peak temperature | {m['peak_temperature_c']:.1f} °C |",
+            f"| time above 47 °C | {m['time_above_47_s']:.1f} s |",
+            f"| force jerk | {m['force_jerk_n_per_s']:.1f} N/s |",
+            f"| bone removed | {m['removed_volume_m3'] * 1e9:.1f} mm³ |",
+        ]
+        return "\n".join(lines)
+
+    # -- the loops -------------------------------------------------------------------------
+    def _frame_loop(self) -> None:
+        period = 1.0 / self.frame_hz
+        next_t = time.monotonic()
+        k = 0
+        while not self._stop.is_set():
+            try:
+                self._frame(k)
+            except Exception:  # a page must outlive any one bad frame
+                log.exception("viewer frame")
+            k += 1
+            next_t += period
+            self._stop.wait(max(0.0, next_t - time.monotonic()))
+
+    def _frame(self, k: int) -> None:
+        snap = self.feed.snapshot()
+        f, pose = snap["force"], snap["pose"]
+        if f is not None:
+            tip = np.asarray(f["tip_m"], dtype=float) * SCENE_MM_PER_M
+            with self.server.atomic():
+                self._drill.position = tuple(tip)
+                if pose is not None:
+                    self._drill.wxyz = tuple(pose["orientation_wxyz"])
+                self._drill.visible = True
+                arrows = np.array(
+                    [
+                        [tip, tip + np.asarray(f["force_n"]) * ARROW_MM_PER_N],
+                        [tip, tip + np.asarray(f["guidance_n"]) * ARROW_MM_PER_N],
+                    ]
+                )
+                self.server.scene.add_arrows(
+                    "/forces",
+                    arrows,
+                    colors=np.array([[31, 78, 121], [230, 126, 34]]),
+                    shaft_radius=0.3,
+                    head_radius=0.8,
+                    head_length=1.5,
+                )
+            self.frames += 1
+        every = max(1, round(self.frame_hz / 10))  # numbers at 10 Hz, plots at 2 Hz
+        if k % every == 0:
+            self._readout.content = self._readout_html(snap, self._info)
+        if k % (every * 5) == 0:
+            self._update_plots()
+
+    def _bone_loop(self) -> None:
+        period = 1.0 / self.bone_hz
+        last_metrics = 0.0
+        while not self._stop.wait(period):
+            try:
+                if self._info is None:
+                    self._info = self.feed.info()
+                    self._show_path(self._info)
+                    self._title.content = (
+                        f"**Session `{html.escape(self.session_id)}`**: {self._info['guidance_mode']} guidance"
+                    )
+                self._update_bone()
+                if time.monotonic() - last_metrics >= 1.0:
+                    last_metrics = time.monotonic()
+                    m = self.feed.metrics()
+                    if self._metrics is not None and m["time_s"] < self._metrics["time_s"]:
+                        self._last_metrics = self._metrics  # the attempt that just ended
+                    self._metrics = m
+                if self.feed.attempts_finished > self._shown_attempts:
+                    self._shown_attempts = self.feed.attempts_finished
+                    self._summarize(finished=True)
+            except Exception as exc:  # no such session yet, a server restarting: try again
+                self.bone_errors += 1
+                log.debug("viewer bone: %s", exc)
+                if self.feed.state is None:
+                    self._info = None
+
+    def _update_bone(self) -> None:
+        st = self.feed.state
+        removed = -2.0 if st is None else float(st["removed_volume_m3"])
+        if removed == self._last_removed and st is not None:
+            return  # nothing drilled since the last query (the states say): no snapshot asked
+        origins, material = self.feed.bricks()
+        self.bone_updates += 1
+        chunks = self.surfaces.update(origins, material)
+        with self.server.atomic():
+            for c in sorted(chunks):
+                for piece in self.surfaces.mesh(c):
+                    self._show(piece)
+        self.remeshed_chunks += len(chunks)
+        self._last_removed = removed
+
+    def close(self) -> None:
+        """Stops the loops, the subscriptions and the page's server."""
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5.0)
+        self.feed.close()
+        _stop_quietly(self.server)
+
+
+class InstructorPage:
+    """Every session on the server, with its live state and the server's metrics, refreshed each
+    second, and a link that opens its :class:`TraineePage` (``open_page(session_id)`` returns the
+    page's URL, starting the page if need be)."""
+
+    def __init__(
+        self,
+        z: Any,
+        volume: VolumeData,
+        port: int,
+        open_page: Callable[[str], str],
+        host: str = "127.0.0.1",
+        prefix: str = "dhg",
+        refresh_s: float = 1.0,
+    ) -> None:
+        from dhg.core import protocol
+
+        self._z, self.prefix, self.open_page, self.refresh_s = z, prefix, open_page, refresh_s
+        self._states: dict[str, dict[str, Any]] = {}
+        self._lock = threading.Lock()
+        self.refreshes = 0
+        self.sessions: list[str] = []
+        self._protocol = protocol
+        self._sub = z.declare_subscriber(f"{prefix}/session/*/state", self._on_state)
+        self.server = _viser_server(host, port, "DHG: instructor")
+        self.url = f"http://{host}:{self.server.get_port()}"
+        gui = self.server.gui
+        gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
+        gui.add_markdown("**DHG: every session on the server** (refreshed each second; open one to watch it)")
+        self._table = gui.add_html('<div id="dhg-sessions"></div>')
+        # The pristine bone with every trainee's tip in it, labelled.
+        surfaces = LayerSurfaces(volume.labels, volume.spacing_m, volume.origin_m, volume.direction)
+        self._meshes: dict[str, Any] = {}
+        for chunk in surfaces.all_chunks():
+            for piece in surfaces.mesh(chunk):
+                _add_bone(self.server, surfaces, self._meshes, piece)
+        self._tips: dict[str, Any] = {}
+        self.server.on_client_connect(lambda client: _look_at(client, volume))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="view-instructor", daemon=True)
+        self._thread.start()
+
+    def _on_state(self, sample: Any) -> None:
+        sid = str(sample.key_expr).split("/")[-2]
+        try:
+            m = self._protocol.decode("state", sample.payload.to_bytes())
+        except ValueError:
+            return
+        with self._lock:
+            if sid in self._states or len(self._states) < 1024:  # a flood of fake ids stays bounded
+                self._states[sid] = m
+
+    def _loop(self) -> None:
+        from dhg.live.client import get_json
+
+        while not self._stop.is_set():
+            try:
+                ids = server_sessions(self._z, self.prefix)
+                rows = []
+                for sid in ids:
+                    url = self.open_page(sid)
+                    try:
+                        met = get_json(self._z, f"{self.prefix}/session/{sid}/metrics", None, 2.0)
+                    except Exception:
+                        met = None
+                    with self._lock:
+                        st = self._states.get(sid)
+                    rows.append(self._row(sid, url, st, met))
+                self.sessions = ids
+                self._table.content = (
+                    f'<div id="dhg-sessions">{"".join(rows)}</div>'
+                    if rows
+                    else '<p id="dhg-sessions">No sessions on the server yet.</p>'
+                )
+                self._show_tips(ids)
+                self.refreshes += 1
+            except Exception as exc:  # the server restarting: keep the last table, try again
+                log.debug("instructor page: %s", exc)
+            self._stop.wait(self.refresh_s)
+
+    @staticmethod
+    def _row(sid: str, url: str, st: dict[str, Any] | None, met: dict[str, Any] | None) -> str:
+        e = html.escape(sid)
+        if st is None:
+            live = "no state yet"
+        else:
+            f = st["features"]
+            live = (
+                f"{st['time_s']:.1f} s · depth {f[7] * 1e3:.1f} mm · {_LAYER_NAMES.get(int(f[6]), '?')} · "
+                f"{f[8]:.1f} °C · plunge {st['plunge_depth_m'] * 1e3:.1f} mm · "
+                f"deviation {st['deviation_m'] * 1e3:.1f} mm"
+            )
+        if met:
+            plunge, lateral = met["plunge_depth_m"] * 1e3, met["max_lateral_deviation_m"] * 1e3
+            attempt = (
+                f"{met['guidance_mode']} × {met['guidance_gain']:.2f} · this attempt: {met['records']} records, "
+                f"largest plunge {plunge:.1f} mm, lateral {lateral:.1f} mm, peak {met['peak_temperature_c']:.1f} °C"
+            )
+        else:
+            attempt = "no metrics yet"
+        return (
+            f'<div class="dhg-session" data-session="{e}" style="border-top:1px solid #ddd;padding:4px 0">'
+            f'<b>{e}</b> <a href="{html.escape(url)}" target="_blank" id="dhg-open-{e}">open its page</a>'
+            f'<div style="font-size:85%">{live}</div><div style="font-size:85%;color:#555">{attempt}</div></div>'
+        )
+
+    def _show_tips(self, ids: list[str]) -> None:
+        """Each listed session's tip (from its newest state) as a labelled dot in the bone."""
+        with self._lock:
+            tips = {sid: self._states[sid]["features"][3:6] for sid in ids if sid in self._states}
+        sc = self.server.scene
+        for sid in list(self._tips):
+            if sid not in tips:
+                for h in self._tips.pop(sid):
+                    h.remove()
+        for sid, tip in tips.items():
+            p = tuple(np.asarray(tip, dtype=float) * SCENE_MM_PER_M)
+            if sid in self._tips:
+                for h in self._tips[sid]:
+                    h.position = p
+            else:
+                self._tips[sid] = (
+                    sc.add_icosphere(f"/tips/{sid}", radius=1.5, color=(30, 90, 200), position=p),
+                    sc.add_label(f"/tips/{sid}-label", sid, position=p),
+                )
+
+    def close(self) -> None:
+        """Stops the refresh, the subscription and the page's server."""
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        try:
+            self._sub.undeclare()
+        except Exception:
+            pass
+        _stop_quietly(self.server)

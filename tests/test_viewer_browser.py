@@ -1,0 +1,218 @@
+"""``dhg view`` in a real headless Chromium (Debian's ``chromium`` and ``chromium-driver``, driven by
+Selenium) against a running ``dhg-serve``, while virtual trainees drill: the page loads and draws,
+the drill moves and the removed volume rises as the trainee cuts, the X-ray buttons show images,
+an attempt's summary appears after a reset, and the instructor's page lists the class and opens
+a trainee's page. Screenshots are kept in ``out/test-screenshots`` (``DHG_SCREENSHOTS``)."""
+
+from __future__ import annotations
+
+import os
+import re
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dhg.live.client import TraineeClient
+from dhg.live.demo import free_port
+from dhg.view import Viewer
+from dhg.view.browser import canvas_pixels, chromium, wait_for
+from support import entry, stops_cleanly
+
+SHOTS = Path(os.environ.get("DHG_SCREENSHOTS", Path(__file__).resolve().parents[1] / "out" / "test-screenshots"))
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[object]:
+    with chromium() as driver:
+        yield driver
+
+
+@pytest.fixture(scope="module")
+def shots() -> Path:
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    return SHOTS
+
+
+class Stylus:
+    """A virtual trainee's hand: streams poses at 1 kHz along ``positions`` (m), then holds the
+    last one (a stylus held still keeps its session alive) until :meth:`stop`."""
+
+    def __init__(self, client: TraineeClient, q: tuple) -> None:
+        self.client, self.q = client, q
+        self._path: list[np.ndarray] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self.sent = 0
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def move(self, positions: np.ndarray) -> None:
+        with self._lock:
+            self._path.extend(positions)
+
+    def idle(self) -> bool:
+        with self._lock:
+            return not self._path
+
+    def _run(self) -> None:
+        last = None
+        t0 = time.monotonic_ns()
+        while not self._stop.is_set():
+            with self._lock:
+                p = self._path.pop(0) if self._path else last
+            if p is not None:
+                self.client.send_pose(p, self.q, True, 1250.0)
+                last = p
+            self.sent += 1
+            pause = t0 + self.sent * 1_000_000 - time.monotonic_ns()
+            if pause > 0:
+                time.sleep(pause * 1e-9)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+
+def _number(driver, element_id: str) -> float:
+    from selenium.webdriver.common.by import By
+
+    text = driver.find_element(By.ID, element_id).text
+    m = re.search(r"-?\d+(\.\d+)?", text)
+    if m is None:
+        raise ValueError(f"{element_id}: no number in {text!r}")
+    return float(m.group(0))
+
+
+def _drawn_canvas(driver) -> np.ndarray | None:
+    """The canvas's pixels once more than 2 % of it is not background (the page's white)."""
+    px = canvas_pixels(driver)
+    return px if float(np.mean(np.any(px < 235, axis=2))) > 0.02 else None
+
+
+def test_the_trainee_page_draws_the_bone_follows_the_drill_and_shows_xrays(server, browser, shots):
+    from selenium.webdriver.common.by import By
+
+    _, endpoint = server
+    with TraineeClient(endpoint, "view-1") as c:
+        a, d, q = entry(c)
+        hand = Stylus(c, q)
+        viewer = Viewer(endpoint, port=free_port(), session_id="view-1")
+        try:
+            hand.move(np.array([a - d * 3e-3]))  # outside the bone, before A
+            browser.get(viewer.url)
+            start = wait_for(lambda: _drawn_canvas(browser), 90, "the bone drawn on the canvas")
+            wait_for(lambda: browser.find_elements(By.ID, "dhg-removed"), 60, "the numbers panel")
+            canvas_pixels(browser, shots / "trainee-before.png")
+            removed_before = _number(browser, "dhg-removed")
+            depth_before = _number(browser, "dhg-depth")
+            assert depth_before < 0  # the tip is before A
+            # The trainee drills in: the drill moves, the numbers follow, the bone is re-meshed.
+            hand.move(a + d * np.linspace(-3e-3, 12e-3, 4000)[:, None])
+            wait_for(hand.idle, 60, "the poses sent")
+            page = viewer.pages["view-1"]
+            wait_for(lambda: _number(browser, "dhg-removed") > removed_before + 1.0, 60, "the removed volume rising")
+            wait_for(lambda: _number(browser, "dhg-depth") > depth_before + 5.0, 60, "the depth following the tip")
+            wait_for(lambda: page.remeshed_chunks > 0, 60, "drilled chunks re-meshed")
+            after = canvas_pixels(browser, shots / "trainee-drilled.png")
+            assert after.shape == start.shape
+            assert np.mean(np.abs(after.astype(int) - start.astype(int)) > 30) > 1e-4  # the drill moved
+            assert page.remeshed_chunks < len(page.surfaces.all_chunks())  # never the whole volume
+            browser.save_screenshot(str(shots / "trainee-page.png"))
+            # The X-ray buttons: each shows that view of the bone as drilled now.
+            for view in ("top", "front", "side"):
+                browser.find_element(By.XPATH, f"//button[normalize-space()='{view}']").click()
+                wait_for(
+                    lambda v=view: browser.find_elements(
+                        By.XPATH, f"//*[contains(text(), '{v} view, as drilled now')]"
+                    ),
+                    60,
+                    f"the {view} X-ray",
+                )
+                sizes = browser.execute_script(
+                    "return Array.from(document.images).map(i => [i.naturalWidth, i.naturalHeight])"
+                )
+                assert any(w >= 50 and h >= 50 for w, h in sizes), sizes
+                browser.save_screenshot(str(shots / f"trainee-xray-{view}.png"))
+            # A reset ends the attempt: its summary (the server's metrics and the plot) shows.
+            c.control("reset")
+            wait_for(
+                lambda: browser.find_elements(By.XPATH, "//*[contains(text(), 'the attempt that ended')]"),
+                60,
+                "the summary of the attempt",
+            )
+            browser.save_screenshot(str(shots / "trainee-summary.png"))
+            assert page.feed.invalid == 0 and page.bone_errors == 0
+        finally:
+            hand.stop()
+            viewer.close()
+
+
+def test_the_instructor_page_lists_the_class_and_opens_a_trainee(server, browser, shots):
+    from selenium.webdriver.common.by import By
+
+    _, endpoint = server
+    with TraineeClient(endpoint, "class-1") as c1, TraineeClient(endpoint, "class-2") as c2:
+        hands = []
+        for c in (c1, c2):
+            a, d, q = entry(c)
+            hands.append(Stylus(c, q))
+            hands[-1].move(a + d * np.linspace(-3e-3, 4e-3, 1500)[:, None])
+        viewer = Viewer(endpoint, port=free_port())
+        try:
+            browser.get(viewer.url)
+            rows = wait_for(
+                lambda: (
+                    (
+                        found := {
+                            r.get_attribute("data-session")
+                            for r in browser.find_elements(By.CSS_SELECTOR, ".dhg-session")
+                        }
+                    )
+                    >= {"class-1", "class-2"}
+                    and found
+                ),
+                60,
+                "both trainees listed",
+            )
+            assert {"class-1", "class-2"} <= rows
+            wait_for(
+                lambda: "mm" in browser.find_element(By.CSS_SELECTOR, "[data-session='class-2']").text,
+                60,
+                "class-2's live state",
+            )
+            browser.save_screenshot(str(shots / "instructor.png"))
+            # One click opens a trainee's own page (a new tab).
+            first = browser.current_window_handle
+
+            def click_open() -> bool:  # the list is redrawn each second: find and click in one go
+                browser.find_element(By.ID, "dhg-open-class-2").click()
+                return True
+
+            wait_for(click_open, 30, "a click on class-2's link")
+            wait_for(lambda: len(browser.window_handles) > 1, 30, "the trainee's page opened")
+            browser.get("about:blank")  # the instructor's tab stops drawing: two software-drawn pages starve 2 cores
+            opened = [h for h in browser.window_handles if h != first][0]
+
+            def switch() -> bool:
+                browser.switch_to.window(opened)
+                return True
+
+            wait_for(switch, 60, "the switch to the trainee's tab")
+            assert browser.current_url.rstrip("/") == viewer.page_url("class-2")
+            wait_for(lambda: _drawn_canvas(browser), 90, "class-2's bone drawn")
+            wait_for(lambda: "class-2" in browser.page_source, 30, "class-2's page")
+            browser.save_screenshot(str(shots / "instructor-opened-class-2.png"))
+            browser.close()
+            browser.switch_to.window(first)
+        finally:
+            for h in hands:
+                h.stop()
+            viewer.close()
+
+
+def test_the_shared_server_stops_cleanly_after_serving_the_viewers(server):
+    stops_cleanly(server[0])
