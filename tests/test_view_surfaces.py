@@ -8,7 +8,7 @@ import pytest
 from skimage.measure import marching_cubes, mesh_surface_area
 
 from dhg.core.layers import Layer
-from dhg.view.surfaces import SURFACES, LayerSurfaces
+from dhg.view.surfaces import SURFACES, LayerSurfaces, display_step
 
 
 def _area(pieces: dict) -> dict[str, float]:
@@ -19,15 +19,16 @@ def _area(pieces: dict) -> dict[str, float]:
     return out
 
 
-def _whole(labels: np.ndarray, material: np.ndarray, spacing: float) -> dict[str, float]:
+def _whole(labels: np.ndarray, material: np.ndarray, spacing: float, step: int = 1) -> dict[str, float]:
     """Each surface marched over the whole volume at once (padded like the chunks)."""
     out = {}
     for s in SURFACES:
-        field = np.pad(np.isin(labels, list(s.layers)) * material, 1).astype(np.float32)
+        pad = [(1, 1 + (-(n + 1)) % step) for n in labels.shape]
+        field = np.pad(np.isin(labels, list(s.layers)) * material, pad).astype(np.float32)
         if field.max() < 0.5:
             out[s.name] = 0.0
             continue
-        v, f, _, _ = marching_cubes(field, 0.5, spacing=(spacing,) * 3, allow_degenerate=False)
+        v, f, _, _ = marching_cubes(field, 0.5, spacing=(spacing,) * 3, step_size=step, allow_degenerate=False)
         out[s.name] = mesh_surface_area(v, f)
     return out
 
@@ -43,12 +44,13 @@ def femur_2mm():
     return ph.default_phantom(0, 2e-3)  # 2 mm voxels: 50x32x62, several chunks a side
 
 
-def test_the_chunks_join_into_the_surface_of_the_whole_volume(femur_2mm):
+@pytest.mark.parametrize("step", [1, 2])
+def test_the_chunks_join_into_the_surface_of_the_whole_volume(femur_2mm, step):
     v = femur_2mm.volume
-    surf = LayerSurfaces(v.labels(), v.spacing_m, v.origin_m, v.direction)
+    surf = LayerSurfaces(v.labels(), v.spacing_m, v.origin_m, v.direction, step=step)
     pieces = _mesh_all(surf, surf.all_chunks())
     assert surf.chunks_per_axis == (2, 2, 2)  # 50x32x62 voxels (+2 padding) in 32-voxel chunks
-    whole = _whole(v.labels(), (v.labels() != Layer.OUTSIDE).astype(np.float32), v.spacing_m[0])
+    whole = _whole(v.labels(), (v.labels() != Layer.OUTSIDE).astype(np.float32), v.spacing_m[0], step)
     got = _area(pieces)
     for name, area in whole.items():
         assert area > 0 and got[name] == pytest.approx(area, rel=1e-6), name
@@ -91,6 +93,9 @@ def test_drilling_re_meshes_only_the_chunks_it_touched_and_a_reset_restores_the_
 def test_bad_volumes_and_bricks_are_refused_with_the_reason():
     with pytest.raises(ValueError, match="3D uint8"):
         LayerSurfaces(np.zeros((4, 4), np.uint8), (1e-3,) * 3, (0.0,) * 3)
+    with pytest.raises(ValueError, match="step must be"):
+        LayerSurfaces(np.zeros((4, 4, 4), np.uint8), (1e-3,) * 3, (0.0,) * 3, step=0)
+    assert display_step((0.5e-3,) * 3) == 2 and display_step((1e-3,) * 3) == 1 and display_step((2e-3,) * 3) == 1
     with pytest.raises(ValueError, match="3 values"):
         LayerSurfaces(np.zeros((4, 4, 4), np.uint8), (1e-3,) * 2, (0.0,) * 3)
     surf = LayerSurfaces(np.ones((4, 4, 4), np.uint8), (1e-3,) * 3, (0.0,) * 3)

@@ -198,6 +198,8 @@ class TraineeClient:
         """Checks every force before it becomes :attr:`force`; its ``rejected`` counts refusals."""
         self._on_force, self._on_state = on_force, on_state
         self._seq = 0
+        self.last_pose: tuple[npt.ArrayLike, npt.ArrayLike] | None = None
+        """The position (m) and orientation of the last pose sent (None before the first)."""
         self._last_force_seq = -1
         self._last_guidance_pose_ns = -1
         self._pub = self._z.declare_publisher(
@@ -278,6 +280,7 @@ class TraineeClient:
         self._pub.put(
             protocol.encode_pose(self._seq, time.monotonic_ns(), position_m, orientation_wxyz, drill_on, spindle_rpm)
         )
+        self.last_pose = (position_m, orientation_wxyz)
         return self._seq
 
     @property

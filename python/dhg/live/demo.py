@@ -4,7 +4,8 @@ Starts ``dhg-serve`` (phantom femur, bundled model) as a child process on a free
 drives it with two virtual novices with the same hand (same seed), one feeling the guidance and one
 not, prints their skill metrics and the guidance/latency figures side by side, writes the guided
 session's X-ray views and a plot of force, guidance and temperature over time, and stops the server
-with SIGTERM, as a person would with Ctrl-C.
+with SIGTERM, as a person would with Ctrl-C. The server runs the live view (``--view``): its URL is
+printed at the start, and a screenshot of the guided novice's page is written as ``view.png``.
 """
 
 from __future__ import annotations
@@ -121,6 +122,32 @@ def _row(name: str, values: list[str]) -> list[str]:
     return [name, *values]
 
 
+def _screenshot(view_url: str, client: Any, out: Path) -> str:
+    """A screenshot of a session's live page, taken between the runs (the browser's software
+    drawing takes no CPU from a drilling novice) while the stylus is held still at its last pose,
+    drill off (that keeps the session); what went wrong instead, if it could not."""
+    from dhg.view.browser import screenshot_session
+
+    stop = threading.Event()
+
+    def hold() -> None:
+        if client.last_pose is None:
+            return
+        position, orientation = client.last_pose
+        while not stop.wait(0.05):
+            client.send_pose(position, orientation, False, 0.0)
+
+    holder = threading.Thread(target=hold, daemon=True)
+    holder.start()
+    try:
+        return str(screenshot_session(view_url, client.session_id, out))
+    except Exception as exc:  # no Chromium here, a page too slow: the demo's figures still stand
+        return f"none ({exc})"
+    finally:
+        stop.set()
+        holder.join()
+
+
 def run_live_demo(
     out: str | Path,
     duration_s: float = 20.0,
@@ -142,8 +169,16 @@ def run_live_demo(
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     console.print(f"[bold]starting dhg-serve[/] on {endpoint} (phantom femur, bundled model)")
     zcfg = ["--zenoh-config", str(zenoh_config_file)] if zenoh_config_file else []
-    server = ServerProcess(["--listen", endpoint, "--status-every", "5", *zcfg], echo=echo_server)
+    view_port = free_port()
+    view_url = f"http://127.0.0.1:{view_port}"
+    server = ServerProcess(
+        ["--listen", endpoint, "--status-every", "5", "--view", str(view_port), *zcfg], echo=echo_server
+    )
+    console.print(
+        f"[bold]live view[/]: {view_url} (the instructor's page: open a novice's page from it to watch the drill)"
+    )
     runs = []
+    shot: str | None = None
     try:
         for name, gain in (("guided", 1.0), ("unguided", 0.0)):
             console.print(f"[bold]{name} novice[/]: drilling for up to {duration_s:g} s (seed {seed}) …")
@@ -153,6 +188,8 @@ def run_live_demo(
                     for view, png in client.xray().items():
                         (out / f"{view}.png").write_bytes(png)
                 run.server_health = client.health(duration_s + 5.0)
+                if name == "guided":
+                    shot = _screenshot(view_url, client, out / "view.png")
             runs.append(run)
     finally:
         code = server.stop()
@@ -205,5 +242,6 @@ def run_live_demo(
         f"X-ray views of the guided session: {', '.join(str(out / f'{v}.png') for v in ('top', 'front', 'side'))}"
     )
     console.print(f"plot: {plot}")
+    console.print(f"live view of the guided novice: {shot}")
     console.print(f"dhg-serve exited with code {code}")
     return code

@@ -14,7 +14,15 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["BrowserMissingError", "canvas_pixels", "chromium", "find_chromium", "wait_for"]
+__all__ = [
+    "BrowserMissingError",
+    "canvas_pixels",
+    "chromium",
+    "drawn_canvas",
+    "find_chromium",
+    "screenshot_session",
+    "wait_for",
+]
 
 CHROMIUM_FLAGS = (
     "--headless=new",
@@ -89,3 +97,30 @@ def canvas_pixels(driver: Any, out: str | Path | None = None) -> np.ndarray:
         Path(out).write_bytes(png)
     with Image.open(io.BytesIO(png)) as im:
         return np.asarray(im.convert("RGB"))
+
+
+def drawn_canvas(driver: Any, share: float = 0.02) -> np.ndarray | None:
+    """The canvas's pixels once more than ``share`` of it is not background (the page's white)."""
+    px = canvas_pixels(driver)
+    return px if float(np.mean(np.any(px < 235, axis=2))) > share else None
+
+
+def screenshot_session(instructor_url: str, session_id: str, out: str | Path, timeout_s: float = 120.0) -> Path:
+    """Opens the instructor's page, follows its link to ``session_id``'s page as a person would,
+    waits for the bone and the numbers, and saves a screenshot of the whole page to ``out``."""
+    from selenium.webdriver.common.by import By
+
+    out = Path(out)
+    with chromium() as driver:
+        driver.get(instructor_url)
+        link = wait_for(
+            lambda: driver.find_element(By.ID, f"dhg-open-{session_id}").get_attribute("href"),
+            timeout_s,
+            f"session {session_id} on the instructor's page",
+        )
+        driver.get(link)
+        wait_for(lambda: drawn_canvas(driver), timeout_s, "the bone drawn")
+        wait_for(lambda: driver.find_elements(By.ID, "dhg-removed"), timeout_s, "the numbers")
+        time.sleep(1.0)  # a last frame of the drill
+        driver.save_screenshot(str(out))
+    return out

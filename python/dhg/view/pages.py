@@ -21,7 +21,7 @@ import numpy as np
 from dhg.core.layers import Layer
 from dhg.core.session import FADING_DEFAULTS
 from dhg.view.feed import SessionFeed, VolumeData, server_sessions
-from dhg.view.surfaces import ChunkMesh, LayerSurfaces
+from dhg.view.surfaces import ChunkMesh, LayerSurfaces, display_step
 
 __all__ = ["SCENE_MM_PER_M", "InstructorPage", "TraineePage"]
 
@@ -112,7 +112,8 @@ class TraineePage:
 
     ``z`` is an open Zenoh session (client mode) the page shares with others; ``volume`` the
     server's (:func:`dhg.view.feed.fetch_volume`). The page's counters (:attr:`frames`,
-    :attr:`bone_updates`, :attr:`remeshed_chunks`) tell what it sent."""
+    :attr:`bone_updates`, :attr:`remeshed_chunks`) tell what it sent: :attr:`frames` counts drill
+    updates, sent only when the tip, its pose or the forces changed."""
 
     def __init__(
         self,
@@ -131,7 +132,9 @@ class TraineePage:
             )
         self.session_id = session_id
         self.feed = SessionFeed(z, session_id, prefix)
-        self.surfaces = LayerSurfaces(volume.labels, volume.spacing_m, volume.origin_m, volume.direction)
+        self.surfaces = LayerSurfaces(
+            volume.labels, volume.spacing_m, volume.origin_m, volume.direction, step=display_step(volume.spacing_m)
+        )
         self.frame_hz, self.bone_hz = frame_hz, bone_hz
         self.frames = 0
         """Drill updates sent."""
@@ -145,6 +148,8 @@ class TraineePage:
         self._last_metrics: dict[str, Any] | None = None  # the attempt before the last reset
         self._shown_attempts = 0
         self._last_removed = -1.0
+        self._drawn: tuple[Any, ...] | None = None  # what the drill was last drawn from
+        self._plotted = -1.0  # the newest state's time in the plots
         self._stop = threading.Event()
 
         self.server = _viser_server(host, port, f"DHG: {session_id}")
@@ -362,35 +367,53 @@ class TraineePage:
             self._stop.wait(max(0.0, next_t - time.monotonic()))
 
     def _frame(self, k: int) -> None:
+        """One frame: the drill and arrows when the tip, pose or forces changed (a still stylus
+        costs the browser no redraw), the numbers at 10 Hz and the plots at 2 Hz when they changed."""
         snap = self.feed.snapshot()
         f, pose = snap["force"], snap["pose"]
         if f is not None:
-            tip = np.asarray(f["tip_m"], dtype=float) * SCENE_MM_PER_M
-            with self.server.atomic():
-                self._drill.position = tuple(tip)
-                if pose is not None:
-                    self._drill.wxyz = tuple(pose["orientation_wxyz"])
-                self._drill.visible = True
-                arrows = np.array(
-                    [
-                        [tip, tip + np.asarray(f["force_n"]) * ARROW_MM_PER_N],
-                        [tip, tip + np.asarray(f["guidance_n"]) * ARROW_MM_PER_N],
-                    ]
-                )
-                self.server.scene.add_arrows(
-                    "/forces",
-                    arrows,
-                    colors=np.array([[31, 78, 121], [230, 126, 34]]),
-                    shaft_radius=0.3,
-                    head_radius=0.8,
-                    head_length=1.5,
-                )
-            self.frames += 1
-        every = max(1, round(self.frame_hz / 10))  # numbers at 10 Hz, plots at 2 Hz
+            key = (
+                tuple(f["tip_m"]),
+                tuple(f["force_n"]),
+                tuple(f["guidance_n"]),
+                pose and tuple(pose["orientation_wxyz"]),
+            )
+            if key != self._drawn:
+                self._draw_drill(f, pose)
+                self._drawn = key
+                self.frames += 1
+        every = max(1, round(self.frame_hz / 10))
         if k % every == 0:
-            self._readout.content = self._readout_html(snap, self._info)
+            text = self._readout_html(snap, self._info)
+            if text != self._readout.content:
+                self._readout.content = text
         if k % (every * 5) == 0:
-            self._update_plots()
+            st = snap["state"]
+            if st is not None and st["time_s"] != self._plotted:
+                self._update_plots()
+                self._plotted = st["time_s"]
+
+    def _draw_drill(self, f: dict[str, Any], pose: dict[str, Any] | None) -> None:
+        tip = np.asarray(f["tip_m"], dtype=float) * SCENE_MM_PER_M
+        with self.server.atomic():
+            self._drill.position = tuple(tip)
+            if pose is not None:
+                self._drill.wxyz = tuple(pose["orientation_wxyz"])
+            self._drill.visible = True
+            arrows = np.array(
+                [
+                    [tip, tip + np.asarray(f["force_n"]) * ARROW_MM_PER_N],
+                    [tip, tip + np.asarray(f["guidance_n"]) * ARROW_MM_PER_N],
+                ]
+            )
+            self.server.scene.add_arrows(
+                "/forces",
+                arrows,
+                colors=np.array([[31, 78, 121], [230, 126, 34]]),
+                shaft_radius=0.3,
+                head_radius=0.8,
+                head_length=1.5,
+            )
 
     def _bone_loop(self) -> None:
         period = 1.0 / self.bone_hz
@@ -474,7 +497,9 @@ class InstructorPage:
         gui.add_markdown("**DHG: every session on the server** (refreshed each second; open one to watch it)")
         self._table = gui.add_html('<div id="dhg-sessions"></div>')
         # The pristine bone with every trainee's tip in it, labelled.
-        surfaces = LayerSurfaces(volume.labels, volume.spacing_m, volume.origin_m, volume.direction)
+        surfaces = LayerSurfaces(
+            volume.labels, volume.spacing_m, volume.origin_m, volume.direction, step=display_step(volume.spacing_m)
+        )
         self._meshes: dict[str, Any] = {}
         for chunk in surfaces.all_chunks():
             for piece in surfaces.mesh(chunk):

@@ -6,7 +6,9 @@ of its layers' mask times the material left (1 pristine, 0 drilled out), marched
 scikit-image's marching cubes (Lewiner et al. 2003) over the chunk's voxels and the first plane
 of the next chunk, so neighbouring chunks share their border vertices and the surface has no
 cracks. The session's drilled bricks (8³ voxels, ``DrilledVolume.bricks``) replace the pristine
-material where they exist; :meth:`LayerSurfaces.update` returns the chunks they touched.
+material where they exist; :meth:`LayerSurfaces.update` returns the chunks they touched. A
+``step`` of 2 samples every second voxel (a quarter of the triangles) for volumes finer than the
+screen needs: :func:`display_step`.
 """
 
 from __future__ import annotations
@@ -19,11 +21,21 @@ import numpy.typing as npt
 
 from dhg.core.layers import Layer
 
-__all__ = ["CHUNK_EDGE", "SURFACES", "ChunkMesh", "LayerSurfaces", "Surface"]
+__all__ = ["CHUNK_EDGE", "DISPLAY_VOXEL_M", "SURFACES", "ChunkMesh", "LayerSurfaces", "Surface", "display_step"]
 
 CHUNK_EDGE = 32
 """Voxels along a chunk's edge (4 bricks of 8): a drilled brick re-meshes one chunk, or up to 8
 where it lies on chunk borders."""
+
+DISPLAY_VOXEL_M = 1e-3
+"""The finest sampling the live view draws (m): a 0.5 mm CT is marched every second voxel, which
+keeps a femur near 100 000 triangles, few enough for a browser drawing in software."""
+
+
+def display_step(spacing_m: Iterable[float]) -> int:
+    """The marching step (voxels) for a volume of this spacing: :data:`DISPLAY_VOXEL_M` or finer."""
+    return int(min(4, max(1, round(DISPLAY_VOXEL_M / max(spacing_m)))))
+
 
 BRICK_EDGE = 8
 """Voxels along a drilled brick's edge (the core's ``BRICK_EDGE``)."""
@@ -84,8 +96,12 @@ class LayerSurfaces:
         origin_m: Iterable[float],
         direction: npt.ArrayLike | None = None,
         surfaces: tuple[Surface, ...] = SURFACES,
+        step: int = 1,
     ) -> None:
         labels = np.asarray(labels)
+        if not (isinstance(step, int) and 1 <= step <= 4):
+            raise ValueError(f"step must be 1, 2, 3 or 4 voxels, got {step!r}")
+        self.step = step
         if labels.ndim != 3 or labels.dtype != np.uint8 or min(labels.shape) < 2:
             raise ValueError(f"labels must be a 3D uint8 array of at least 2 voxels a side, got {labels.shape}")
         self.shape = labels.shape  # (nz, ny, nx)
@@ -95,14 +111,16 @@ class LayerSurfaces:
         if self.spacing_m.shape != (3,) or self.origin_m.shape != (3,) or self.direction.shape != (3, 3):
             raise ValueError("spacing_m and origin_m need 3 values and direction a 3x3 matrix")
         self.surfaces = surfaces
-        # One voxel of nothing around the volume closes the surfaces where the scan ends.
-        self._labels = np.pad(labels, 1)
+        # One voxel of nothing around the volume closes the surfaces where the scan ends; with a
+        # step, more at the far ends, so that the last plane (padded index L - 1) is sampled.
+        self._labels = np.pad(labels, [(1, 1 + (-(n + 1)) % step) for n in labels.shape])
+        self._sampled = self._labels.shape[::-1]  # padded (i, j, k) lengths L
         self._pristine = (self._labels != Layer.OUTSIDE).astype(np.float32)
         self._material = self._pristine.copy()
         self._masks = {s.name: np.isin(self._labels, list(s.layers)) for s in surfaces}
         self._bricks: dict[tuple[int, int, int], npt.NDArray[np.uint16]] = {}  # origin (i, j, k) -> material
-        # Chunks sample padded indices 0..n+1 along an axis of n voxels.
-        self.chunks_per_axis = tuple(-(-(n + 1) // CHUNK_EDGE) for n in self.shape[::-1])  # (ci, cj, ck)
+        # Chunks sample padded indices 0..L-1.
+        self.chunks_per_axis = tuple(-(-(n - 1) // CHUNK_EDGE) for n in self._sampled)  # (ci, cj, ck)
 
     @property
     def drilled_bricks(self) -> int:
@@ -121,16 +139,16 @@ class LayerSurfaces:
         # Padded index of voxel v is v + 1; the chunk's samples are voxels [c·E - 1, (c+1)·E] so
         # the padding plane of the first chunk closes the surface and neighbours share a plane.
         lo = [c * CHUNK_EDGE for c in chunk]  # padded (i, j, k) of the chunk's first sample
-        hi = [min(a + CHUNK_EDGE + 1, n + 2) for a, n in zip(lo, self.shape[::-1], strict=True)]
+        hi = [min(a + CHUNK_EDGE + 1, n) for a, n in zip(lo, self._sampled, strict=True)]
         sl = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
         material = self._material[sl]
         out = []
         for s in self.surfaces:
             field = self._masks[s.name][sl] * material
-            if min(field.shape) < 2 or field.max() < 0.5 or field.min() >= 0.5:
+            if min(field.shape) < self.step + 1 or field.max() < 0.5 or field.min() >= 0.5:
                 out.append(ChunkMesh(s.name, chunk, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32)))
                 continue
-            verts, faces, _, _ = marching_cubes(field, level=0.5, allow_degenerate=False)
+            verts, faces, _, _ = marching_cubes(field, level=0.5, step_size=self.step, allow_degenerate=False)
             ijk = verts[:, ::-1] + np.array(lo, dtype=np.float64) - 1.0  # (k, j, i) -> unpadded (i, j, k)
             world = self.origin_m + (ijk * self.spacing_m) @ self.direction.T
             out.append(ChunkMesh(s.name, chunk, world.astype(np.float32), faces.astype(np.uint32)))
