@@ -26,6 +26,8 @@ def test_help_teaches():
         assert word in r.stdout
     r = run("xray", "--help")
     assert r.returncode == 0 and "top.png" in r.stdout and "--ct" in r.stdout
+    r = run("view", "--help")
+    assert r.returncode == 0 and "instructor" in r.stdout and "--zenoh-config" in r.stdout
     r = run("train", "--help")
     assert r.returncode == 0 and "the last 13.5 % of windows" in r.stdout and "%%" not in r.stdout
 
@@ -64,6 +66,9 @@ def test_demo_drills_and_reports(tmp_path):
         (["xray", "--out", "{tmp}/o", "--voxel-mm", "-1"], 3, "voxel_m"),
         (["xray"], 2, "--out"),
         (["frobnicate"], 2, "invalid choice"),
+        (["view", "--session", "../etc"], 3, "first a letter or digit"),
+        (["view", "--port", "70000"], 3, "port must be within"),
+        (["view", "--connect", "tcp/127.0.0.1:9", "--session", "a-1"], 5, "cannot open a zenoh session"),
     ],
 )
 def test_exit_codes_and_messages(tmp_path, args, code, message):

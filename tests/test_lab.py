@@ -242,3 +242,48 @@ def test_dhg_serve_with_the_lab_file_caps_each_stations_sessions(lab):
             assert a._json("dhg/session/visitor/control", {"op": "create"})["session"] == "visitor"  # not a station's
     finally:
         assert server.stop() == 0, "\n".join(server.lines[-40:])
+
+
+def test_the_viewer_works_in_lab_mode_with_a_station_or_an_instructor_identity(lab):
+    """``dhg view`` is one more client: a station sees its own session (the volume, its bone as
+    drilled, its X-rays, its drill) and not another station's; the instructor sees every session.
+    (The X-ray and bone queryables live in the server's own Python client, which must not apply
+    the router's access-control list to itself: it did, and dropped every query.)"""
+    from dhg.view import Viewer
+    from dhg.view.feed import SessionFeed
+
+    root, endpoint, listen = lab
+    server = ServerProcess(
+        ["--listen", listen, "--zenoh-config", str(root / "out" / "server.json5"), "--voxel-mm", "1.0"], echo=False
+    )
+    conf = {n: str(root / "out" / f"{n}.json5") for n in ("station-1", "teacher")}
+    try:
+        with _client(root, endpoint, "station-1") as s1, _client(root, endpoint, "station-2") as s2:
+            s2.create()
+            station_view = Viewer(
+                endpoint, port=free_port(), session_id="station-1", zenoh_config_file=conf["station-1"]
+            )
+            teacher_view = Viewer(endpoint, port=free_port(), zenoh_config_file=conf["teacher"])
+            try:
+                drilling = threading.Thread(target=_stream, args=(s1, 8.0), daemon=True)
+                drilling.start()  # the session lives while its stylus streams
+                page = station_view.pages["station-1"]
+                _wait(lambda: page.bone_updates > 0 and page.frames > 0, 30, "station-1's bone and drill")
+                assert page.feed.forces > 0 and page.feed.states > 0  # it hears its own forces and states
+                assert page.feed.xray("top").startswith(b"\x89PNG")
+                other = SessionFeed(station_view._z, "station-2")
+                try:
+                    with pytest.raises(TransportError):
+                        other.bricks(timeout_s=1.0)  # the access control drops the query
+                finally:
+                    other.close()
+                instructor = teacher_view.instructor
+                assert instructor is not None
+                _wait(lambda: {"station-1", "station-2"} <= set(instructor.sessions), 30, "both stations listed")
+                _wait(lambda: teacher_view.pages["station-1"].bone_updates > 0, 30, "the teacher's page of station-1")
+                drilling.join()
+            finally:
+                station_view.close()
+                teacher_view.close()
+    finally:
+        assert server.stop() == 0, "\n".join(server.lines[-40:])

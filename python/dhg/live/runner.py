@@ -15,6 +15,7 @@ nearest complete queryable), so they do not share load.
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections.abc import Sequence
@@ -188,6 +189,17 @@ class RunningServer:
         self.close()
 
 
+def _without_access_control(config_json: str) -> str:
+    """The server's own Python client (the X-ray, bone and model services) in lab mode: the
+    router's access-control list is in the same file, but it is the router's to enforce. Applied
+    by the client to itself, it would drop every query the router forwards to the services (the
+    router's rules allow the server identity to answer queries, not to receive them)."""
+    conf = json.loads(config_json)
+    if "access_control" in conf:
+        conf["access_control"] = {"enabled": False}
+    return json.dumps(conf)
+
+
 def _friendly(exc: Exception, endpoints: Sequence[str]) -> TransportError:
     text = str(exc)
     if "Address already in use" in text:
@@ -220,12 +232,14 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
                 run.engine = start_engine(volume, path, conf, options.settings, options.prefix)
             except TransportError as exc:
                 raise _friendly(exc, listen) from None
-            py_conf = zenoh_config_json5(
-                (),
-                [_loopback(e) for e in listen],
-                options.zenoh_config,
-                mode="client",
-                max_message_bytes=SERVER_MAX_MESSAGE_BYTES,
+            py_conf = _without_access_control(
+                zenoh_config_json5(
+                    (),
+                    [_loopback(e) for e in listen],
+                    options.zenoh_config,
+                    mode="client",
+                    max_message_bytes=SERVER_MAX_MESSAGE_BYTES,
+                )
             )
         else:
             connect = list(options.connect) or ([] if options.listen else [DEFAULT_ENDPOINT])

@@ -95,6 +95,14 @@ def _add_bone(server: Any, surfaces: LayerSurfaces, meshes: dict[str, Any], piec
     )
 
 
+def _along(d: np.ndarray) -> tuple[float, float, float, float]:
+    """The quaternion (w, x, y, z) turning the tool's +z onto direction ``d`` (half-way rotation)."""
+    d = d / np.linalg.norm(d)
+    q = np.array([1.0 + d[2], -d[1], d[0], 0.0])  # 1 + z·d, z × d
+    n = np.linalg.norm(q)
+    return (0.0, 1.0, 0.0, 0.0) if n < 1e-9 else (float(q[0] / n), float(q[1] / n), float(q[2] / n), float(q[3] / n))
+
+
 def _look_at(client: Any, volume: VolumeData) -> None:
     """Points a new browser's camera at the bone, from the front and a little above."""
     lo = volume.origin_m
@@ -399,6 +407,8 @@ class TraineePage:
             self._drill.position = tuple(tip)
             if pose is not None:
                 self._drill.wxyz = tuple(pose["orientation_wxyz"])
+            elif self._info is not None:  # no pose heard (a lab station hears only its outputs): along A→B
+                self._drill.wxyz = _along(np.array(self._info["target_m"]) - np.array(self._info["entry_m"]))
             self._drill.visible = True
             arrows = np.array(
                 [
