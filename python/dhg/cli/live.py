@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -192,9 +193,17 @@ def _cmd_view(args: argparse.Namespace) -> int:
     ):
         what = f"session {args.session}" if args.session else "the instructor's page (every session)"
         print(f"dhg view: {what} at {viewer.url} (Ctrl-C to stop)", flush=True)
+        t0 = time.monotonic()
         stop.wait(args.duration)
-        pages = len(viewer.pages)
-    print(f"dhg view stopped ({pages} trainee page(s) served)", flush=True)
+        elapsed = time.monotonic() - t0
+        lines = [
+            f"  {sid}: {p.frames} drill updates ({p.frames / elapsed:.1f}/s), {p.bone_updates} bone queries, "
+            f"{p.remeshed_chunks} chunks re-meshed"
+            for sid, p in viewer.pages.items()
+        ]
+    print(f"dhg view stopped after {elapsed:.0f} s ({len(lines)} trainee page(s) served)", flush=True)
+    for line in lines:
+        print(line, flush=True)
     return EXIT_OK
 
 
