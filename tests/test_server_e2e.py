@@ -495,6 +495,34 @@ def test_serve_on_a_busy_port_exits_with_a_clear_message(server):
     assert "already in use" in r.stderr and "Traceback" not in r.stderr
 
 
+def test_the_bone_and_volume_queries_give_what_a_viewer_meshes(server):
+    """``<p>/server/volume`` is the server's volume and ``<p>/session/<id>/bone`` the session's
+    drilled bricks as drilled now (docs/protocol.md); an unknown session is refused by name."""
+    from dhg.bone.phantom import default_phantom
+    from dhg.view.feed import SessionFeed, fetch_volume
+
+    _, endpoint = server
+    with TraineeClient(endpoint, "bone-1") as c:
+        vol = fetch_volume(c._z)
+        local = default_phantom(0, 1e-3).volume  # the server's: the 1 mm phantom
+        assert np.array_equal(vol.labels, local.labels()) and np.allclose(vol.spacing_m, local.spacing_m)
+        assert np.allclose(vol.origin_m, local.origin_m) and np.allclose(vol.direction, local.direction)
+        feed = SessionFeed(c._z, "bone-1")
+        try:
+            a, d, q = _entry(c)
+            origins, material = feed.bricks()
+            assert origins.shape == (0, 3) and material.shape == (0, 8, 8, 8)  # nothing drilled yet
+            _stream(c, a + d * np.linspace(-2e-3, 6e-3, 1500)[:, None], q)
+            origins, material = feed.bricks()
+            assert len(origins) > 0 and origins.dtype == np.uint32 and material.dtype == np.uint16
+            assert np.all(origins % 8 == 0) and np.all(origins < np.array(vol.labels.shape[::-1]))
+            assert material.min() < 65535  # bone was cut in them
+            with pytest.raises(EngineError, match='no session "nobody"'):
+                SessionFeed(c._z, "nobody").bricks()
+        finally:
+            feed.close()
+
+
 def test_the_shared_server_stops_cleanly_after_serving_the_module(server):
     """Last in this module: the server every test above shared stops with exit 0 and says so."""
     stops_cleanly(server[0])
