@@ -50,6 +50,7 @@ def main() -> None:
         v["ratio"] = v["with"] / v["without"]
     summary["viewer_updates_per_s"] = statistics.median(r["updates_per_s"] for r in runs if r["viewer"])
     summary["server_cpu_per_viewer_cores"] = summary["cpu_cores"]["with"] - summary["cpu_cores"]["without"]
+    summary["viewer_cpu_cores"] = statistics.median(r["viewer_cpu_cores"] for r in runs if r["viewer"])
     print(json.dumps(summary), flush=True)
 
 
@@ -59,6 +60,7 @@ def _one(args: argparse.Namespace, with_viewer: bool) -> dict[str, Any]:
     viewer = None
     out: list[str] = []
     try:
+        viewer_cpu = 0.0
         if with_viewer:
             port = free_port()
             cmd = [sys.executable, "-m", "dhg.cli.main", "view", "--connect", endpoint, "--port", str(port)]
@@ -73,6 +75,7 @@ def _one(args: argparse.Namespace, with_viewer: bool) -> dict[str, Any]:
              "--server-pid", str(server.proc.pid)],
             capture_output=True, text=True, timeout=args.seconds + 120,
         )  # fmt: skip
+        viewer_cpu = _cpu_s(viewer.pid) / args.seconds if viewer is not None else 0.0
     finally:
         if viewer is not None:
             viewer.send_signal(signal.SIGINT)
@@ -88,7 +91,14 @@ def _one(args: argparse.Namespace, with_viewer: bool) -> dict[str, Any]:
         "p99_ms": load["pose_to_force_ms"]["p99"],
         "cpu_cores": load["server_cpu_cores"],
         "updates_per_s": max(rates) if rates else 0.0,
+        "viewer_cpu_cores": viewer_cpu,  # its start (meshing the bone) included
     }
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process so far (Linux ``/proc``)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _browse(instructor_url: str, seconds: float) -> None:

@@ -10,7 +10,6 @@ two ticks. Messages that cannot be true (NaN, infinite) are counted and never dr
 from __future__ import annotations
 
 import threading
-import time
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
@@ -156,13 +155,3 @@ class SessionFeed:
             except Exception:  # the session may already be closed
                 pass
         self._subs = []
-
-
-def wait_for(cond: Any, timeout_s: float) -> bool:
-    """Polls ``cond`` every 20 ms until it holds or ``timeout_s`` passes; returns whether it held."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return bool(cond())
