@@ -264,12 +264,16 @@ def test_the_viewer_works_in_lab_mode_with_a_station_or_an_instructor_identity(l
                 endpoint, port=free_port(), session_id="station-1", zenoh_config_file=conf["station-1"]
             )
             teacher_view = Viewer(endpoint, port=free_port(), zenoh_config_file=conf["teacher"])
+            drilling = threading.Thread(target=_stream, args=(s1, 8.0), daemon=True)
+            drilling.start()  # the session lives while its stylus streams
             try:
-                drilling = threading.Thread(target=_stream, args=(s1, 8.0), daemon=True)
-                drilling.start()  # the session lives while its stylus streams
                 page = station_view.pages["station-1"]
-                _wait(lambda: page.bone_updates > 0 and page.frames > 0, 30, "station-1's bone and drill")
-                assert page.feed.forces > 0 and page.feed.states > 0  # it hears its own forces and states
+                # It hears its own forces and states, asks its bone and draws its drill.
+                _wait(
+                    lambda: page.feed.forces > 0 and page.feed.states > 0 and page.bone_updates > 0 and page.frames > 0,
+                    30,
+                    "station-1's streams, bone and drill",
+                )
                 assert page.feed.xray("top").startswith(b"\x89PNG")
                 other = SessionFeed(station_view._z, "station-2")
                 try:
@@ -281,8 +285,8 @@ def test_the_viewer_works_in_lab_mode_with_a_station_or_an_instructor_identity(l
                 assert instructor is not None
                 _wait(lambda: {"station-1", "station-2"} <= set(instructor.sessions), 30, "both stations listed")
                 _wait(lambda: teacher_view.pages["station-1"].bone_updates > 0, 30, "the teacher's page of station-1")
-                drilling.join()
             finally:
+                drilling.join()  # before the clients close under it
                 station_view.close()
                 teacher_view.close()
     finally:
