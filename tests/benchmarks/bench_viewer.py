@@ -59,6 +59,7 @@ def _one(args: argparse.Namespace, with_viewer: bool) -> dict[str, Any]:
     server = ServerProcess(["--listen", endpoint, "--status-every", "30"], echo=False)
     viewer = None
     out: list[str] = []
+    done = threading.Event()
     try:
         viewer_cpu = 0.0
         if with_viewer:
@@ -69,7 +70,7 @@ def _one(args: argparse.Namespace, with_viewer: bool) -> dict[str, Any]:
             out.append(viewer.stdout.readline())  # ready
             threading.Thread(target=lambda: out.extend(viewer.stdout), daemon=True).start()
             if args.browser:
-                threading.Thread(target=_browse, args=(f"http://127.0.0.1:{port}", args.seconds), daemon=True).start()
+                threading.Thread(target=_browse, args=(f"http://127.0.0.1:{port}", done), daemon=True).start()
         r = subprocess.run(
             [args.load, "--connect", endpoint, "--clients", "1", "--seconds", str(args.seconds),
              "--server-pid", str(server.proc.pid)],
@@ -77,6 +78,7 @@ def _one(args: argparse.Namespace, with_viewer: bool) -> dict[str, Any]:
         )  # fmt: skip
         viewer_cpu = _cpu_s(viewer.pid) / args.seconds if viewer is not None else 0.0
     finally:
+        done.set()
         if viewer is not None:
             viewer.send_signal(signal.SIGINT)
             viewer.wait(timeout=30)
@@ -101,10 +103,8 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _browse(instructor_url: str, seconds: float) -> None:
-    """A headless Chromium on the load session's page for the run."""
-    import time
-
+def _browse(instructor_url: str, done: threading.Event) -> None:
+    """A headless Chromium on the load session's page until the run is ``done``."""
     from selenium.webdriver.common.by import By
 
     from dhg.view.browser import chromium, wait_for
@@ -113,7 +113,7 @@ def _browse(instructor_url: str, seconds: float) -> None:
         driver.get(instructor_url)
         link = wait_for(lambda: driver.find_element(By.CSS_SELECTOR, ".dhg-session a").get_attribute("href"), 60, "a")
         driver.get(link)
-        time.sleep(seconds)
+        done.wait()
 
 
 if __name__ == "__main__":

@@ -121,6 +121,5 @@ def screenshot_session(instructor_url: str, session_id: str, out: str | Path, ti
         driver.get(link)
         wait_for(lambda: drawn_canvas(driver), timeout_s, "the bone drawn")
         wait_for(lambda: driver.find_elements(By.ID, "dhg-removed"), timeout_s, "the numbers")
-        time.sleep(1.0)  # a last frame of the drill
         driver.save_screenshot(str(out))
     return out

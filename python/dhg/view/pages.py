@@ -53,18 +53,13 @@ def _png_array(png: bytes) -> np.ndarray:
         return np.asarray(im.convert("RGB"))
 
 
-def _quiet_viser() -> None:
-    # viser logs every connection at INFO through its own rich handler; a page keeps quiet.
-    logging.getLogger("viser").setLevel(logging.WARNING)
-
-
 def _viser_server(host: str, port: int, label: str) -> Any:
     """A viser server without the banner it prints on stdout (``dhg view`` prints the URL)."""
     import contextlib
 
     import viser
 
-    _quiet_viser()
+    logging.getLogger("viser").setLevel(logging.WARNING)  # it logs every connection at INFO
     with contextlib.redirect_stdout(io.StringIO()):
         return viser.ViserServer(host=host, port=port, label=label, verbose=False)
 
@@ -101,6 +96,13 @@ def _along(d: np.ndarray) -> tuple[float, float, float, float]:
     q = np.array([1.0 + d[2], -d[1], d[0], 0.0])  # 1 + z·d, z × d
     n = np.linalg.norm(q)
     return (0.0, 1.0, 0.0, 0.0) if n < 1e-9 else (float(q[0] / n), float(q[1] / n), float(q[2] / n), float(q[3] / n))
+
+
+def _add_whole_bone(server: Any, surfaces: LayerSurfaces, meshes: dict[str, Any]) -> None:
+    """Marches and shows every chunk (a page's start)."""
+    for chunk in surfaces.all_chunks():
+        for piece in surfaces.mesh(chunk):
+            _add_bone(server, surfaces, meshes, piece)
 
 
 def _look_at(client: Any, volume: VolumeData) -> None:
@@ -177,10 +179,7 @@ class TraineePage:
     # -- the scene -------------------------------------------------------------------------
     def _build_scene(self, volume: VolumeData) -> None:
         sc = self.server.scene
-        self._volume = volume
-        for chunk in self.surfaces.all_chunks():
-            for piece in self.surfaces.mesh(chunk):
-                self._show(piece)
+        _add_whole_bone(self.server, self.surfaces, self._meshes)
         self._drill = sc.add_frame("/drill", show_axes=False)
         self._burr = sc.add_icosphere("/drill/burr", radius=1.25, color=(90, 90, 100), subdivisions=2)
         self._shaft = sc.add_cylinder(
@@ -511,9 +510,7 @@ class InstructorPage:
             volume.labels, volume.spacing_m, volume.origin_m, volume.direction, step=display_step(volume.spacing_m)
         )
         self._meshes: dict[str, Any] = {}
-        for chunk in surfaces.all_chunks():
-            for piece in surfaces.mesh(chunk):
-                _add_bone(self.server, surfaces, self._meshes, piece)
+        _add_whole_bone(self.server, surfaces, self._meshes)
         self._tips: dict[str, Any] = {}
         self.server.on_client_connect(lambda client: _look_at(client, volume))
         self._stop = threading.Event()
