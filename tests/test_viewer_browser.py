@@ -88,6 +88,16 @@ def _do(what: str, action) -> object:
     return wait_for(once, 60, what)
 
 
+def _keep(driver, path: Path) -> None:
+    """Saves a screenshot of the page for people to look at. It asserts nothing, so a renderer
+    too busy to draw one in time (software WebGL on a loaded 2-core runner) costs the picture,
+    not the test: the miss is printed instead."""
+    try:
+        wait_for(lambda: driver.save_screenshot(str(path)), 30, f"the screenshot {path.name}")
+    except TimeoutError as exc:
+        print(f"no {path.name}: {exc}")
+
+
 def _number(driver, element_id: str) -> float:
     from selenium.webdriver.common.by import By
 
@@ -111,7 +121,7 @@ def test_the_trainee_page_draws_the_bone_follows_the_drill_and_shows_xrays(serve
             browser.get(viewer.url)
             start = wait_for(lambda: drawn_canvas(browser), 90, "the bone drawn on the canvas")
             wait_for(lambda: browser.find_elements(By.ID, "dhg-removed"), 60, "the numbers panel")
-            canvas_pixels(browser, shots / "trainee-before.png")
+            _do("the canvas before", lambda: canvas_pixels(browser, shots / "trainee-before.png"))
             removed_before = _number(browser, "dhg-removed")
             depth_before = _number(browser, "dhg-depth")
             assert depth_before < 0  # the tip is before A
@@ -122,11 +132,11 @@ def test_the_trainee_page_draws_the_bone_follows_the_drill_and_shows_xrays(serve
             wait_for(lambda: _number(browser, "dhg-removed") > removed_before + 1.0, 60, "the removed volume rising")
             wait_for(lambda: _number(browser, "dhg-depth") > depth_before + 5.0, 60, "the depth following the tip")
             wait_for(lambda: page.remeshed_chunks > 0, 60, "drilled chunks re-meshed")
-            after = canvas_pixels(browser, shots / "trainee-drilled.png")
+            after = _do("the canvas after", lambda: canvas_pixels(browser, shots / "trainee-drilled.png"))
             assert after.shape == start.shape
             assert np.mean(np.abs(after.astype(int) - start.astype(int)) > 30) > 1e-4  # the drill moved
             assert page.remeshed_chunks < len(page.surfaces.all_chunks())  # never the whole volume
-            _do("a screenshot", lambda: browser.save_screenshot(str(shots / "trainee-page.png")))
+            _keep(browser, shots / "trainee-page.png")
             # The X-ray buttons: each shows that view of the bone as drilled now.
             for view in ("top", "front", "side"):
                 _do(
@@ -147,7 +157,7 @@ def test_the_trainee_page_draws_the_bone_follows_the_drill_and_shows_xrays(serve
                     ),
                 )
                 assert any(w >= 50 and h >= 50 for w, h in sizes), sizes
-                _do("a screenshot", lambda v=view: browser.save_screenshot(str(shots / f"trainee-xray-{v}.png")))
+                _keep(browser, shots / f"trainee-xray-{view}.png")
             # A reset ends the attempt: its summary (the server's metrics and the plot) shows.
             c.control("reset")
             wait_for(
@@ -155,7 +165,7 @@ def test_the_trainee_page_draws_the_bone_follows_the_drill_and_shows_xrays(serve
                 60,
                 "the summary of the attempt",
             )
-            _do("a screenshot", lambda: browser.save_screenshot(str(shots / "trainee-summary.png")))
+            _keep(browser, shots / "trainee-summary.png")
             assert page.feed.invalid == 0 and page.bone_errors == 0
         finally:
             hand.stop()
@@ -195,7 +205,7 @@ def test_the_instructor_page_lists_the_class_and_opens_a_trainee(server, browser
                 60,
                 "class-2's live state",
             )
-            _do("a screenshot", lambda: browser.save_screenshot(str(shots / "instructor.png")))
+            _keep(browser, shots / "instructor.png")
             # One click opens a trainee's own page (a new tab).
             first = browser.current_window_handle
 
@@ -216,7 +226,7 @@ def test_the_instructor_page_lists_the_class_and_opens_a_trainee(server, browser
             assert browser.current_url.rstrip("/") == viewer.page_url("class-2")
             wait_for(lambda: drawn_canvas(browser), 90, "class-2's bone drawn")
             wait_for(lambda: "class-2" in browser.page_source, 30, "class-2's page")
-            _do("a screenshot", lambda: browser.save_screenshot(str(shots / "instructor-opened-class-2.png")))
+            _keep(browser, shots / "instructor-opened-class-2.png")
             browser.close()
             browser.switch_to.window(first)
         finally:

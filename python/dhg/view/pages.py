@@ -33,6 +33,13 @@ SCENE_MM_PER_M = 1000.0
 ARROW_MM_PER_N = 10.0
 """Force arrows: millimetres of arrow per newton."""
 
+REDRAW_TIP_M = 0.05e-3
+REDRAW_FORCE_N = 0.02
+"""The drill and its arrows are redrawn when the tip moved by ``REDRAW_TIP_M`` (a twentieth of the
+1 mm display voxel) or a force by ``REDRAW_FORCE_N`` (0.2 mm of arrow): a stylus held still in
+the bone, whose tip and forces creep by far less, sends about 3 updates a second instead of 31
+(docs/benchmarks.md "What the page costs the browser")."""
+
 SHAFT_LENGTH_M = 0.06
 SHAFT_RADIUS_M = 0.8e-3
 """The drawn drill shaft behind the burr (m): a 60 mm shank, 1.6 mm across."""
@@ -61,7 +68,15 @@ def _viser_server(host: str, port: int, label: str) -> Any:
 
     logging.getLogger("viser").setLevel(logging.WARNING)  # it logs every connection at INFO
     with contextlib.redirect_stdout(io.StringIO()):
-        return viser.ViserServer(host=host, port=port, label=label, verbose=False)
+        server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+    # viser lights a scene with an HDR environment map and shadow-casting lights by default. Drawn
+    # in software (SwiftShader: a lab PC without a GPU, the headless Chromium of the tests) the map
+    # alone kept Chromium's GPU process at 1.45 of 2 cores with one small mesh in view (0.09
+    # without it), and shadows tripled the cost of each frame of an 80k-triangle mesh (0.49 ->
+    # 0.15 cores): docs/benchmarks.md "The live view". Plain lights without shadows show the bone.
+    server.scene.configure_environment_map(None)
+    server.scene.configure_default_lights(True, cast_shadow=False)
+    return server
 
 
 def _stop_quietly(server: Any) -> None:
@@ -87,6 +102,8 @@ def _add_bone(server: Any, surfaces: LayerSurfaces, meshes: dict[str, Any], piec
         color=s.color,
         opacity=None if s.opacity >= 1.0 else s.opacity,
         side="double" if s.opacity < 1.0 else "front",
+        cast_shadow=False,
+        receive_shadow=False,
     )
 
 
@@ -374,16 +391,17 @@ class TraineePage:
             self._stop.wait(max(0.0, next_t - time.monotonic()))
 
     def _frame(self, k: int) -> None:
-        """One frame: the drill and arrows when the tip, pose or forces changed (a still stylus
-        costs the browser no redraw), the numbers at 10 Hz and the plots at 2 Hz when they changed."""
+        """One frame: the drill and arrows when the tip, pose or forces changed by what a person
+        can see (:data:`REDRAW_TIP_M`, :data:`REDRAW_FORCE_N`; a still stylus costs no redraw),
+        the numbers at 10 Hz and the plots at 2 Hz when they changed."""
         snap = self.feed.snapshot()
         f, pose = snap["force"], snap["pose"]
         if f is not None:
             key = (
-                tuple(f["tip_m"]),
-                tuple(f["force_n"]),
-                tuple(f["guidance_n"]),
-                pose and tuple(pose["orientation_wxyz"]),
+                tuple(np.round(np.asarray(f["tip_m"]) / REDRAW_TIP_M).astype(int)),
+                tuple(np.round(np.asarray(f["force_n"]) / REDRAW_FORCE_N).astype(int)),
+                tuple(np.round(np.asarray(f["guidance_n"]) / REDRAW_FORCE_N).astype(int)),
+                pose and tuple(np.round(np.asarray(pose["orientation_wxyz"]), 3)),
             )
             if key != self._drawn:
                 self._draw_drill(f, pose)
