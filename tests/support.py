@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 
@@ -136,3 +137,43 @@ def stops_cleanly(proc: ServerProcess) -> None:
     assert proc.proc.poll() is None, f"the shared server died: {proc.lines[-5:]}"
     assert proc.stop() == 0, proc.lines[-5:]
     wait_until(lambda: proc.lines and "dhg-serve stopped" in proc.lines[-1], 10.0, "dhg-serve's last line")
+
+
+class Stylus:
+    """A virtual trainee's hand: streams poses at 1 kHz along ``positions`` (m), then holds the
+    last one (a stylus held still keeps its session alive) until :meth:`stop`."""
+
+    def __init__(self, client: TraineeClient, q: tuple) -> None:
+        self.client, self.q = client, q
+        self._path: list[np.ndarray] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self.sent = 0
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def move(self, positions: np.ndarray) -> None:
+        with self._lock:
+            self._path.extend(positions)
+
+    def idle(self) -> bool:
+        with self._lock:
+            return not self._path
+
+    def _run(self) -> None:
+        last = None
+        t0 = time.monotonic_ns()
+        while not self._stop.is_set():
+            with self._lock:
+                p = self._path.pop(0) if self._path else last
+            if p is not None:
+                self.client.send_pose(p, self.q, True, 1250.0)
+                last = p
+            self.sent += 1
+            pause = t0 + self.sent * 1_000_000 - time.monotonic_ns()
+            if pause > 0:
+                time.sleep(pause * 1e-9)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)

@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import os
 import re
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -20,7 +18,7 @@ from dhg.live.client import TraineeClient
 from dhg.live.demo import free_port
 from dhg.view import Viewer
 from dhg.view.browser import canvas_pixels, chromium, drawn_canvas, wait_for
-from support import entry, stops_cleanly
+from support import Stylus, entry, stops_cleanly
 
 SHOTS = Path(os.environ.get("DHG_SCREENSHOTS", Path(__file__).resolve().parents[1] / "out" / "test-screenshots"))
 
@@ -35,46 +33,6 @@ def browser() -> Iterator[object]:
 def shots() -> Path:
     SHOTS.mkdir(parents=True, exist_ok=True)
     return SHOTS
-
-
-class Stylus:
-    """A virtual trainee's hand: streams poses at 1 kHz along ``positions`` (m), then holds the
-    last one (a stylus held still keeps its session alive) until :meth:`stop`."""
-
-    def __init__(self, client: TraineeClient, q: tuple) -> None:
-        self.client, self.q = client, q
-        self._path: list[np.ndarray] = []
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self.sent = 0
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def move(self, positions: np.ndarray) -> None:
-        with self._lock:
-            self._path.extend(positions)
-
-    def idle(self) -> bool:
-        with self._lock:
-            return not self._path
-
-    def _run(self) -> None:
-        last = None
-        t0 = time.monotonic_ns()
-        while not self._stop.is_set():
-            with self._lock:
-                p = self._path.pop(0) if self._path else last
-            if p is not None:
-                self.client.send_pose(p, self.q, True, 1250.0)
-                last = p
-            self.sent += 1
-            pause = t0 + self.sent * 1_000_000 - time.monotonic_ns()
-            if pause > 0:
-                time.sleep(pause * 1e-9)
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
 
 
 def _do(what: str, action) -> object:

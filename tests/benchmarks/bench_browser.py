@@ -18,7 +18,6 @@ import argparse
 import os
 import statistics
 import sys
-import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -32,7 +31,7 @@ from dhg.live.client import TraineeClient  # noqa: E402
 from dhg.live.demo import free_port  # noqa: E402
 from dhg.view import Viewer, pages  # noqa: E402
 from dhg.view.browser import chromium, drawn_canvas, wait_for  # noqa: E402
-from support import entry, serve  # noqa: E402
+from support import Stylus, entry, serve  # noqa: E402
 
 COUNT_DRAWS = """
 window.__dhgDraws = 0;
@@ -79,44 +78,13 @@ def viser_defaults():
         pages._viser_server = original
 
 
-class Hand:
-    """Streams poses at 1 kHz along a queue of positions, holding the last one."""
-
-    def __init__(self, client: TraineeClient, q: tuple) -> None:
-        self.client, self.q, self.path, self.stop = client, q, [], threading.Event()
-        self.lock = threading.Lock()
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def move(self, positions: np.ndarray) -> None:
-        with self.lock:
-            self.path.extend(positions)
-
-    def idle(self) -> bool:
-        with self.lock:
-            return not self.path
-
-    def _run(self) -> None:
-        last, k, t0 = None, 0, time.monotonic_ns()
-        while not self.stop.is_set():
-            with self.lock:
-                p = self.path.pop(0) if self.path else last
-            if p is not None:
-                self.client.send_pose(p, self.q, True, 1250.0)
-                last = p
-            k += 1
-            pause = t0 + k * 1_000_000 - time.monotonic_ns()
-            if pause > 0:
-                time.sleep(pause * 1e-9)
-
-
 def one_run(variant: str, hold_s: float) -> list[dict[str, Any]]:
     proc, endpoint = serve("--idle-timeout", "2.0")
     rows = []
     try:
         with TraineeClient(endpoint, "bench-1") as c, chromium() as browser:
             a, d, q = entry(c)
-            hand = Hand(c, q)
+            hand = Stylus(c, q)
             viewer = Viewer(endpoint, port=free_port(), session_id="bench-1")
             try:
                 hand.move(np.array([a - d * 3e-3]))
@@ -159,8 +127,7 @@ def one_run(variant: str, hold_s: float) -> list[dict[str, Any]]:
                     )
                     rows.append(row)
             finally:
-                hand.stop.set()
-                hand.thread.join(timeout=5)
+                hand.stop()
                 viewer.close()
     finally:
         proc.stop()
