@@ -14,7 +14,7 @@ export RUSTFLAGS="--cfg fuzzing -Cpasses=sancov-module -Cllvm-args=-sanitizer-co
 # An explicit --target keeps RUSTFLAGS off the build scripts and proc macros (as cargo-fuzz does).
 host=$(rustc -vV | sed -n 's/^host: //p')
 cargo build --release --locked --bins -q --target "$host"
-for target in decode_pose decode_prediction control; do
+for target in decode_pose decode_prediction decode_ticks control; do
   found=$(mktemp -d)
   echo ">> fuzz $target for ${each} s"
   log="$found.log"

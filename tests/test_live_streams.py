@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dhg.data.dataset import DatasetError, EpisodeInput, load_dataset, load_raw, write_dataset
-from dhg.live.streams import RAW_COLUMNS, EpisodeSplitter, PoseLog, RawParts, RecordingEpisode, force_jerk
+from dhg.live.streams import RAW_COLUMNS, EpisodeSplitter, RawParts, RecordingEpisode, force_jerk
 
 
 def _ids(split: EpisodeSplitter, stream: str, ticks: list[int]) -> list[int]:
@@ -46,23 +46,6 @@ def test_a_late_state_of_an_episode_stays_with_it_even_past_a_few_dropped_forces
     _ids(s, "state", [99])
     assert _ids(s, "force", [0]) == [1]
     assert _ids(s, "state", [199]) == [0]  # 15 ticks past the last force: still episode 0
-
-
-def test_pose_log_pairs_forces_and_tells_lost_from_in_flight():
-    log = PoseLog()
-    for seq in (1, 2, 4):
-        log.add(seq, (float(seq),))
-    assert log.get(2) == (2.0,) and log.get(3) is None
-    assert not log.in_flight(3)  # newer poses came: 3 is lost
-    assert log.in_flight(5)
-    log.forget_below(4)
-    assert log.get(2) is None and log.get(4) == (4.0,) and len(log) == 1
-    log.add(1, (9.0,))  # a restarted client numbers from 1 again
-    assert log.get(1) == (9.0,) and log.get(4) is None
-    small = PoseLog(capacity=3)
-    for seq in range(1, 6):
-        small.add(seq, (float(seq),))
-    assert len(small) == 3 and small.get(2) is None and small.get(3) == (3.0,)
 
 
 def _rows(ticks: np.ndarray, force: np.ndarray) -> np.ndarray:
@@ -208,19 +191,61 @@ class _NoServer:
         raise ConnectionError("no server in this test")
 
 
-def test_a_force_whose_pose_comes_after_the_flush_is_still_written_by_the_final_one(tmp_path):
+def _ticks(first_tick: int, n: int, pose_seq: int = 5, fz: float = 1.5) -> bytes:
+    """A ``ticks`` batch as the server sends it (rows built from the layout, not from the decoder)."""
+    from dhg.core import protocol
+
+    rows = np.zeros(n, dtype=protocol.TICK_ROW)
+    rows["tick"] = np.arange(first_tick, first_tick + n)
+    rows["pose_seq"] = pose_seq
+    rows["flags"] = protocol.FLAGS["drill_on"]
+    rows["position_m"] = [0.01, 0.02, 0.03]
+    rows["orientation_wxyz"] = [1.0, 0.0, 0.0, 0.0]
+    rows["spindle_rpm"] = 1250.0
+    rows["force_n"] = [0.0, 0.0, fz]
+    head = protocol.encode("ticks", rows=n, first_tick=first_tick)
+    return head + rows.tobytes()
+
+
+def test_ticks_before_their_episodes_first_record_wait_for_it_and_a_reset_splits_a_batch(tmp_path):
     from dhg.core import protocol
     from dhg.live.recorder import SessionRecorder
 
     rec = SessionRecorder((), "s1", tmp_path / "rec", raw=True, zenoh_session=_NoServer())
+    rec.on_sample("ticks", _Sample(_ticks(1, 100)))  # ticks 0..99, before the first record
+    rec.flush()
+    assert load_raw(tmp_path / "rec") is None  # no record yet: the rows wait for it
     state = protocol.encode("state", record_seq=1, time_s=0.1, features=[0.0] * 8 + [37.0])
     rec.on_sample("state", _Sample(state))
-    rec.on_sample("force", _Sample(protocol.encode("force", pose_seq=5, tick=100, force_n=[0.0, 0.0, 1.5])))
-    assert rec.flush()  # the record is written; the force waits for pose 5, still in flight
-    assert load_raw(tmp_path / "rec") is None and len(load_dataset(tmp_path / "rec").episodes) == 1
-    pose = protocol.encode_pose(5, 0, [0.01, 0.02, 0.03], [1.0, 0.0, 0.0, 0.0], True, 1250.0)
-    rec.on_sample("pose", _Sample(pose))
-    assert rec.flush(final=True)
+    assert rec.flush()
     raw = load_raw(tmp_path / "rec")
-    assert raw.column("tick").to_pylist() == [99] and raw.column("x_m").to_pylist() == [0.01]
-    assert raw.column("force_z_n").to_pylist() == [1.5] and rec.raw_ticks_without_pose == 0
+    assert raw.column("tick").to_pylist() == list(range(100)) and raw.column("x_m").to_pylist()[0] == 0.01
+    assert raw.column("force_z_n").to_pylist() == [1.5] * 100 and raw.column("drill_on").to_pylist()[0] == 1.0
+    # a reset in the middle of a batch: ticks 101..150, then 1..50 of the next attempt
+    batch = _ticks(101, 50)
+    second = _ticks(1, 50, fz=2.5)
+    head = protocol.encode("ticks", rows=100, first_tick=101)
+    rec.on_sample("ticks", _Sample(head + batch[24:] + second[24:]))
+    rec.on_sample("state", _Sample(protocol.encode("state", record_seq=1, time_s=0.05, features=[0.0] * 8 + [37.0])))
+    assert rec.flush(final=True)
+    ds = load_dataset(tmp_path / "rec")
+    raw = load_raw(tmp_path / "rec")
+    ids, ticks = raw.column("episode_id").to_numpy(), raw.column("tick").to_numpy()
+    assert len(ds.episodes) == 2 and list(ticks[ids == 1]) == list(range(50))
+    assert set(raw.column("force_z_n").to_numpy()[ids == 1]) == {2.5}
+    assert rec.decode_errors == 0 and ds.card["generator"]["raw"]["lost_batches"] == 0
+
+
+def test_a_bad_ticks_batch_is_counted_and_left_out(tmp_path):
+    from dhg.core import protocol
+    from dhg.live.recorder import SessionRecorder
+
+    rec = SessionRecorder((), "s1", tmp_path / "rec", raw=True, zenoh_session=_NoServer())
+    good = _ticks(1, 10)
+    nan = bytearray(good)
+    nan[24 + 16 : 24 + 24] = np.float64(np.nan).tobytes()  # row 0's x
+    for bad in (good[:-1], bytes(nan), good[:1] + b"\x09" + good[2:]):
+        rec.on_sample("ticks", _Sample(bytes(bad)))
+    with pytest.raises(ValueError, match="NaN or infinite position_m"):
+        protocol.decode_ticks(bytes(nan))
+    assert rec.decode_errors == 3 and not rec._split.episodes

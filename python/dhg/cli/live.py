@@ -359,8 +359,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
     print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}{_left_out(rec)}")
     if args.raw:
         print(
-            f"  1 kHz stream: {rec.raw_rows} ticks; {rec.raw_ticks_without_pose} without their pose (lost in "
-            f"transport), {rec.raw_rows_without_records} in attempts too short for a record"
+            f"  1 kHz stream: {rec.raw_rows} ticks; {rec.lost_tick_batches} batches of 100 lost in transport "
+            f"(not recoverable), {rec.raw_rows_without_records} in attempts too short for a record"
         )
     return EXIT_OK
 
@@ -378,6 +378,9 @@ def _left_out(rec: Any) -> str:
         else "",
         f"{n('flush_errors')} failed flushes (last: {rec.last_flush_error})" if n("flush_errors") else "",
         f"{n('lost_states')} states lost in transport (not recoverable)" if n("lost_states") else "",
+        f"{n('lost_tick_batches')} batches of ticks lost in transport (not recoverable)"
+        if n("lost_tick_batches")
+        else "",
     ]
     return "".join(f"; {p}" for p in parts if p)
 

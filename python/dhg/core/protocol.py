@@ -24,11 +24,14 @@ __all__ = [
     "FLAGS",
     "LAYOUTS",
     "MAX_PAYLOAD_BYTES",
+    "MAX_TICK_ROWS",
     "VERSION",
     "WINDOW_RECORDS",
     "Layout",
+    "TICK_ROW",
     "decode",
     "decode_predict",
+    "decode_ticks",
     "encode",
     "encode_pose",
     "encode_prediction",
@@ -67,6 +70,18 @@ LAYOUTS: dict[str, Layout] = {
     for name, d in _bone_sim.protocol_layouts().items()
 }
 _STRUCTS = {name: layout.struct for name, layout in LAYOUTS.items()}
+_DTYPES = {"u8": "<u1", "u16": "<u2", "u32": "<u4", "u64": "<u8", "f32": "<f4", "f64": "<f8"}
+_ROW = LAYOUTS["tick_row"]
+TICK_ROW: np.dtype = np.dtype(
+    {
+        "names": [name for name, *_ in _ROW.fields],
+        "formats": [_DTYPES[ty] if n == 1 else (_DTYPES[ty], (n,)) for _, ty, _, n, _ in _ROW.fields],
+        "offsets": [offset for _, _, offset, _, _ in _ROW.fields],
+        "itemsize": _ROW.size,
+    }
+)
+"""The numpy dtype of one row of a ``ticks`` batch (layout ``tick_row``)."""
+MAX_TICK_ROWS: int = _bone_sim.MAX_TICK_ROWS
 
 
 def check_session_id(session_id: str) -> str:
@@ -83,7 +98,9 @@ def check_session_id(session_id: str) -> str:
 def keys(prefix: str, session_id: str) -> dict[str, str]:
     """The key expressions of one session under ``prefix`` (see ``docs/protocol.md``)."""
     base = f"{prefix}/session/{session_id}"
-    return {leaf: f"{base}/{leaf}" for leaf in ("pose", "force", "guidance", "state", "control", "metrics", "xray")} | {
+    return {
+        leaf: f"{base}/{leaf}" for leaf in ("pose", "force", "guidance", "state", "ticks", "control", "metrics", "xray")
+    } | {
         "health": f"{prefix}/server/health",
         "predict": f"{prefix}/model/predict",
     }
@@ -166,6 +183,26 @@ def decode_predict(payload: bytes) -> tuple[int, npt.NDArray[np.float32]]:
         raise InvalidInputError(f"predict payload has {len(payload)} bytes for a {rows}x{cols} window")
     window = np.frombuffer(payload, dtype="<f4", offset=start, count=rows * cols).reshape(rows, cols)
     return int(head["window_seq"]), window
+
+
+def decode_ticks(payload: bytes) -> npt.NDArray[np.void]:
+    """A ``ticks`` batch → its rows (a structured array of :data:`TICK_ROW`, oldest first).
+
+    Raises :class:`InvalidInputError` on a wrong kind, version or size, more than
+    ``MAX_TICK_ROWS`` rows, or a NaN or infinite value.
+    """
+    fixed = LAYOUTS["ticks"].size
+    if len(payload) > fixed + MAX_TICK_ROWS * _ROW.size:
+        raise InvalidInputError(f"ticks payload has {len(payload)} bytes, over {MAX_TICK_ROWS} rows")
+    head = decode("ticks", payload[:fixed])
+    rows = head["rows"]
+    if len(payload) != fixed + rows * _ROW.size:
+        raise InvalidInputError(f"ticks payload has {len(payload)} bytes for {rows} rows of {_ROW.size}")
+    out = np.frombuffer(payload, dtype=TICK_ROW, offset=fixed, count=rows)
+    for name in ("position_m", "orientation_wxyz", "spindle_rpm", "force_n", "guidance_n"):
+        if not np.isfinite(out[name]).all():
+            raise InvalidInputError(f"ticks payload has a NaN or infinite {name}")
+    return out
 
 
 def encode_prediction(window_seq: int, force_n: npt.ArrayLike, inference_s: float, model_id: str) -> bytes:

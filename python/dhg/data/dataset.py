@@ -450,7 +450,7 @@ def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Da
             )
     cols = table.to_pydict()
     ids = np.asarray(cols["episode_id"], dtype=np.int64)
-    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]]) if len(ids) else np.empty(0, int)
     if len(np.unique(ids)) != len(starts):
         raise _fail(rec_path, "episodes are interleaved: an episode's rows must be contiguous")
     times = np.asarray(cols["time_s"], dtype=np.float64)

@@ -19,7 +19,7 @@ a Zenoh configuration that
     ``<prefix>/model/predict``, and nothing else;
   - the **server** identity (its own model and X-ray services, which connect to its engine over
     loopback) does the same as worker ``dhg-server`` and serves X-rays;
-  - nobody but the engine publishes a force, guidance or state: no client rule allows it.
+  - nobody but the engine publishes a force, guidance, state or ticks: no client rule allows it.
 
 The lab file (TOML)::
 
@@ -72,7 +72,7 @@ __all__ = ["Identity", "Lab", "acl", "load_lab", "make_certs", "write_lab"]
 ROLES = ("station", "instructor", "model_worker")
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,47}")
 SERVER_IDENTITY = "dhg-server"
-_HEARD = ("force", "guidance", "state", "guidance/**", "state/**")
+_HEARD = ("force", "guidance", "state", "ticks", "guidance/**", "state/**", "ticks/**")
 """A station's own streams it may subscribe to."""
 """The user name of the server's own services (model, X-rays) when they connect to its engine."""
 
@@ -209,7 +209,7 @@ def acl(lab: Lab) -> dict[str, Any]:
                 f"{n}:recover",
                 ["query"],
                 ["ingress"],
-                [f"{s}/{leaf}/**" for s in own for leaf in ("guidance", "state")],
+                [f"{s}/{leaf}/**" for s in own for leaf in ("guidance", "state", "ticks")],
             ),
         )
     instructors = [i.name for i in lab.of("instructor")]

@@ -3,8 +3,9 @@
 The recorder subscribes to one session's 10 Hz state stream (the nine features, drill status,
 temperatures), so it records whoever drives the session, a person at a haptic device or a
 virtual trainee, without touching the session itself. With ``raw`` it also keeps the 1 kHz
-stream (``raw.parquet``): it subscribes to the client's poses and the server's forces and pairs
-each force with the pose its tick used. Every ``flush_every_s`` it rewrites the dataset folder
+stream (``raw.parquet``) from the server's ``ticks`` batches: ten a second, each with every
+tick's pose, force and guidance share, which a recorder behind a congested link recovers from
+the server's cache as it does the states. Every ``flush_every_s`` it rewrites the dataset folder
 atomically (:func:`dhg.data.dataset.write_dataset`): a stop at any moment (Ctrl-C, the server or the
 recorder crashing) leaves the last complete flush on disk, at most one flush old. The 1 kHz
 stream is written in parts of 10 s that later flushes hard-link instead of rewriting, and
@@ -26,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from dhg.core import protocol
 from dhg.core.features import FEATURE_NAMES
@@ -34,7 +36,7 @@ from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.skill import skill_metrics
 from dhg.data.dataset import EpisodeInput, write_dataset
 from dhg.data.synth import attempt_score
-from dhg.live.streams import EpisodeSplitter, PoseLog, RawParts, RecordingEpisode, force_jerk
+from dhg.live.streams import EpisodeSplitter, RawParts, RecordingEpisode, force_jerk
 from dhg.live.trainee import state_records
 
 __all__ = ["AllSessionsRecorder", "SessionRecorder"]
@@ -49,18 +51,18 @@ PENDING_IDS = 64
 """:class:`AllSessionsRecorder`: unconfirmed session ids held at once, awaiting the server's word."""
 PENDING_PER_ID = 600
 """Messages held per unconfirmed id (a minute of 10 Hz states): older ones make way."""
-PENDING_PER_ID_RAW = 12_000
-"""The same with ``raw``: six seconds of a session's 1 kHz pose and force streams and its
-states, so a server slow to confirm a new session (a loaded machine) costs none of its start."""
+PENDING_PER_ID_RAW = 1200
+"""The same with ``raw``: a minute of a session's states and ``ticks`` batches, so a server slow
+to confirm a new session (a loaded machine) costs none of its start."""
 PENDING_TOTAL = 100_000
 """Messages held over all unconfirmed ids at once: a flood of fake ids cannot grow the memory
 past this; a message that does not fit is counted in ``unconfirmed_messages``."""
 
 
 def recorded_subscriber(z: Any, key: str, callback: Callable[[Any], None], on_miss: Callable[[int], None]) -> Any:
-    """A subscriber to a recorded stream (state, guidance) that does not lose samples to a
+    """A subscriber to a recorded stream (state, guidance, ticks) that does not lose samples to a
     congested link: the server's publishers drop rather than block (so no subscriber can stall
-    a session), keep the last 60 s, and announce their sequence numbers; this subscriber (a
+    a session), keep the last 60 s (10 s of ticks), and announce their sequence numbers; this subscriber (a
     zenoh-ext advanced subscriber) asks for what it missed, and for the history of a session
     it joins late. ``on_miss(n)`` hears of samples it could not recover."""
     import zenoh.ext as zx
@@ -169,10 +171,8 @@ class SessionRecorder(_FlushLoop):
         self._lock = threading.Lock()
         self._flush_lock = threading.Lock()
         self._split = EpisodeSplitter()
-        self._poses = PoseLog()
         self._parts = RawParts(raw_part_rows) if raw else None
         self._next_id = 0
-        self._paired_seq = -1
         self._dirty = False
         self._finished = False
         self.flushes = 0
@@ -180,8 +180,9 @@ class SessionRecorder(_FlushLoop):
         self.invalid_messages = 0
         """Messages that decoded but cannot be true (a NaN or infinite value, a clock before 0 or
         past :data:`MAX_SESSION_TIME_S`): counted and left out, never a reason to stop."""
-        self.raw_ticks_without_pose = 0
-        """Forces whose pose never reached the recorder (dropped in transport): no raw row."""
+        self.lost_tick_batches = 0
+        """``ticks`` batches (100 ticks each) the server published that never reached the
+        recorder, even after recovery."""
         self.raw_rows_without_records = 0
         """Raw rows of an attempt too short for a record (no 10 Hz state): left out."""
         self.path: PlannedPath | None = None
@@ -191,18 +192,21 @@ class SessionRecorder(_FlushLoop):
         if self._owns_zenoh:
             self._subs.extend(recorded_subscriber(self._z, self.keys["state"], self._on_state, self._lost))
             if raw:
-                self._subs.append(self._z.declare_subscriber(self.keys["pose"], self._on_pose))
-                self._subs.append(self._z.declare_subscriber(self.keys["force"], self._on_force))
+                self._subs.extend(recorded_subscriber(self._z, self.keys["ticks"], self._on_ticks, self._lost_ticks))
 
     def _lost(self, n: int) -> None:
         self.lost_states += n
 
+    def _lost_ticks(self, n: int) -> None:
+        self.lost_tick_batches += n
+
     def on_sample(self, leaf: str, sample: Any) -> None:
-        """Feeds one sample of this session's ``state``, ``pose`` or ``force`` key (for an owner
-        that subscribes for many sessions); other leaves are ignored."""
-        handler = {"state": self._on_state, "pose": self._on_pose, "force": self._on_force}.get(leaf)
-        if handler is not None and (leaf == "state" or self._parts is not None):
-            handler(sample)
+        """Feeds one sample of this session's ``state`` or ``ticks`` key (for an owner that
+        subscribes for many sessions); other leaves are ignored."""
+        if leaf == "state":
+            self._on_state(sample)
+        elif leaf == "ticks" and self._parts is not None:
+            self._on_ticks(sample)
 
     def _decode(self, name: str, sample: Any) -> dict[str, Any] | None:
         try:
@@ -227,25 +231,37 @@ class SessionRecorder(_FlushLoop):
                 ep.episode_id, self._next_id = self._next_id, self._next_id + 1
             self._dirty = True
 
-    def _on_pose(self, sample: Any) -> None:
-        m = self._decode("pose", sample)
-        if m is None:
+    def _on_ticks(self, sample: Any) -> None:
+        try:
+            t = protocol.decode_ticks(sample.payload.to_bytes())
+        except ValueError:  # a wrong size or kind, or a NaN or infinite value
+            self.decode_errors += 1
             return
-        row = (*m["position_m"], *m["orientation_wxyz"], 1.0 if m["flags"] & _DRILL_ON else 0.0, m["spindle_rpm"])
-        with self._lock:
-            self._poses.add(m["seq"], row)
-
-    def _on_force(self, sample: Any) -> None:
-        m = self._decode("force", sample)
-        if m is None or m["tick"] < 1:
+        t = t[t["tick"] >= 1]
+        if len(t) == 0:
             return
-        tick = m["tick"] - 1
+        ticks = t["tick"].astype(np.int64) - 1  # the step the force ended (see dhg.live.streams)
+        rows = np.column_stack(
+            [
+                ticks,
+                t["position_m"],
+                t["orientation_wxyz"],
+                (t["flags"] & _DRILL_ON) != 0,
+                t["spindle_rpm"],
+                t["force_n"],
+                t["guidance_n"],
+            ]
+        ).astype(np.float64)
+        drilled = t["pose_seq"] != 0  # before the session's first pose nothing was drilled
+        starts = [0, *(np.flatnonzero(np.diff(ticks) <= 0) + 1)]  # a reset restarts the clock
         with self._lock:
-            ep = self._split.place("force", tick)
-            if m["pose_seq"] == 0:
-                return  # the session has not had a pose yet: nothing was drilled
-            ep.rows.append((tick, m["pose_seq"], *m["force_n"], *m["guidance_n"]))
-            self._dirty = True
+            for a, b in zip(starts, [*starts[1:], len(ticks)], strict=True):
+                ep = self._split.place("force", int(ticks[a]))
+                ep.last["force"] = max(ep.last["force"], int(ticks[b - 1]))
+                keep = rows[a:b][drilled[a:b]]
+                if len(keep):
+                    ep.rows.append(keep)
+                    self._dirty = True
 
     @property
     def records(self) -> int:
@@ -276,43 +292,25 @@ class SessionRecorder(_FlushLoop):
     ) -> tuple[list[tuple[RecordingEpisode, list[dict[str, Any]]]], list[tuple[RecordingEpisode, list]]]:
         """Under the lock: the episodes with records (and a copy of them), and the raw rows now
         ready to write. Rows of an episode the states passed by without a record are dropped;
-        an episode still waiting for its first record holds back its rows and every later one's."""
+        an episode still waiting for its first record holds back its rows and every later one's
+        (written by the next flush that has its record)."""
         state_at = self._split.at("state")
-        ready: list[tuple[RecordingEpisode, list]] = []
+        ready: list[tuple[RecordingEpisode, npt.NDArray[np.float64]]] = []
+        waiting = False
         for i, ep in enumerate(self._split.episodes):
             if ep.episode_id is None:
                 if i < state_at or final:
-                    self.raw_rows_without_records += len(ep.rows)
+                    self.raw_rows_without_records += sum(len(r) for r in ep.rows)
                     ep.rows = []
                     continue
+                waiting = any(e.rows for e in self._split.episodes[i:])
                 break
             if ep.rows:
-                rows, ep.rows = self._pair(ep.rows, final)
-                if rows:
-                    ready.append((ep, rows))
-                if ep.rows:
-                    break  # these wait for poses in flight, and so do later episodes' rows
-        waiting = next((ep.rows[0][1] for ep in self._split.episodes if ep.rows), None)
-        self._poses.forget_below(waiting if waiting is not None else self._paired_seq)
-        self._dirty = waiting is not None  # rows held back are written by the next flush, even a final one
+                ready.append((ep, np.concatenate(ep.rows)))
+                ep.rows = []
+        self._dirty = waiting
         episodes = [(ep, list(ep.records)) for ep in self._split.episodes if ep.episode_id is not None]
         return episodes, ready
-
-    def _pair(self, rows: list[tuple[Any, ...]], final: bool) -> tuple[list[tuple[float, ...]], list[tuple[Any, ...]]]:
-        """Pairs forces with their poses: (raw rows, forces still waiting for a pose in flight).
-        A force whose pose was lost (older than the newest pose received) is counted and left
-        out."""
-        out: list[tuple[float, ...]] = []
-        for k, (tick, seq, *forces) in enumerate(rows):
-            pose = self._poses.get(seq)
-            if pose is None:
-                if not final and self._poses.in_flight(seq):
-                    return out, rows[k:]
-                self.raw_ticks_without_pose += 1
-                continue
-            out.append((tick, *pose, *forces))
-            self._paired_seq = seq  # later ticks use this pose or newer ones
-        return out, []
 
     def flush(self, final: bool = False) -> bool:
         """Writes everything received so far (atomically) if anything new arrived; returns whether
@@ -326,8 +324,7 @@ class SessionRecorder(_FlushLoop):
                 self._dirty = False
                 episodes, ready = self._take(final)
             if self._parts is not None:
-                for ep, rows in ready:
-                    arr = np.array(rows, dtype=np.float64)
+                for ep, arr in ready:
                     force_jerk(ep, arr)
                     assert ep.episode_id is not None
                     self._parts.add(ep.episode_id, arr)
@@ -380,7 +377,7 @@ class SessionRecorder(_FlushLoop):
             parts = self._parts.joined(self.out_dir) if final else self._parts.parts()
             card["generator"]["raw"] = {
                 "rows": self._parts.rows,
-                "ticks_without_pose": self.raw_ticks_without_pose,
+                "lost_batches": self.lost_tick_batches,
                 "rows_without_records": self.raw_rows_without_records,
             }
         if self.path is not None:
@@ -462,13 +459,17 @@ class AllSessionsRecorder(_FlushLoop):
         self._stop = threading.Event()
         self._confirmer = threading.Thread(target=self._confirm_loop, args=(confirm_every_s,), daemon=True)
         self._confirmer.start()
+        self.lost_tick_batches = 0
+        """``ticks`` batches that never reached the recorder, even after recovery."""
         self.lost_states = 0
         """States the server published that never reached the recorder, even after recovery."""
         self._subs: list[Any] = list(
             recorded_subscriber(self._z, f"{prefix}/session/*/state", self._on_sample, self._lost)
         )
-        for leaf in ("pose", "force") if raw else ():
-            self._subs.append(self._z.declare_subscriber(f"{prefix}/session/*/{leaf}", self._on_sample))
+        if raw:
+            self._subs.extend(
+                recorded_subscriber(self._z, f"{prefix}/session/*/ticks", self._on_sample, self._lost_ticks)
+            )
 
     def _on_sample(self, sample: Any) -> None:
         key = str(sample.key_expr)
@@ -511,6 +512,9 @@ class AllSessionsRecorder(_FlushLoop):
 
     def _lost(self, n: int) -> None:
         self.lost_states += n
+
+    def _lost_ticks(self, n: int) -> None:
+        self.lost_tick_batches += n
 
     def _remember_refused(self, session_id: str) -> None:
         if len(self._refused) >= 10_000:  # bounded: a flood of fresh ids only costs a lookup each

@@ -1,10 +1,10 @@
 """A live session's streams as the recorder hears them (``dhg record``).
 
 A session reaches the recorder as two Zenoh streams, each in order but not in step with the other:
-the 1 kHz forces (each with its tick and the pose it used) and the 10 Hz states (the records).
-Resetting the session's bone restarts both clocks, which starts a new episode (attempt).
-:class:`EpisodeSplitter` puts both streams into the same episodes. :class:`PoseLog` pairs each
-force with the pose it used, since forces echo only the pose's ``seq``. :class:`RawParts` keeps
+the 1 kHz ticks (in the server's ``ticks`` batches, each tick with the pose it used and the force
+it rendered) and the 10 Hz states (the records). Resetting the session's bone restarts both
+clocks, which starts a new episode (attempt). :class:`EpisodeSplitter` puts both streams into
+the same episodes (the ticks as its ``force`` stream). :class:`RawParts` keeps
 the 1 kHz rows in parts of 10 s, so each write of a long recording rewrites at most one small
 part (a minute-long part cost 38 ms per flush, a 10 s one 18 ms: ``docs/benchmarks.md``).
 
@@ -24,7 +24,7 @@ import numpy.typing as npt
 
 from dhg.data.dataset import RAW_FILE, RAW_PART_FILE, RawPart, parquet_bytes, raw_schema
 
-__all__ = ["RAW_COLUMNS", "RecordingEpisode", "EpisodeSplitter", "PoseLog", "RawParts", "force_jerk"]
+__all__ = ["RAW_COLUMNS", "RecordingEpisode", "EpisodeSplitter", "RawParts", "force_jerk"]
 
 RAW_COLUMNS = len(raw_schema().names) - 1
 """Columns of a raw row as the recorder holds it: the schema's less ``episode_id``."""
@@ -46,9 +46,9 @@ class RecordingEpisode:
     """Newest tick each stream put in it."""
     records: list[dict[str, Any]] = field(default_factory=list)
     """Decoded state messages, in order."""
-    rows: list[tuple[Any, ...]] = field(default_factory=list)
-    """Forces not yet written: (tick, pose seq, force x, y, z, guidance x, y, z), paired with
-    their poses at the next flush."""
+    rows: list[npt.NDArray[np.float64]] = field(default_factory=list)
+    """Ticks not yet written, in blocks of raw rows (:data:`RAW_COLUMNS` columns each: tick, the
+    pose, force, guidance)."""
     episode_id: int | None = None
     """Its id in the dataset, given with its first record (None: no record yet)."""
     jerk_sum: float = 0.0
@@ -97,52 +97,10 @@ class EpisodeSplitter:
         return ep
 
 
-class PoseLog:
-    """The client's poses by ``seq``, to pair each force with the pose its tick used. A force can
-    reach the recorder before its pose does (both pass the server's router, on their own paths),
-    so rows are paired at each flush, and a pose newer than any received yet is in flight, not
-    lost."""
-
-    def __init__(self, capacity: int = 65_536) -> None:
-        self._rows: dict[int, tuple[float, ...]] = {}
-        self.newest = -1
-        self.capacity = capacity
-        """Poses kept at most (about a minute at 1 kHz), for a client whose forces never come."""
-
-    def add(self, seq: int, row: tuple[float, ...]) -> None:
-        """A pose (``seq``, pose row in :data:`dhg.core.features.POSE_COLUMNS` order)."""
-        if seq <= self.newest:
-            self._rows.clear()  # the client restarted its numbering
-        self._rows[seq] = row
-        self.newest = seq
-        if len(self._rows) > self.capacity:
-            del self._rows[next(iter(self._rows))]
-
-    def get(self, seq: int) -> tuple[float, ...] | None:
-        """The pose ``seq``, or None if it has not arrived (see :meth:`in_flight`)."""
-        return self._rows.get(seq)
-
-    def in_flight(self, seq: int) -> bool:
-        """Whether pose ``seq`` may still arrive: it is newer than every pose received."""
-        return seq > self.newest
-
-    def forget_below(self, seq: int) -> None:
-        """Drops poses older than ``seq``: no force still to pair uses them."""
-        rows = self._rows
-        while rows:
-            first = next(iter(rows))
-            if first >= seq:
-                break
-            del rows[first]
-
-    def __len__(self) -> int:
-        return len(self._rows)
-
-
 def force_jerk(ep: RecordingEpisode, rows: npt.NDArray[np.float64]) -> None:
     """Adds new rows of ``ep`` (tick first, device force in columns 10–12) to its RMS rate of
     change of the device force (N/s), counting only consecutive ticks: a tick the transport
-    dropped leaves a gap, not a jump."""
+    lost leaves a gap, not a jump."""
     if ep.last_row is not None:
         rows = np.vstack([ep.last_row[None, :], rows])
     if len(rows) > 1:

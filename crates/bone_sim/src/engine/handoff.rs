@@ -108,6 +108,8 @@ pub enum Output {
         generation: u32,
         /// The message.
         msg: ForceMsg,
+        /// The pose the tick used (for the recorders' stream), none before the first.
+        pose: Option<Pose>,
         /// When the server received the pose this force was computed from; `None` when the
         /// tick had no fresh pose.
         received: Option<Instant>,

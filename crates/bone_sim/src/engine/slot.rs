@@ -168,6 +168,7 @@ impl Slot {
             slot: idx,
             generation: self.generation,
             received,
+            pose: self.session.pose().copied(),
             msg: ForceMsg {
                 flags: fl,
                 pose_seq: self.pose_seq,

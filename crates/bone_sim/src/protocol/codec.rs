@@ -3,7 +3,8 @@
 use nalgebra::Vector3;
 
 use super::{
-    flags, Layout, FORCE, GUIDANCE, MAX_PAYLOAD_BYTES, POSE, PREDICT, PREDICTION, STATE, VERSION, WINDOW_RECORDS,
+    flags, Layout, FORCE, GUIDANCE, MAX_PAYLOAD_BYTES, POSE, PREDICT, PREDICTION, STATE, TICKS, TICK_ROW, VERSION,
+    WINDOW_RECORDS,
 };
 use crate::error::{SimError, SimResult};
 use crate::record::FEATURE_COUNT;
@@ -361,6 +362,139 @@ pub fn decode_prediction(bytes: &[u8]) -> Result<Prediction, Refusal> {
     }
     let model_id = String::from_utf8_lossy(&bytes[PREDICTION.size..]).into_owned();
     Ok(Prediction { window_seq: rd_u32(bytes, 4), force_n, inference_s, model_id })
+}
+
+/// One tick of the recorders' 1 kHz stream ([`TICK_ROW`]).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TickRow {
+    /// The session's tick count (as in the force message).
+    pub tick: u64,
+    /// Sequence number of the pose the tick used (0: it had none, before the first pose or since
+    /// a reset).
+    pub pose_seq: u32,
+    /// The force message's flags ([`flags`]).
+    pub flags: u16,
+    /// The pose's burr centre (m, world; zero before the first pose).
+    pub position_m: [f64; 3],
+    /// The pose's orientation quaternion, w, x, y, z (zero before the first pose).
+    pub orientation_wxyz: [f64; 4],
+    /// The pose's spindle speed (rpm).
+    pub spindle_rpm: f64,
+    /// The force rendered on the device (N).
+    pub force_n: Vector3<f64>,
+    /// Its guidance share (N).
+    pub guidance_n: Vector3<f64>,
+}
+
+/// Rows a [`TICKS`] payload may carry: a decoder refuses a longer batch unread (the server sends
+/// one per 100 ticks).
+pub const MAX_TICK_ROWS: usize = 1000;
+
+/// A batch of ticks being filled: the [`TICKS`] payload, its rows appended in place.
+#[derive(Debug, Clone)]
+pub struct TickBatch {
+    buf: Vec<u8>,
+    rows: usize,
+}
+
+impl TickBatch {
+    /// An empty batch with room for `rows` rows (no allocation until more are pushed).
+    #[must_use]
+    pub fn with_capacity(rows: usize) -> Self {
+        let mut buf = Vec::with_capacity(TICKS.size + rows * TICK_ROW.size);
+        buf.resize(TICKS.size, 0);
+        Writer(&mut buf).header(&TICKS, 0);
+        Self { buf, rows: 0 }
+    }
+
+    /// Rows in the batch.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.rows
+    }
+
+    /// Whether the batch has no rows.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.rows == 0
+    }
+
+    /// Appends one row.
+    pub fn push(&mut self, r: &TickRow) {
+        if self.rows == 0 {
+            Writer(&mut self.buf).u64(8, r.tick);
+        }
+        let at = self.buf.len();
+        self.buf.resize(at + TICK_ROW.size, 0);
+        let mut w = Writer(&mut self.buf[at..]);
+        w.u64(0, r.tick);
+        w.u32(8, r.pose_seq);
+        w.u16(12, r.flags);
+        for (i, v) in r.position_m.iter().enumerate() {
+            w.f64(16 + 8 * i, *v);
+        }
+        for (i, v) in r.orientation_wxyz.iter().enumerate() {
+            w.f32(40 + 4 * i, *v);
+        }
+        w.f32(56, r.spindle_rpm);
+        w.vec3_f32(60, &r.force_n);
+        w.vec3_f32(72, &r.guidance_n);
+        self.rows += 1;
+        Writer(&mut self.buf).u32(4, self.rows as u32);
+    }
+
+    /// The payload, leaving an empty batch of the same capacity in its place.
+    pub fn take(&mut self) -> Vec<u8> {
+        let fresh = Self::with_capacity(self.buf.capacity().saturating_sub(TICKS.size) / TICK_ROW.size);
+        let out = std::mem::replace(self, fresh);
+        out.buf
+    }
+}
+
+/// Decodes a [`TICKS`] payload into its rows, refusing a wrong kind or version, a size that does
+/// not match its row count, more than [`MAX_TICK_ROWS`] rows, and non-finite values.
+///
+/// # Errors
+/// The [`Refusal`] that applies.
+pub fn decode_ticks(bytes: &[u8]) -> Result<Vec<TickRow>, Refusal> {
+    if bytes.len() > TICKS.size + MAX_TICK_ROWS * TICK_ROW.size {
+        return Err(Refusal::Oversized);
+    }
+    if bytes.len() < 2 {
+        return Err(Refusal::WrongSize);
+    }
+    if bytes[0] != TICKS.kind || bytes[1] != VERSION {
+        return Err(Refusal::WrongVersion);
+    }
+    if bytes.len() < TICKS.size {
+        return Err(Refusal::WrongSize);
+    }
+    let rows = rd_u32(bytes, 4) as usize;
+    if rows > MAX_TICK_ROWS || bytes.len() != TICKS.size + rows * TICK_ROW.size {
+        return Err(Refusal::WrongSize);
+    }
+    let mut out = Vec::with_capacity(rows);
+    for b in bytes[TICKS.size..].chunks_exact(TICK_ROW.size) {
+        let v3 = |at: usize| Vector3::new(rd_f32(b, at), rd_f32(b, at + 4), rd_f32(b, at + 8));
+        let r = TickRow {
+            tick: rd_u64(b, 0),
+            pose_seq: rd_u32(b, 8),
+            flags: rd_u16(b, 12),
+            position_m: [rd_f64(b, 16), rd_f64(b, 24), rd_f64(b, 32)],
+            orientation_wxyz: [rd_f32(b, 40), rd_f32(b, 44), rd_f32(b, 48), rd_f32(b, 52)],
+            spindle_rpm: rd_f32(b, 56),
+            force_n: v3(60),
+            guidance_n: v3(72),
+        };
+        let finite = r.position_m.iter().chain(&r.orientation_wxyz).all(|x| x.is_finite())
+            && r.spindle_rpm.is_finite()
+            && r.force_n.iter().chain(r.guidance_n.iter()).all(|x| x.is_finite());
+        if !finite {
+            return Err(Refusal::NonFinite);
+        }
+        out.push(r);
+    }
+    Ok(out)
 }
 
 /// [`decode_pose`] with the refusal as a [`SimError`].

@@ -160,5 +160,32 @@ const PREDICTION_FIELDS: [Field; 9] = concat(
 /// bytes of UTF-8 model id.
 pub const PREDICTION: Layout = Layout { name: "prediction", kind: 6, size: 32, fields: &PREDICTION_FIELDS };
 
+const TICKS_FIELDS: [Field; 6] = concat(
+    header!(),
+    [f("rows", "u32", 4, 1, "1"), f("first_tick", "u64", 8, 1, "1"), f("reserved", "u64", 16, 1, "1")],
+);
+/// The 1 kHz stream for recorders, server → client, at 10 Hz: `rows` [`TICK_ROW`]s (oldest
+/// first) follow the fixed part, one per tick since the last batch. Unlike `force` it is
+/// published for recovery (a recorder that missed a batch asks the server's cache for it).
+pub const TICKS: Layout = Layout { name: "ticks", kind: 7, size: 24, fields: &TICKS_FIELDS };
+
+const TICK_ROW_FIELDS: [Field; 10] = [
+    f("tick", "u64", 0, 1, "1"),
+    f("pose_seq", "u32", 8, 1, "1"),
+    f("flags", "u16", 12, 1, "1"),
+    f("reserved", "u16", 14, 1, "1"),
+    f("position_m", "f64", 16, 3, "m"),
+    f("orientation_wxyz", "f32", 40, 4, "1"),
+    f("spindle_rpm", "f32", 56, 1, "rpm"),
+    f("force_n", "f32", 60, 3, "N"),
+    f("guidance_n", "f32", 72, 3, "N"),
+    f("reserved2", "u32", 84, 1, "1"),
+];
+/// One tick of a [`TICKS`] batch (no header of its own; kind 0 is never a payload): the pose the
+/// tick used (burr centre, orientation w, x, y, z, spindle speed; zero before the session's
+/// first pose, `pose_seq` 0), the force rendered on the device and its guidance share, and the
+/// force's flags ([`flags`]).
+pub const TICK_ROW: Layout = Layout { name: "tick_row", kind: 0, size: 88, fields: &TICK_ROW_FIELDS };
+
 /// Every layout, for the bindings and the documentation test.
-pub const LAYOUTS: [Layout; 6] = [POSE, FORCE, GUIDANCE, STATE, PREDICT, PREDICTION];
+pub const LAYOUTS: [Layout; 8] = [POSE, FORCE, GUIDANCE, STATE, PREDICT, PREDICTION, TICKS, TICK_ROW];

@@ -125,3 +125,52 @@ fn predict_and_prediction_round_trip() {
     assert_eq!(p.force_n, Vector3::new(1.0, 2.0, 3.0));
     assert_eq!(decode_prediction(&reply[..33]), Err(Refusal::WrongSize));
 }
+
+#[test]
+fn ticks_batch_round_trips_and_refuses_bad_payloads() {
+    let row = |tick: u64| TickRow {
+        tick,
+        pose_seq: 3,
+        flags: flags::DRILL_ON,
+        position_m: [0.01, -0.02, 0.1],
+        orientation_wxyz: [1.0, 0.0, 0.0, 0.0],
+        spindle_rpm: 1250.0,
+        force_n: Vector3::new(0.5, -1.0, 2.0),
+        guidance_n: Vector3::new(0.0, 0.25, -0.5),
+    };
+    let mut batch = TickBatch::with_capacity(4);
+    assert!(batch.is_empty());
+    for t in 7..10 {
+        batch.push(&row(t));
+    }
+    assert_eq!(batch.len(), 3);
+    let bytes = batch.take();
+    assert!(batch.is_empty(), "take leaves an empty batch");
+    assert_eq!(bytes.len(), TICKS.size + 3 * TICK_ROW.size);
+    assert_eq!((bytes[0], bytes[1]), (TICKS.kind, VERSION));
+    assert_eq!(rd_u32(&bytes, field(&TICKS, "rows").offset), 3);
+    assert_eq!(rd_u64(&bytes, field(&TICKS, "first_tick").offset), 7);
+    let second = TICKS.size + TICK_ROW.size;
+    assert_eq!(rd_u64(&bytes, second + field(&TICK_ROW, "tick").offset), 8);
+    assert_eq!(rd_f64(&bytes, second + field(&TICK_ROW, "position_m").offset + 8), -0.02);
+    assert_eq!(rd_f32(&bytes, second + field(&TICK_ROW, "guidance_n").offset + 4), 0.25);
+    assert_eq!(rd_u16(&bytes, second + field(&TICK_ROW, "flags").offset), flags::DRILL_ON);
+    assert_eq!(decode_ticks(&bytes).unwrap(), vec![row(7), row(8), row(9)]);
+    assert_eq!(decode_ticks(&bytes[..bytes.len() - 1]), Err(Refusal::WrongSize));
+    assert_eq!(decode_ticks(&bytes[..TICKS.size - 1]), Err(Refusal::WrongSize));
+    let mut lying = bytes.clone();
+    lying[4..8].copy_from_slice(&4u32.to_le_bytes());
+    assert_eq!(decode_ticks(&lying), Err(Refusal::WrongSize));
+    lying[4..8].copy_from_slice(&u32::MAX.to_le_bytes());
+    assert_eq!(decode_ticks(&lying), Err(Refusal::WrongSize));
+    let mut v2 = bytes.clone();
+    v2[1] = 2;
+    assert_eq!(decode_ticks(&v2), Err(Refusal::WrongVersion));
+    let mut nan = bytes.clone();
+    let at = second + field(&TICK_ROW, "force_n").offset;
+    nan[at..at + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    assert_eq!(decode_ticks(&nan), Err(Refusal::NonFinite));
+    assert_eq!(decode_ticks(&vec![7u8; TICKS.size + (MAX_TICK_ROWS + 1) * TICK_ROW.size]), Err(Refusal::Oversized));
+    let empty = TickBatch::with_capacity(0).take();
+    assert_eq!(decode_ticks(&empty).unwrap(), vec![]);
+}

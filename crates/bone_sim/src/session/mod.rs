@@ -230,6 +230,12 @@ impl DrillingSession {
         &self.config
     }
 
+    /// The stylus pose the last tick used (the newest valid one), if one has arrived.
+    #[must_use]
+    pub fn pose(&self) -> Option<&Pose> {
+        self.pose.as_ref()
+    }
+
     /// The current state.
     #[must_use]
     pub fn state(&self) -> &SessionState {

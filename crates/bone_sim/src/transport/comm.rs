@@ -22,8 +22,9 @@ use crate::engine::realtime;
 use crate::engine::stats::HistogramSnapshot;
 use crate::engine::WaitMode;
 use crate::error::{SimError, SimResult};
-use crate::protocol::{self, WINDOW_RECORDS};
-use crate::record::FEATURE_COUNT;
+use crate::protocol::{self, TickBatch, WINDOW_RECORDS};
+use crate::record::{FEATURE_COUNT, RECORD_PERIOD_TICKS};
+use crate::session::Pose;
 
 /// Seconds of per-second tick-statistics history kept for the health report.
 const HISTORY_S: usize = 600;
@@ -84,6 +85,10 @@ struct Outlet {
     force: zenoh::pubsub::Publisher<'static>,
     guidance: AdvancedPublisher<'static>,
     state: AdvancedPublisher<'static>,
+    ticks: AdvancedPublisher<'static>,
+    /// The ticks since the last batch was published, and when its first arrived.
+    batch: TickBatch,
+    batch_since: Instant,
     window: VecDeque<[f32; FEATURE_COUNT]>,
     window_seq: u32,
     pose_time_ns: u64,
@@ -92,12 +97,53 @@ struct Outlet {
 /// Samples of each recorded stream (state, guidance) a session's publisher keeps for recorders
 /// to recover: 60 s of the 10 Hz streams.
 const RECORDED_HISTORY: usize = 600;
+/// Batches of the recorders' 1 kHz stream (`ticks`, 10 a second) a session's publisher keeps:
+/// 10 s, about 0.9 MB a session.
+const TICKS_HISTORY: usize = 100;
+/// Ticks in one batch: one record period, so a batch leaves at 10 Hz.
+const TICKS_PER_BATCH: usize = RECORD_PERIOD_TICKS as usize;
+/// A partial batch older than this (a silent or ended session) leaves at the next housekeeping.
+const BATCH_MAX_AGE: Duration = Duration::from_millis(200);
 /// How often a recorded stream's publisher announces its last sequence number, so that a
 /// recorder notices a lost last sample too.
 const RECORDED_HEARTBEAT: Duration = Duration::from_millis(500);
 
 fn encoding(name: &str) -> Encoding {
     Encoding::APPLICATION_OCTET_STREAM.with_schema(format!("dhg.{name}.v{}", protocol::VERSION))
+}
+
+impl Outlet {
+    /// Adds a tick to the batch for the recorders; a full batch leaves.
+    fn add_tick(&mut self, msg: &protocol::ForceMsg, pose: Option<&Pose>) {
+        if self.batch.is_empty() {
+            self.batch_since = Instant::now();
+        }
+        let mut row = protocol::TickRow {
+            tick: msg.tick,
+            pose_seq: if pose.is_some() { msg.pose_seq } else { 0 }, // after a reset: none yet
+            flags: msg.flags,
+            force_n: msg.force_n,
+            guidance_n: msg.guidance_n,
+            ..Default::default()
+        };
+        if let Some(p) = pose {
+            let q = p.orientation.quaternion();
+            row.position_m = p.position_m.coords.into();
+            row.orientation_wxyz = [q.w, q.i, q.j, q.k];
+            row.spindle_rpm = p.spindle_rpm;
+        }
+        self.batch.push(&row);
+        if self.batch.len() >= TICKS_PER_BATCH {
+            self.publish_ticks();
+        }
+    }
+
+    /// Publishes the batch of ticks, if it has any.
+    fn publish_ticks(&mut self) {
+        if !self.batch.is_empty() {
+            let _ = self.ticks.put(self.batch.take()).wait();
+        }
+    }
 }
 
 struct Comm {
@@ -112,7 +158,9 @@ impl Comm {
         let i = slot as usize;
         let stale = self.outlets[i].as_ref().is_none_or(|o| o.generation != generation);
         if stale {
-            self.outlets[i] = None;
+            if let Some(mut old) = self.outlets[i].take() {
+                old.publish_ticks();
+            }
             let id = {
                 let reg = lock(&self.shared.registry);
                 let info = &reg.slots[i];
@@ -136,13 +184,13 @@ impl Comm {
             // rather than block, and keep the last RECORDED_HISTORY samples for recorders to
             // recover what they missed (zenoh-ext advanced publisher: cache, sample-miss
             // detection with a heartbeat, publisher detection).
-            let recorded = |leaf: &str| {
+            let recorded = |leaf: &str, history: usize| {
                 self.session
                     .declare_publisher(key(leaf))
                     .encoding(encoding(leaf))
                     .congestion_control(CongestionControl::Drop)
                     .priority(Priority::DataHigh)
-                    .cache(CacheConfig::default().max_samples(RECORDED_HISTORY))
+                    .cache(CacheConfig::default().max_samples(history))
                     .sample_miss_detection(MissDetectionConfig::default().heartbeat(RECORDED_HEARTBEAT))
                     .publisher_detection()
                     .wait()
@@ -151,8 +199,11 @@ impl Comm {
             self.outlets[i] = Some(Outlet {
                 generation,
                 force,
-                guidance: recorded("guidance")?,
-                state: recorded("state")?,
+                guidance: recorded("guidance", RECORDED_HISTORY)?,
+                state: recorded("state", RECORDED_HISTORY)?,
+                ticks: recorded("ticks", TICKS_HISTORY)?,
+                batch: TickBatch::with_capacity(TICKS_PER_BATCH),
+                batch_since: Instant::now(),
                 window: VecDeque::with_capacity(WINDOW_RECORDS),
                 window_seq: 0,
                 pose_time_ns: 0,
@@ -164,12 +215,14 @@ impl Comm {
     #[allow(clippy::large_types_passed_by_value)] // moved into the ring / consumed: by value is the point
     fn handle(&mut self, out: Output) {
         match out {
-            Output::Force { slot, generation, msg, received } => {
+            Output::Force { slot, generation, msg, pose, received } => {
                 if let Some(o) = self.outlet(slot, generation) {
                     o.pose_time_ns = msg.pose_client_time_ns;
                     let _ = o.force.put(protocol::encode_force(&msg).to_vec()).wait();
+                    let put_at = Instant::now();
+                    o.add_tick(&msg, pose.as_ref());
                     if let Some(t) = received {
-                        self.shared.stats.pose_to_put.record(t.elapsed().as_nanos() as u64);
+                        self.shared.stats.pose_to_put.record(put_at.duration_since(t).as_nanos() as u64);
                     }
                 }
             }
@@ -302,6 +355,11 @@ impl Comm {
         drop(h);
         let idle = self.shared.config.idle_timeout_s;
         lock(&self.shared.registry).sweep_idle(idle);
+        for o in self.outlets.iter_mut().flatten() {
+            if !o.batch.is_empty() && o.batch_since.elapsed() >= BATCH_MAX_AGE {
+                o.publish_ticks();
+            }
+        }
     }
 
     fn run(&mut self, mut outputs: rtrb::Consumer<Output>, wait: WaitMode) {
@@ -324,6 +382,9 @@ impl Comm {
                 self.housekeeping(&mut io_sessions);
                 next_housekeeping += Duration::from_secs(1);
             }
+        }
+        for o in self.outlets.iter_mut().flatten() {
+            o.publish_ticks();
         }
         self.outlets.clear();
     }
@@ -445,7 +506,7 @@ mod tests {
     use crate::protocol::ForceMsg;
 
     fn force(slot: u16) -> Output {
-        Output::Force { slot, generation: 1, msg: ForceMsg::default(), received: None }
+        Output::Force { slot, generation: 1, msg: ForceMsg::default(), pose: None, received: None }
     }
 
     fn other(slot: u16) -> Output {
