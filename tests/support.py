@@ -111,17 +111,30 @@ def record_process(endpoint: str, *args: str) -> subprocess.Popen[str]:
     )
 
 
-def read_until(proc: subprocess.Popen[str], text: str, max_lines: int = 100) -> list[str]:
-    """Reads ``proc``'s output line by line until a line holds ``text``; returns the lines read."""
-    assert proc.stdout is not None
+def read_until(
+    proc: subprocess.Popen[str], text: str, max_lines: int = 100, line_timeout_s: float = 120.0
+) -> list[str]:
+    """Reads ``proc``'s output line by line until a line holds ``text``; returns the lines read.
+    Fails if the process ends, or says nothing for ``line_timeout_s``, before saying it."""
     lines: list[str] = []
     while len(lines) < max_lines:
-        line = proc.stdout.readline()
-        assert line, f"the process ended before saying {text!r}: {''.join(lines)}"
+        line = readline_within(proc, line_timeout_s, f"waiting for {text!r} after {''.join(lines)!r}")
         lines.append(line)
         if text in line:
             return lines
     raise AssertionError(f"{text!r} not in the first {max_lines} lines: {''.join(lines)}")
+
+
+def readline_within(proc: subprocess.Popen[str], timeout_s: float, what: str = "a line") -> str:
+    """The next line of ``proc``'s output, or an AssertionError naming ``what`` if none comes
+    within ``timeout_s`` (a generous deadline: a helper that never answers fails, not hangs)."""
+    assert proc.stdout is not None
+    out: list[str] = []
+    reader = threading.Thread(target=lambda: out.append(proc.stdout.readline()), daemon=True)  # type: ignore[union-attr]
+    reader.start()
+    reader.join(timeout_s)
+    assert out and out[0], f"{what}: no line from the process within {timeout_s:g} s (exit code {proc.poll()})"
+    return out[0]
 
 
 def ctrl_c(rec: subprocess.Popen[str]) -> str:

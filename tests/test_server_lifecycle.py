@@ -15,7 +15,7 @@ import pytest
 from dhg.core import protocol
 from dhg.live.client import TraineeClient
 from dhg.live.demo import free_port
-from support import ctrl_c, read_until, record_process
+from support import ctrl_c, read_until, readline_within, record_process
 from support import entry as _entry
 from support import serve as _serve
 from support import stream as _stream
@@ -32,7 +32,7 @@ def test_record_survives_a_server_crash_and_keeps_everything_on_ctrl_c(tmp_path)
         endpoint, "--session", "crash-1", "--out", str(out), "--raw", "--flush-every", "0.5", "--status-every", "0.5"
     )
     try:
-        assert rec.stdout is not None and "recording" in rec.stdout.readline()
+        assert "recording" in readline_within(rec, 60.0, "the recorder's start")
         with TraineeClient(endpoint, "crash-1") as c:
             a, d, q = _entry(c)
             _stream(c, a + d * np.linspace(-2e-3, 4e-3, 1500)[:, None], q)
