@@ -10,7 +10,8 @@ Two operators drive :class:`dhg.core.surgeon.SurgeonController` in ``dhg study``
   K = 135 N/m in their example fit), drawn ±20 % per trainee; a novice's reaction delay to a
   change in force is 150–250 ms (the range of voluntary responses to a force perturbation).
 - ``instructed``: today's trainee (the novices of ``dhg synth``), who was told what the cue means:
-  they lean into the paper's force-matching cue and yield to the shaping modes' cues
+  they lean into the paper's force-matching cue, yield to the shaping modes' cues, and pause with
+  the drill off while they feel ``shaped``'s heat cue, a vibration in the handle
   (:class:`~dhg.core.surgeon.SurgeonController`, ``cue_meaning``).
 
 :class:`Learner` carries a trainee's skill from one attempt to the next with the single-state

@@ -175,6 +175,8 @@ struct HeatHold {
     from_m: Point3<f64>,
     axis: Vector3<f64>,
     engaged_c: f64,
+    /// Time since it engaged (s): the heat cue's phase.
+    age_s: f64,
 }
 
 impl Guide {
@@ -279,7 +281,7 @@ impl Guide {
         self.hold.is_some()
     }
 
-    /// Whether the heat hold is holding (`shaped`: the tip is hot and has not cooled yet).
+    /// Whether the heat cue and hold are on (`shaped`: the tip is hot and has not cooled yet).
     #[must_use]
     pub fn is_heat_holding(&self) -> bool {
         self.heat.is_some()
@@ -336,7 +338,7 @@ impl Guide {
                 }
                 if mode == GuidanceMode::Shaped {
                     f += self.warning(input);
-                    f += self.heat_hold(input);
+                    f += self.heat(input, dt_s);
                 }
                 f * self.fade
             }
@@ -415,11 +417,13 @@ impl Guide {
         -axis * resist.min(cap_n)
     }
 
-    /// The heat hold: once the tip comes within `heat_margin_c` of the necrosis threshold, a
-    /// resistance against advance past where it was then (the brake's spring and damper, capped
-    /// at `heat_hold_n`), until the tip has cooled `heat_release_c` below where it engaged. It asks
-    /// for the pause that lets the bone cool; it never pushes the drill forward.
-    fn heat_hold(&mut self, input: &GuideInput<'_>) -> Vector3<f64> {
+    /// The heat cue and hold: once the tip comes within `heat_margin_c` of the necrosis
+    /// threshold, until it has cooled `heat_release_c` below where they engaged, a vibration along
+    /// the axis (`heat_buzz_n` at `heat_buzz_hz`: the cue to pause with the drill off) and a
+    /// resistance against advance past where the tip was then (the brake's spring and damper,
+    /// capped at `heat_hold_n`, 0 by default). Neither pushes the drill on on average: the
+    /// vibration has no mean, the hold never pushes forward.
+    fn heat(&mut self, input: &GuideInput<'_>, dt_s: f64) -> Vector3<f64> {
         let p = &self.params;
         let t = input.temperature_c;
         if !t.is_finite() {
@@ -427,13 +431,15 @@ impl Guide {
         }
         match self.heat {
             None if t >= input.necrosis_threshold_c - p.heat_margin_c => {
-                self.heat = Some(HeatHold { from_m: input.tip_m, axis: input.axis, engaged_c: t });
+                self.heat = Some(HeatHold { from_m: input.tip_m, axis: input.axis, engaged_c: t, age_s: 0.0 });
             }
             Some(h) if t <= h.engaged_c - p.heat_release_c => self.heat = None,
-            _ => {}
+            Some(ref mut h) => h.age_s += dt_s,
+            None => {}
         }
         let Some(h) = self.heat else { return Vector3::zeros() };
-        self.resist_advance(input, h.from_m, h.axis, p.heat_hold_n * self.gain)
+        let buzz = p.heat_buzz_n * self.gain * (std::f64::consts::TAU * p.heat_buzz_hz * h.age_s).sin();
+        self.resist_advance(input, h.from_m, h.axis, p.heat_hold_n * self.gain) - h.axis * buzz
     }
 
     /// Whether the tip is within `warning_span_m` before the predicted breakthrough, the cortex

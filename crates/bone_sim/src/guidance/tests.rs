@@ -267,7 +267,8 @@ fn the_heat_hold_resists_advance_while_hot_until_the_tip_has_cooled() {
     let path = path();
     let mut g = live(GuidanceMode::Shaped);
     assert_eq!(g.params().heat_hold_n, 0.0, "off by default");
-    g.set_params(GuidanceParams { heat_hold_n: 1.5, ..GuidanceParams::default() }).unwrap();
+    // The hold alone (the heat cue's vibration has its own test).
+    g.set_params(GuidanceParams { heat_hold_n: 1.5, heat_buzz_n: 0.0, ..GuidanceParams::default() }).unwrap();
     let p = g.params().clone();
     // Tip at 5 mm (no warning there), advancing at 1 mm/s.
     let at = |g: &mut Guide, z: f64, vz: f64, t: f64| {
@@ -358,4 +359,43 @@ fn fading_assists_as_needed_and_probes_without_guidance() {
     ] {
         assert!(matches!(Fading::new(bad), Err(SimError::InvalidParameter { .. })));
     }
+}
+
+#[test]
+fn the_heat_cue_vibrates_along_the_axis_while_hot_with_no_mean_push_and_stops_once_cooled() {
+    let path = path();
+    let mut g = live(GuidanceMode::Shaped);
+    let p = g.params().clone();
+    assert!(p.heat_buzz_n > 0.0 && p.heat_hold_n == 0.0, "the cue is on by default, the hold off");
+    // A still tip at 5 mm (no warning, no corridor), hot: one second of the cue.
+    let mut i = input(&path, Point3::new(0.0, 0.0, 0.005), Vector3::zeros());
+    i.temperature_c = 45.5;
+    let forces: Vec<Vector3<f64>> = (0..1000)
+        .map(|_| {
+            let f = g.step(&i, 1e-3);
+            g.set_target(Vector3::zeros());
+            f
+        })
+        .collect();
+    assert!(g.is_heat_holding());
+    assert!(forces.iter().all(|f| f.x == 0.0 && f.y == 0.0), "along the axis only");
+    let peak = forces.iter().map(|f| f.z.abs()).fold(0.0, f64::max);
+    // (Sampled at 1 kHz, a 100 Hz sine's largest sample is sin 72° of its amplitude.)
+    assert!(peak <= p.heat_buzz_n + 1e-12 && peak >= 0.95 * p.heat_buzz_n, "amplitude {peak} N");
+    let mean = forces.iter().map(|f| f.z).sum::<f64>() / 1000.0;
+    assert!(mean.abs() < 1e-9, "no mean push: {mean} N");
+    let sign_changes = forces.windows(2).filter(|w| w[0].z * w[1].z < 0.0).count();
+    assert!((195..=201).contains(&sign_changes), "{sign_changes} sign changes in 1 s at 100 Hz");
+    // Scaled by the gain; gone once the tip has cooled 2 °C below where it engaged (45.5 °C).
+    g.set_gain(0.5);
+    let half = (0..10).map(|_| g.step(&i, 1e-3).z.abs()).fold(0.0, f64::max);
+    assert!((half - 0.5 * p.heat_buzz_n).abs() < 0.05 * p.heat_buzz_n, "{half}");
+    i.temperature_c = 43.5;
+    assert_eq!(g.step(&i, 1e-3), Vector3::zeros());
+    assert!(!g.is_heat_holding());
+    // Within the device's peak on top of everything else shaped renders.
+    i.temperature_c = 50.0;
+    g.set_gain(4.0);
+    let most = (0..100).map(|_| g.step(&i, 1e-3).norm()).fold(0.0, f64::max);
+    assert!(most <= 4.0 * p.heat_buzz_n + 1e-9, "{most}");
 }

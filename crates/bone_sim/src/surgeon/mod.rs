@@ -83,6 +83,19 @@ const RETRACT_M: f64 = 1e-3;
 const COOL_HYSTERESIS_C: f64 = 2.0;
 /// How long the surgeon holds still at the stop before finishing (s).
 const STOP_HOLD_S: f64 = 0.5;
+/// The hand's vibration sense, as the surgeon's model of it: the cue along the axis less its
+/// low-pass (time constant, s; about 16 Hz) is the vibration felt.
+const BUZZ_LOWPASS_S: f64 = 0.01;
+/// Smallest swing of that vibration counted (N): a tenth of a newton through a handle is well
+/// above the hand's vibration threshold (Bolanowski et al. 1988), and above the few hundredths of
+/// a newton that tremor makes the corridor's damper render.
+const BUZZ_MIN_N: f64 = 0.05;
+/// Time constant of the count of the vibration's swings (s), and how many must be counted in it
+/// for a buzz to be felt: a 100 Hz vibration swings 200 times a second (10 in 50 ms), a step in
+/// the force (a brake engaging) once. About 30 ms to recognise; felt until the count falls to
+/// half that (about 70 ms after the vibration ends), so that it does not flicker.
+const BUZZ_WINDOW_S: f64 = 0.05;
+const BUZZ_SWINGS: f64 = 5.0;
 
 /// What the surgeon means to do this tick.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -134,6 +147,8 @@ struct Felt {
     force_axial_n: f64,
     /// The hand's position along A→B (m).
     hand_s_m: f64,
+    /// Whether a vibration was felt in the cue (the heat cue).
+    buzz: bool,
 }
 
 /// Minimum-jerk position profile from 0 to 1 (Flash & Hogan 1985).
@@ -206,6 +221,13 @@ pub struct SurgeonController {
     hold_s: Option<f64>,
     pause_until: f64,
     cooling: bool,
+    /// Pausing with the drill off because a heat cue is felt (a surgeon told what it means).
+    heat_pause: bool,
+    /// The vibration sense: low-passed cue (N), the last swing's sign, and the swing count.
+    cue_lowpass_n: f64,
+    swing_sign: f64,
+    swings: f64,
+    buzz_felt: bool,
     retract_until: f64,
     seen_breakthroughs: u32,
     drill_on: bool,
@@ -272,6 +294,7 @@ impl SurgeonController {
             cue_axial_n: 0.0,
             force_axial_n: 0.0,
             hand_s_m: 0.0,
+            buzz: false,
         };
         Ok(Self {
             w_tremor: tau * style.tremor_hz,
@@ -312,6 +335,11 @@ impl SurgeonController {
             hold_s: None,
             pause_until: -1.0,
             cooling: false,
+            heat_pause: false,
+            cue_lowpass_n: 0.0,
+            swing_sign: 0.0,
+            swings: 0.0,
+            buzz_felt: false,
             retract_until: -1.0,
             seen_breakthroughs: 0,
             drill_on: false,
@@ -402,7 +430,9 @@ impl SurgeonController {
         let tick = self.tick;
         let t = tick as f64 * TICK_S;
         let d = self.d;
-        *self.felt_mut(tick) = Felt { seen: *now, cue_axial_n: cue_n.dot(&d), force_axial_n: 0.0, hand_s_m: self.s };
+        let cue_axial_n = cue_n.dot(&d);
+        let buzz = self.feel_vibration(cue_axial_n);
+        *self.felt_mut(tick) = Felt { seen: *now, cue_axial_n, force_axial_n: 0.0, hand_s_m: self.s, buzz };
         let delayed = tick.saturating_sub(self.delay);
         let seen = self.felt(delayed).seen;
         self.max_plunge_m = self.max_plunge_m.max(now.plunge_depth_m);
@@ -419,6 +449,23 @@ impl SurgeonController {
         let (on, rpm) = if self.drill_on { (1.0, self.style.spindle_rpm) } else { (0.0, 0.0) };
         let q = self.quat;
         Some([p.x, p.y, p.z, q[0], q[1], q[2], q[3], on, rpm])
+    }
+
+    /// Whether the cue along the axis (N, this tick) carries a vibration: its swings about its
+    /// low-pass, counted over about 50 ms.
+    fn feel_vibration(&mut self, cue_axial_n: f64) -> bool {
+        self.cue_lowpass_n += (cue_axial_n - self.cue_lowpass_n) * TICK_S / BUZZ_LOWPASS_S;
+        let swing = cue_axial_n - self.cue_lowpass_n;
+        self.swings *= 1.0 - TICK_S / BUZZ_WINDOW_S;
+        if swing.abs() >= BUZZ_MIN_N {
+            let sign = swing.signum();
+            if sign * self.swing_sign <= 0.0 {
+                self.swings += 1.0;
+                self.swing_sign = sign;
+            }
+        }
+        self.buzz_felt = if self.buzz_felt { self.swings >= 0.5 * BUZZ_SWINGS } else { self.swings >= BUZZ_SWINGS };
+        self.buzz_felt
     }
 
     /// One tick of the aim's wander (Ornstein–Uhlenbeck) and of the signal-dependent push noise
@@ -542,11 +589,15 @@ impl SurgeonController {
         } else if self.cooling && seen.temperature_c < style.caution_temp_c - COOL_HYSTERESIS_C {
             self.cooling = false;
         }
+        // Told what the heat cue means ("pause with the drill off until it stops"), a surgeon
+        // who yields to guidance pauses while they feel it, as of a reaction delay ago.
+        self.heat_pause = self.yields && self.felt(self.tick.saturating_sub(self.delay)).buzz;
         if style.hesitations_per_s > 0.0 && t > self.pause_until && self.rng.gen::<f64>() < style.hesitations_per_s * dt
         {
             self.pause_until = t + style.hesitation_s;
         }
-        let intent = if t < self.retract_until || self.cooling || t < self.pause_until {
+        let resting = self.cooling || self.heat_pause;
+        let intent = if t < self.retract_until || resting || t < self.pause_until {
             // Hold still (pulled back after a breakthrough): a pausing hand does not go limp.
             let back_m = if t < self.retract_until { RETRACT_M } else { 0.0 };
             let hold = *self.hold_s.get_or_insert(self.s - back_m);
@@ -572,7 +623,7 @@ impl SurgeonController {
             }
             None
         };
-        self.drill_on = !self.cooling;
+        self.drill_on = !resting;
         if seen.depth_m >= self.length_m - style.stop_margin_m {
             self.phase = Phase::Stop;
             self.phase_t0 = t;

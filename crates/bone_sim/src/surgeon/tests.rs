@@ -132,3 +132,37 @@ fn the_orientation_points_the_drill_along_the_direction() {
         assert!((r * Vector3::z() - d).norm() < 1e-12, "{d:?}: {q:?}");
     }
 }
+
+/// Steps a feeding surgeon 900 ticks with `cue` as the guidance each tick; the drill-on column.
+fn drill_on_under(meaning: CueMeaning, cue: impl Fn(usize) -> f64) -> Vec<bool> {
+    let steady = SurgeonStyle { hesitations_per_s: 0.0, ..novice() };
+    let mut s = SurgeonController::new(&path(), steady, 3, 60.0, None, meaning).unwrap();
+    let zero = Vector3::zeros();
+    while s.phase() != Phase::Feed {
+        s.step(&still(0.0), &zero, &zero);
+    }
+    let resist = Vector3::new(0.0, 0.0, -0.5);
+    (0..900).map(|k| s.step(&still(5e-3), &resist, &Vector3::new(0.0, 0.0, cue(k))).unwrap()[7] > 0.5).collect()
+}
+
+#[test]
+fn a_surgeon_told_what_the_heat_cue_means_pauses_with_the_drill_off_while_it_buzzes() {
+    use std::f64::consts::TAU;
+    // 0.3 N at 100 Hz from tick 100 to 300, on a steady 0.2 N resistance.
+    let buzz = |k: usize| {
+        -0.2 - if (100..300).contains(&k) { 0.3 * (TAU * 100.0 * (k - 100) as f64 * 1e-3).sin() } else { 0.0 }
+    };
+    let on = drill_on_under(CueMeaning::Yield, buzz);
+    let delay = 300; // novice()'s reaction delay, in ticks
+    let off: Vec<usize> = (0..900).filter(|&k| !on[k]).collect();
+    assert!(!off.is_empty(), "never paused");
+    let (first, last) = (off[0], off[off.len() - 1]);
+    // Recognised within about 30 ms of the buzz's start, acted on a reaction delay later.
+    assert!((100 + delay..=100 + delay + 60).contains(&first), "drill off from tick {first}");
+    assert!(off.len() == last - first + 1, "one pause: {off:?}");
+    assert!(last < 899 && (300 + delay + 30..=300 + delay + 100).contains(&(last + 1)), "back on at {}", last + 1);
+    // An arm that only feels the cue, and a step in the cue (a brake engaging), make no pause.
+    assert!(drill_on_under(CueMeaning::Felt, buzz).iter().all(|&x| x), "the felt operator paused");
+    let step = |k: usize| if k >= 100 { -2.2 } else { 0.0 };
+    assert!(drill_on_under(CueMeaning::Yield, step).iter().all(|&x| x), "a step read as a buzz");
+}
