@@ -4,6 +4,7 @@ pose, 1 kHz pose streams, waits on conditions (never on fixed times) and the fie
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -145,10 +146,17 @@ def ctrl_c(rec: subprocess.Popen[str]) -> str:
     return output
 
 
+def said(proc: ServerProcess, last: int = 40) -> str:
+    """The server's last ``last`` output lines without the frames of a Rust backtrace, so a panic
+    or abort message is in what a failed assertion prints (CI shows only part of it)."""
+    frames = re.compile(r"\s*(\d+: |at /)")
+    return "\n".join([line for line in proc.lines if not frames.match(line)][-last:])
+
+
 def stops_cleanly(proc: ServerProcess) -> None:
     """Asserts that a server still runs, then stops with exit 0 and says so as its last line."""
-    assert proc.proc.poll() is None, f"the shared server died: {proc.lines[-5:]}"
-    assert proc.stop() == 0, proc.lines[-5:]
+    assert proc.proc.poll() is None, f"the shared server died:\n{said(proc)}"
+    assert proc.stop() == 0, said(proc)
     wait_until(lambda: proc.lines and "dhg-serve stopped" in proc.lines[-1], 10.0, "dhg-serve's last line")
 
 

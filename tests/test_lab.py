@@ -18,6 +18,7 @@ from dhg.core.errors import InvalidInputError, TransportError
 from dhg.live.client import TraineeClient
 from dhg.live.demo import ServerProcess, free_port
 from dhg.live.lab import acl, load_lab, write_lab
+from support import said
 from support import wait_until as _wait
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl to create certificates")
@@ -180,7 +181,7 @@ def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_pat
     finally:
         if worker is not None:
             worker.stop()
-        assert server.stop() == 0, "\n".join(server.lines[-40:])
+        assert server.stop() == 0, said(server)
 
 
 def test_dhg_lab_config_cli_writes_the_files_and_says_how_to_use_them(tmp_path):
@@ -241,7 +242,7 @@ def test_dhg_serve_with_the_lab_file_caps_each_stations_sessions(lab):
             assert a._json("dhg/session/station-1-third/control", {"op": "create"})["session"] == "station-1-third"
             assert a._json("dhg/session/visitor/control", {"op": "create"})["session"] == "visitor"  # not a station's
     finally:
-        assert server.stop() == 0, "\n".join(server.lines[-40:])
+        assert server.stop() == 0, said(server)
 
 
 def test_the_viewer_works_in_lab_mode_with_a_station_or_an_instructor_identity(lab):
@@ -290,4 +291,4 @@ def test_the_viewer_works_in_lab_mode_with_a_station_or_an_instructor_identity(l
                 station_view.close()
                 teacher_view.close()
     finally:
-        assert server.stop() == 0, "\n".join(server.lines[-40:])
+        assert server.stop() == 0, said(server)
