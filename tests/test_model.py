@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -239,6 +240,25 @@ def test_distributed_training_with_two_cpu_processes(data, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["epochs"] == 2 and (out / "model.ts").is_file()
     load_model(out / "model.ts").predict(np.zeros((1, 20, 9)))
+
+
+@pytest.mark.gpu  # make test-all (and CI) selects it; it skips without CUDA
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_training_on_a_gpu_exports_a_model_a_cpu_server_loads(data, tmp_path):
+    """``dhg train --device cuda``: the run trains on the GPU, learns as well as the same run on
+    the CPU (same seed; the two differ only by floating-point order), and writes a TorchScript
+    file that a CPU-only ``dhg-serve`` loads and that predicts what the trained network does."""
+    cfg = TrainConfig(max_epochs=3)
+    gpu = train(data, tmp_path / "gpu", "tiny", dataclasses.replace(cfg, device="cuda"))
+    cpu = train(data, tmp_path / "cpu", "tiny", cfg)
+    assert gpu.metrics["device"].startswith("cuda") and cpu.metrics["device"] == "cpu"
+    g, c = gpu.metrics["test"]["rmse_n"], cpu.metrics["test"]["rmse_n"]
+    assert 0.5 < g / c < 2.0, f"test RMSE on the GPU {g:.4f} N against {c:.4f} N on the CPU"
+    windows = np.random.default_rng(0).uniform(0.0, 1.0, (4, 20, 9))
+    served = load_model(tmp_path / "gpu" / "model.ts", device="cpu").predict(windows)
+    on_gpu = load_model(tmp_path / "gpu" / "model.ts", device="cuda").predict(windows)
+    assert served.shape == (4, 3) and np.all(np.isfinite(served))
+    np.testing.assert_allclose(served, on_gpu, rtol=1e-4, atol=1e-5)
 
 
 def test_a_trained_model_carries_the_experts_demonstration_profiles(run, data):

@@ -345,6 +345,7 @@ def train(
         "epochs": len(history),
         "best_epoch": int(np.argmin([h["val_rmse"] for h in history])) if history else -1,
         "train_time_s": train_time,
+        "device": str(device),
         "data": {"path": str(ds.path), "records_sha256": ds.card["files"]["records.parquet"]["sha256"]},
         "parameters": sum(p.numel() for p in net.parameters()),
     }
