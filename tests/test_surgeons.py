@@ -138,3 +138,29 @@ def test_the_offset_across_the_path_leaves_out_the_overshoot_past_b():
     m = skill_metrics(records, path, TaskRules(), tips[-1], 10.0, 0.0, 40.0, 0.0)
     assert m["max_deviation_m"] == pytest.approx(3e-3)
     assert m["max_lateral_deviation_m"] == pytest.approx(1e-3)
+
+
+def test_no_cue_but_the_heat_cue_is_felt_as_a_buzz(phantom):
+    """A surgeon told what ``shaped``'s heat cue means pauses with the drill off while a vibration
+    is felt in the guidance. Only the heat cue may read as one: with the 2.5 mm drill the bone
+    stays below the cue's 45 °C, so the brake's damper, the corridor's pull and the warning of a
+    whole guided attempt must never be felt as a buzz (nor, told nothing, by an impedance arm)."""
+    from dhg.core.session import DrillingSession
+    from dhg.learning.torchscript import load_model
+    from dhg.learning.weights import default_model_path
+    from dhg.operators.episodes import run_episode
+    from dhg.operators.models import cue_meaning, operator_style
+
+    model = load_model(default_model_path())
+    session = DrillingSession(phantom.volume, phantom.path)
+    profiles = model.profiles
+    session.set_corridor_profile(profiles.bin_m, profiles.corridor_n_per_m)
+    breakthrough_m = planned_breakthrough_depth_m(phantom.volume, phantom.path, session.config.burr_radius_m)
+    for seed, mode, operator in ((3, "shaped", "instructed"), (4, "brake", "instructed"), (5, "shaped", "impedance")):
+        rng = np.random.default_rng(seed)
+        style = operator_style(sample_style("novice", rng), operator, rng)
+        session.set_guidance(mode, 1.0)
+        ep = run_episode(session, style, rng, predictor=model.predict, cue_meaning=cue_meaning(operator, mode))
+        assert ep.metrics["peak_temperature_c"] < 45.0, "the heat cue was on: the test says nothing"
+        assert ep.records[:, 8].max() > breakthrough_m, "the attempt ended before the breakthrough"
+        assert ep.extra["buzz_felt_s"] == 0.0, (seed, mode, operator, ep.extra)

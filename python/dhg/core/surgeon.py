@@ -225,6 +225,13 @@ class SurgeonController:
         return float(self._c.max_plunge_m)
 
     @property
+    def buzz_felt_s(self) -> float:
+        """How long a vibration was felt in the cue so far (s): ``shaped``'s heat cue, or any
+        other cue that swings fast enough to be read as one (which a surgeon told what the heat
+        cue means pauses for, with the drill off)."""
+        return float(self._c.buzz_felt_s)
+
+    @property
     def push(self) -> float:
         """The push the surgeon means to make along A→B (N), before the lean into a cue."""
         return float(self._c.push_n)

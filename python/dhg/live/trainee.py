@@ -146,7 +146,8 @@ def drive_surgeon(client: TraineeClient, surgeon: SurgeonController, duration_s:
 
 
 def live_metrics(client: TraineeClient, surgeon: SurgeonController, states: list[dict[str, Any]]) -> dict[str, Any]:
-    """Skill metrics (:func:`dhg.core.skill.skill_metrics`, plus ``reached_target``) of the attempt
+    """Skill metrics (:func:`dhg.core.skill.skill_metrics`, plus ``reached_target`` and
+    ``buzz_felt_s``, the seconds a vibration was felt in the guidance) of the attempt
     ``surgeon`` drilled through the client's session, from the server's ``states`` of it."""
     records = state_records(states)
     last = states[-1] if states else None
@@ -162,6 +163,7 @@ def live_metrics(client: TraineeClient, surgeon: SurgeonController, states: list
         time_above_47_s=last["time_above_47_s"] if last else 0.0,
     )
     metrics["reached_target"] = bool(surgeon.phase == "done")
+    metrics["buzz_felt_s"] = surgeon.buzz_felt_s
     return metrics
 
 

@@ -134,5 +134,5 @@ def drill_episode(
         metrics=metrics,
         raw_poses=raw_poses,
         raw_forces_n=raw_forces,
-        extra={"reached_target": float(surgeon.phase == "done")},
+        extra={"reached_target": float(surgeon.phase == "done"), "buzz_felt_s": surgeon.buzz_felt_s},
     )

@@ -81,6 +81,9 @@ METRICS: tuple[tuple[str, str, float, bool], ...] = (
     ("time_above_47_s", "> 47 °C (s)", 1.0, True),
     ("peak_temperature_c", "peak (°C)", 1.0, True),
     ("reached_target", "reached B", 1.0, False),
+    # Seconds a vibration was felt in the guidance: shaped's heat cue, or a cue read as one (a
+    # surgeon told what the heat cue means pauses for it). Not a skill: what the arm made felt.
+    ("buzz_felt_s", "buzz felt (s)", 1.0, True),
 )
 """(key, label, display scale, lower is better) of the metrics a study reports."""
 

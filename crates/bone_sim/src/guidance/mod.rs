@@ -57,6 +57,23 @@ pub const MAX_GAIN: f64 = 4.0;
 /// last millimetre of cortex (3 of 6 reached B against 5 of 6 unguided; docs/results.md).
 pub const WARNING_FEED_M_S: f64 = 0.5e-3;
 
+/// Time constant of the low-pass through which every damper of the guide (the corridor's, the
+/// brake's) and the feed-scaled warning see the tip's velocity (s): 5 ms, a 32 Hz corner. The
+/// velocity is a finite difference of the 1 kHz tip, which moves in steps as voxels go: a damper
+/// on it chatters (Colgate & Brown 1994: velocity from differenced position must be filtered
+/// before a virtual damper acts on it). Unfiltered, the brake's 20 N·s/m turned that into swings
+/// of the cue above 0.1 N at hundreds of hertz, which a hand feels as a buzz: an operator told
+/// that a buzz means "pause, the bone is hot" paused at 7 of 10 breakthroughs (seeds 3–12,
+/// `brake`, up to 0.41 s). The spring parts act at once; the dampers gain a few milliseconds.
+pub const VELOCITY_FILTER_S: f64 = 5e-3;
+
+/// Time constant of the feed the warning and the brake's model cue compare with
+/// `warning_feed_m_s` (s). The tip advances through cortex in voxel-sized steps: per tick its
+/// velocity is 0 or tens of mm/s, never the 0.5–1 mm/s of a feed, so a law that scales by feed
+/// needs the feed over tens of milliseconds. Read from the 1 kHz velocity, the warning flickered
+/// between nothing and its full force from one tick to the next, a buzz in the handle.
+pub const FEED_FILTER_S: f64 = 50e-3;
+
 /// What the guidance share renders.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -167,6 +184,10 @@ pub struct Guide {
     heat: Option<HeatHold>,
     /// The corridor's integral of the offset beyond its deadband (m·s), across the path.
     corridor_integral_m_s: Vector3<f64>,
+    /// The tip's velocity through [`VELOCITY_FILTER_S`] (m/s): what the laws damp.
+    velocity_m_s: Vector3<f64>,
+    /// The tip's velocity through [`FEED_FILTER_S`] (m/s): the feed the warning reads.
+    feed_velocity_m_s: Vector3<f64>,
     share_n: Vector3<f64>,
 }
 
@@ -195,6 +216,8 @@ impl Guide {
             was_giving: false,
             heat: None,
             corridor_integral_m_s: Vector3::zeros(),
+            velocity_m_s: Vector3::zeros(),
+            feed_velocity_m_s: Vector3::zeros(),
             share_n: Vector3::zeros(),
         }
     }
@@ -211,6 +234,8 @@ impl Guide {
         self.was_giving = false;
         self.heat = None;
         self.corridor_integral_m_s = Vector3::zeros();
+        self.velocity_m_s = Vector3::zeros();
+        self.feed_velocity_m_s = Vector3::zeros();
         self.share_n = Vector3::zeros();
     }
 
@@ -298,6 +323,13 @@ impl Guide {
 
     /// Advances by `dt_s` and returns the share to add to the bone's force (N).
     pub fn step(&mut self, input: &GuideInput<'_>, dt_s: f64) -> Vector3<f64> {
+        if input.tip_velocity_m_s.iter().all(|x| x.is_finite()) {
+            let v = input.tip_velocity_m_s;
+            self.velocity_m_s += (v - self.velocity_m_s) * (dt_s / (VELOCITY_FILTER_S + dt_s));
+            self.feed_velocity_m_s += (v - self.feed_velocity_m_s) * (dt_s / (FEED_FILTER_S + dt_s));
+        }
+        let filtered = GuideInput { tip_velocity_m_s: self.velocity_m_s, ..*input };
+        let input = &filtered;
         let p = &self.params;
         self.target_age_s += dt_s;
         let live = self.is_live();
@@ -469,6 +501,6 @@ impl Guide {
         if feed <= 0.0 {
             return 1.0;
         }
-        (input.tip_velocity_m_s.dot(&input.axis) / feed).clamp(0.0, 1.0)
+        (self.feed_velocity_m_s.dot(&input.axis) / feed).clamp(0.0, 1.0)
     }
 }

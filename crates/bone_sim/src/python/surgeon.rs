@@ -120,6 +120,12 @@ impl PySurgeon {
         self.inner.max_plunge_m()
     }
 
+    /// How long a vibration was felt in the cue so far (s): the heat cue, or anything read as one.
+    #[getter]
+    fn buzz_felt_s(&self) -> f64 {
+        self.inner.buzz_felt_s()
+    }
+
     /// The attempt's 1 kHz pose rows (N, 9) and forces (N, 3) in N, if kept.
     fn raw<'py>(&self, py: Python<'py>) -> Option<RawArrays<'py>> {
         let (poses, forces) = self.raw.as_ref()?;

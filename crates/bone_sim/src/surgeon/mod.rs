@@ -223,6 +223,8 @@ pub struct SurgeonController {
     cooling: bool,
     /// Pausing with the drill off because a heat cue is felt (a surgeon told what it means).
     heat_pause: bool,
+    /// Ticks on which a vibration was felt in the cue (the heat cue, or anything read as one).
+    buzz_ticks: usize,
     /// The vibration sense: low-passed cue (N), the last swing's sign, and the swing count.
     cue_lowpass_n: f64,
     swing_sign: f64,
@@ -336,6 +338,7 @@ impl SurgeonController {
             pause_until: -1.0,
             cooling: false,
             heat_pause: false,
+            buzz_ticks: 0,
             cue_lowpass_n: 0.0,
             swing_sign: 0.0,
             swings: 0.0,
@@ -410,6 +413,13 @@ impl SurgeonController {
         self.max_plunge_m
     }
 
+    /// How long a vibration was felt in the cue so far (s): the heat cue's buzz, or anything
+    /// else the hand would read as one (which a surgeon told what it means would pause for).
+    #[must_use]
+    pub fn buzz_felt_s(&self) -> f64 {
+        self.buzz_ticks as f64 * TICK_S
+    }
+
     fn felt(&self, tick: usize) -> &Felt {
         &self.history[tick % self.history.len()]
     }
@@ -432,6 +442,7 @@ impl SurgeonController {
         let d = self.d;
         let cue_axial_n = cue_n.dot(&d);
         let buzz = self.feel_vibration(cue_axial_n);
+        self.buzz_ticks += usize::from(buzz);
         *self.felt_mut(tick) = Felt { seen: *now, cue_axial_n, force_axial_n: 0.0, hand_s_m: self.s, buzz };
         let delayed = tick.saturating_sub(self.delay);
         let seen = self.felt(delayed).seen;
