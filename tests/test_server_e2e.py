@@ -3,6 +3,7 @@ engine and model worker), the test process is the client."""
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -218,8 +219,9 @@ def test_the_servers_skill_metrics_are_the_ones_an_offline_attempt_reports(serve
 
 
 def test_a_live_servers_replies_carry_exactly_the_fields_of_their_schemas(server):
-    """What ``get .../metrics`` and ``get .../server/health`` return over the wire is what the
-    Rust types' schemas (``dhg.core.server.reply_schemas``) declare, nested objects included."""
+    """What ``get .../control`` (the session info, with a fading schedule; ``close``; an error),
+    ``.../metrics`` and ``.../server/health`` return over the wire is what the Rust types'
+    schemas (``dhg.core.server.reply_schemas``) declare, nested objects included."""
     from dhg.core.server import reply_schemas
 
     _, endpoint = server
@@ -232,9 +234,20 @@ def test_a_live_servers_replies_carry_exactly_the_fields_of_their_schemas(server
         # The model worker shows in the pool once it has answered: then every nested field is there.
         _wait(lambda: c.health()["model"]["workers"], 10.0, "a model worker in the pool")
         health = c.health()
-    assert metrics["target_distance_m"] is not None
+        c.control("set_fading", fading={"probe_every": 2})
+        info = c.control("info")
+        key = "dhg/session/schema-1/control"
+        bad = json.dumps({"op": "set_guidance", "gain": 9.0}).encode()
+        (refused,) = [json.loads(r.err.payload.to_bytes()) for r in c._z.get(key, payload=bad, timeout=2.0)]
+        closed = c._json(key, {"op": "close"})
+    assert metrics["target_distance_m"] is not None and info["fading"] is not None
     assert reply_fields(metrics) == schema_fields(schemas["metrics"])
     assert reply_fields(health) == schema_fields(schemas["health"])
+    assert reply_fields(info) == schema_fields(schemas["info"])
+    assert reply_fields(closed) == schema_fields(schemas["closed"])
+    assert closed == {"session": "schema-1", "closed": True}
+    assert set(refused) == schema_fields(schemas["error"]) and refused["kind"] == "invalid_input"
+    assert "guidance gain" in refused["error"]
 
 
 def test_xray_views_metrics_and_an_own_path_over_zenoh(server):

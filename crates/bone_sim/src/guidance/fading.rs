@@ -15,7 +15,7 @@ use crate::error::{non_negative, positive, SimError, SimResult};
 /// at equilibrium `a = learn · e / (1 − forget)`. Every `probe_every`-th attempt renders no
 /// guidance (a probe, after the guidance hypothesis: Schmidt & Bjork 1992; Marchal-Crespo &
 /// Reinkensmeyer 2008), so the trainee's own skill is measured and they do not come to rely on it.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct FadingParams {
     /// Gain of the first attempt (0..=`MAX_GAIN`).
@@ -85,6 +85,23 @@ impl FadingParams {
     }
 }
 
+/// A fading schedule as the session info (`fading`) and `DrillingSession.fading` report it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, schemars::JsonSchema)]
+pub struct FadingSchedule {
+    /// The schedule's parameters.
+    pub params: FadingParams,
+    /// Attempts finished so far.
+    pub attempts: u32,
+    /// The assistance the next guided attempt gets (0..=`max_gain`).
+    pub assistance: f64,
+    /// This attempt's gain (0 in a probe).
+    pub gain: f64,
+    /// Whether this attempt is a guidance-free probe.
+    pub probe: bool,
+    /// The last attempt's error (1: at the tolerance); null before the first.
+    pub last_error: Option<f64>,
+}
+
 /// One trainee's fading schedule: the attempt count, the assistance and this attempt's gain.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Fading {
@@ -146,18 +163,17 @@ impl Fading {
         }
     }
 
-    /// The schedule as JSON: params, attempts, assistance, this attempt's gain, whether it is a
-    /// probe, and the last attempt's error (null before the first).
+    /// The schedule as the session info reports it.
     #[must_use]
-    pub fn to_json(&self) -> serde_json::Value {
-        serde_json::json!({
-            "params": self.params,
-            "attempts": self.attempts,
-            "assistance": self.assistance,
-            "gain": self.gain(),
-            "probe": self.is_probe(),
-            "last_error": if self.last_error.is_finite() { Some(self.last_error) } else { None },
-        })
+    pub fn schedule(&self) -> FadingSchedule {
+        FadingSchedule {
+            params: self.params.clone(),
+            attempts: self.attempts,
+            assistance: self.assistance,
+            gain: self.gain(),
+            probe: self.is_probe(),
+            last_error: self.last_error.is_finite().then_some(self.last_error),
+        }
     }
 
     /// Ends an attempt with its largest plunge and lateral deviation (m); returns the next

@@ -41,7 +41,7 @@ mod tests;
 
 use nalgebra::{Point3, Vector3};
 
-pub use fading::{Fading, FadingParams};
+pub use fading::{Fading, FadingParams, FadingSchedule};
 pub use params::GuidanceParams;
 
 use crate::error::{SimError, SimResult};

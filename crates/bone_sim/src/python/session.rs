@@ -198,7 +198,7 @@ impl PySession {
     /// The fading schedule (`params`, `attempts`, `assistance`, `gain`, `probe`, `last_error`),
     /// or None.
     fn fading<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
-        self.inner.fading().map(|f| to_python(py, &f.to_json())).transpose()
+        self.inner.fading().map(|f| to_python(py, &f.schedule())).transpose()
     }
 
     /// Every guidance limit and force law (`crate::guidance::GuidanceParams`, SI units).

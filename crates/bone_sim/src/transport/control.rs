@@ -12,7 +12,9 @@ use zenoh::query::Query;
 use zenoh::sample::{Locality, Sample};
 use zenoh::Wait;
 
-use super::replies::{HealthReply, MetricsReply, ModelHealth, Refused, ShortSlices};
+use super::replies::{
+    Closed, ErrorReply, HealthReply, MetricsReply, ModelHealth, PathLayer, Refused, SessionInfo, ShortSlices,
+};
 use super::{lock, Shared};
 use crate::engine::handoff::Command;
 use crate::error::{SimError, SimResult};
@@ -103,7 +105,7 @@ fn reply(query: &Query, result: SimResult<Value>) {
     let _ = match result {
         Ok(v) => query.reply(key, v.to_string()).encoding(Encoding::APPLICATION_JSON).wait(),
         Err(e) => query
-            .reply_err(json!({ "error": e.to_string(), "kind": e.kind() }).to_string())
+            .reply_err(json!(ErrorReply { error: e.to_string(), kind: e.kind() }).to_string())
             .encoding(Encoding::APPLICATION_JSON)
             .wait(),
     };
@@ -250,34 +252,37 @@ fn path_of(entry_m: &[f64], target_m: &[f64]) -> SimResult<PlannedPath> {
 /// The step (m) at which a session's info samples the pristine layers along its path.
 const PATH_LAYER_STEP_M: f64 = DrillingSession::PLAN_STEP_M;
 
-fn session_info(shared: &Shared, id: &str) -> SimResult<Value> {
-    let (mut info, path, burr_m) = {
+fn session_info(shared: &Shared, id: &str, created: Option<bool>) -> SimResult<Value> {
+    let (mut info, path) = {
         let reg = lock(&shared.registry);
         let slot = reg.slot_of(id).ok_or_else(|| SimError::Engine(format!("no session {id:?}")))?;
         let info = &reg.slots[slot as usize];
         let (a, b) = (info.path.entry_m(), info.path.target_m());
-        let v = json!({
-            "session": id,
-            "slot": slot,
-            "guidance_mode": info.mode.name(),
-            "guidance_gain": info.gain,
-            "fading": info.fading.as_ref().map(Fading::to_json),
-            "burr_radius_m": info.burr_radius_m,
-            "entry_m": [a.x, a.y, a.z],
-            "target_m": [b.x, b.y, b.z],
-            "poses_received": info.poses_received,
-        });
-        (v, info.path.clone(), info.burr_radius_m)
+        let v = SessionInfo {
+            session: id.to_string(),
+            slot,
+            guidance_mode: info.mode.name(),
+            guidance_gain: info.gain,
+            fading: info.fading.as_ref().map(Fading::schedule),
+            burr_radius_m: info.burr_radius_m,
+            entry_m: [a.x, a.y, a.z],
+            target_m: [b.x, b.y, b.z],
+            poses_received: info.poses_received,
+            planned_breakthrough_depth_m: None,
+            path_layer_step_m: PATH_LAYER_STEP_M,
+            path_layers: Vec::new(),
+            created,
+        };
+        (v, info.path.clone())
     };
     // Sampled outside the registry lock: the pose subscriber needs it at 1 kHz per client.
     let runs = path.layer_runs(&shared.volume, PATH_LAYER_STEP_M)?;
-    info["path_layer_step_m"] = json!(PATH_LAYER_STEP_M);
     // Where the session's guidance and a planning trainee expect the first cortex to give.
-    let planned = path.first_cortex_exit_m(&shared.volume, DrillingSession::PLAN_STEP_M).map(|e| e - burr_m);
-    info["planned_breakthrough_depth_m"] = json!(planned);
-    info["path_layers"] =
-        runs.iter().map(|r| json!({ "layer": r.layer.name(), "start_m": r.start_m, "end_m": r.end_m })).collect();
-    Ok(info)
+    info.planned_breakthrough_depth_m =
+        path.first_cortex_exit_m(&shared.volume, DrillingSession::PLAN_STEP_M).map(|e| e - info.burr_radius_m);
+    info.path_layers =
+        runs.iter().map(|r| PathLayer { layer: r.layer.name(), start_m: r.start_m, end_m: r.end_m }).collect();
+    Ok(json!(info))
 }
 
 /// Sets the guidance of `slot`, keeping what is not given.
@@ -352,9 +357,7 @@ pub(crate) fn apply(shared: &Shared, id: &str, body: &Value) -> SimResult<Value>
                     reg.slots[s as usize].burr_radius_m = radius_m;
                 }
                 drop(reg);
-                let mut info = session_info(shared, id)?;
-                info["created"] = json!(created);
-                return Ok(info);
+                return session_info(shared, id, Some(created));
             }
             ControlRequest::Reset => {
                 let s = slot(&reg)?;
@@ -391,7 +394,7 @@ pub(crate) fn apply(shared: &Shared, id: &str, body: &Value) -> SimResult<Value>
             }
             ControlRequest::Close => {
                 reg.close(id)?;
-                return Ok(json!({ "session": id, "closed": true }));
+                return Ok(json!(Closed { session: id.to_string(), closed: true }));
             }
             ControlRequest::Info => {}
         }
@@ -399,7 +402,7 @@ pub(crate) fn apply(shared: &Shared, id: &str, body: &Value) -> SimResult<Value>
             reg.slots[s as usize].last_seen = std::time::Instant::now();
         }
     }
-    session_info(shared, id)
+    session_info(shared, id, None)
 }
 
 /// A session's metrics.

@@ -1,12 +1,77 @@
-//! The JSON replies of the `metrics` and `health` queryables, as types: serde writes them, and
-//! their JSON schemas (schemars) are what `docs/protocol.md` is checked against and what a
-//! client in another language may validate with ([`schemas`]).
+//! The JSON replies of the `control`, `metrics` and `health` queryables and the error reply of
+//! all three, as types: serde writes them, and their JSON schemas (schemars) are what
+//! `docs/protocol.md` is checked against and what a client in another language may validate
+//! with ([`schemas`]).
 
 use schemars::JsonSchema;
 use serde::Serialize;
 use serde_json::Value;
 
 pub use super::pool::Worker;
+pub use crate::guidance::FadingSchedule;
+
+/// `get <p>/session/<id>/control`: the session info, the reply to every op but `close`.
+#[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
+pub struct SessionInfo {
+    /// The session's id.
+    pub session: String,
+    /// The engine slot it holds.
+    pub slot: u16,
+    /// Its guidance mode.
+    pub guidance_mode: &'static str,
+    /// Its guidance gain (0..4).
+    pub guidance_gain: f64,
+    /// Its fading schedule; null without one.
+    pub fading: Option<FadingSchedule>,
+    /// The drill's burr radius (m).
+    pub burr_radius_m: f64,
+    /// Entry point A (m, world frame).
+    pub entry_m: [f64; 3],
+    /// Target B (m, world frame).
+    pub target_m: [f64; 3],
+    /// Poses the session has received.
+    pub poses_received: u64,
+    /// The tip depth at which the planning CT shows the burr leaving the first cortex (m); null
+    /// when the path crosses none.
+    pub planned_breakthrough_depth_m: Option<f64>,
+    /// The step at which `path_layers` samples the pristine bone along A→B (m).
+    pub path_layer_step_m: f64,
+    /// The planning CT along A→B, merged into runs of one layer.
+    pub path_layers: Vec<PathLayer>,
+    /// For `create`: whether this request created the session (false: it existed); null for
+    /// every other op.
+    pub created: Option<bool>,
+}
+
+/// A run of one layer along A→B, as the planning CT shows it.
+#[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
+pub struct PathLayer {
+    /// `outside`, `cortical`, `cancellous`, `marrow` or `necrosis` (layer ids 0–4).
+    pub layer: &'static str,
+    /// Depth from A of the run's first sample (m).
+    pub start_m: f64,
+    /// Depth from A of the run's last sample (m).
+    pub end_m: f64,
+}
+
+/// `get <p>/session/<id>/control` with `{"op": "close"}`.
+#[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
+pub struct Closed {
+    /// The session's id.
+    pub session: String,
+    /// Always true: the session is gone.
+    pub closed: bool,
+}
+
+/// The error reply of every queryable: what was wrong, and its kind.
+#[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
+pub struct ErrorReply {
+    /// What was wrong, for a person.
+    pub error: String,
+    /// `invalid_input`, `shape`, `engine` or `transport`: the Python client raises the class of
+    /// `dhg.core.errors.ERROR_KINDS` it names.
+    pub kind: &'static str,
+}
 
 /// `get <p>/session/<id>/metrics`: one session's running metrics (SI units).
 #[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
@@ -169,12 +234,19 @@ pub struct ModelHealth {
     pub workers_refused: u64,
 }
 
-/// The JSON schemas of the replies, by queryable (`metrics`, `health`).
+/// The JSON schemas of the replies, by name (`info`, `closed`, `metrics`, `health`, `error`), as
+/// serde writes them (a field with a serde default is still always written).
 #[must_use]
 pub fn schemas() -> Value {
+    fn written<T: JsonSchema>() -> schemars::Schema {
+        schemars::generate::SchemaSettings::default().for_serialize().into_generator().into_root_schema_for::<T>()
+    }
     serde_json::json!({
-        "metrics": schemars::schema_for!(MetricsReply),
-        "health": schemars::schema_for!(HealthReply),
+        "info": written::<SessionInfo>(),
+        "closed": written::<Closed>(),
+        "metrics": written::<MetricsReply>(),
+        "health": written::<HealthReply>(),
+        "error": written::<ErrorReply>(),
     })
 }
 
@@ -191,8 +263,13 @@ mod tests {
         let keys = |v: &Value| v.as_object().unwrap().keys().cloned().collect::<Vec<_>>();
         assert_eq!(keys(&s["metrics"]["properties"]), keys(&written));
         assert_eq!(written["target_distance_m"], Value::Null, "no record yet: no distance");
-        for (reply, nested) in [("health", &["ShortSlices", "Refused", "ModelHealth", "Worker"][..]), ("metrics", &[])]
-        {
+        for (reply, nested) in [
+            ("health", &["ShortSlices", "Refused", "ModelHealth", "Worker"][..]),
+            ("metrics", &[]),
+            ("info", &["FadingSchedule", "FadingParams", "PathLayer"]),
+            ("closed", &[]),
+            ("error", &[]),
+        ] {
             let defs = &s[reply]["$defs"];
             assert_eq!(defs.as_object().map_or(0, serde_json::Map::len), nested.len(), "{reply}: {defs}");
             for name in nested {
