@@ -8,7 +8,7 @@ from collections.abc import Iterator
 import pytest
 
 import dhg
-from dhg.live.demo import ServerProcess
+from dhg.live.process import ServerProcess
 from support import serve
 
 

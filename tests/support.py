@@ -11,11 +11,13 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from dhg.live.client import TraineeClient
-from dhg.live.demo import ServerProcess, free_port
+from dhg.live.process import ServerProcess, free_port
 
 PEAK_FORCE_N = 3.3
 """The Touch profile's peak: nothing above it may reach a device."""
@@ -144,6 +146,29 @@ def ctrl_c(rec: subprocess.Popen[str]) -> str:
     output, _ = rec.communicate(timeout=30)
     assert rec.returncode == 0, output
     return output
+
+
+def rewrite_dataset_file(
+    folder: Path, name: str, table: Any, card_change: Callable[[dict], None] | None = None
+) -> None:
+    """Writes ``table`` (pyarrow) as the dataset file ``name`` in ``folder`` and updates the card's
+    hash (and row count, where the card keeps one) so that only the change a test makes is
+    checked, not a stale hash; ``card_change`` edits the card before it is written back."""
+    import hashlib
+    import json
+
+    import pyarrow.parquet as pq
+
+    path = folder / name
+    pq.write_table(table, path)
+    card = json.loads((folder / "card.json").read_text())
+    entry = card["files"][name]
+    entry["sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
+    if "rows" in entry:
+        entry["rows"] = table.num_rows
+    if card_change:
+        card_change(card)
+    (folder / "card.json").write_text(json.dumps(card))
 
 
 def said(proc: ServerProcess, last: int = 40) -> str:

@@ -12,6 +12,7 @@ import pytest
 from dhg.core.features import FEATURE_NAMES, FEATURE_UNITS
 from dhg.data.dataset import DatasetError, load_dataset, load_raw, records_schema, write_dataset
 from dhg.data.synth import synthesize
+from support import rewrite_dataset_file
 
 
 @pytest.fixture(scope="module")
@@ -64,15 +65,7 @@ def test_deterministic_for_a_seed(coarse_phantom):
 
 def _rewrite(out, table, card_change=None):
     """Writes a modified records table (and card) back, keeping the card's hash consistent."""
-    import hashlib
-
-    pq.write_table(table, out / "records.parquet")
-    card = json.loads((out / "card.json").read_text())
-    card["files"]["records.parquet"]["sha256"] = hashlib.sha256((out / "records.parquet").read_bytes()).hexdigest()
-    card["files"]["records.parquet"]["rows"] = table.num_rows
-    if card_change:
-        card_change(card)
-    (out / "card.json").write_text(json.dumps(card))
+    rewrite_dataset_file(out, "records.parquet", table, card_change)
 
 
 @pytest.fixture
@@ -257,16 +250,12 @@ def test_experts_beat_novices_on_every_metric(phantom):
 
 
 def test_a_raw_file_from_before_the_guidance_columns_reads_with_zero_guidance(small, tmp_path):
-    import hashlib
     import shutil
 
     out = tmp_path / "old"
     shutil.copytree(small[0], out)
     raw = pq.read_table(out / "raw.parquet")
-    pq.write_table(raw.drop_columns(["guidance_x_n", "guidance_y_n", "guidance_z_n"]), out / "raw.parquet")
-    card = json.loads((out / "card.json").read_text())
-    card["files"]["raw.parquet"]["sha256"] = hashlib.sha256((out / "raw.parquet").read_bytes()).hexdigest()
-    (out / "card.json").write_text(json.dumps(card))
+    rewrite_dataset_file(out, "raw.parquet", raw.drop_columns(["guidance_x_n", "guidance_y_n", "guidance_z_n"]))
     old = load_raw(out)
     assert old.schema.names == raw.schema.names and old.num_rows == raw.num_rows
     assert not old.column("guidance_z_n").to_numpy().any()

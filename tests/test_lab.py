@@ -16,8 +16,8 @@ import pytest
 from dhg.core import protocol
 from dhg.core.errors import InvalidInputError, TransportError
 from dhg.live.client import TraineeClient
-from dhg.live.demo import ServerProcess, free_port
 from dhg.live.lab import acl, load_lab, write_lab
+from dhg.live.process import ServerProcess, free_port
 from support import said
 from support import wait_until as _wait
 

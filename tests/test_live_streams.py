@@ -10,6 +10,7 @@ import pytest
 
 from dhg.data.dataset import DatasetError, EpisodeInput, load_dataset, load_raw, write_dataset
 from dhg.live.streams import RAW_COLUMNS, EpisodeSplitter, RawParts, RecordingEpisode, force_jerk
+from support import rewrite_dataset_file
 
 
 def _ids(split: EpisodeSplitter, stream: str, ticks: list[int]) -> list[int]:
@@ -159,18 +160,13 @@ def test_load_raw_refuses_ticks_that_go_back_within_an_episode(tmp_path):
 
 
 def test_load_raw_names_the_columns_that_differ(tmp_path):
-    import hashlib
-
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     out = _parts_dataset(tmp_path)
     part = out / "raw-00000.parquet"
     t = pq.read_table(part)
-    pq.write_table(t.set_column(1, "tick", pa.array(t.column("tick").to_numpy().astype("int64"))), part)
-    card = json.loads((out / "card.json").read_text())
-    card["files"][part.name]["sha256"] = hashlib.sha256(part.read_bytes()).hexdigest()
-    (out / "card.json").write_text(json.dumps(card))
+    rewrite_dataset_file(out, part.name, t.set_column(1, "tick", pa.array(t.column("tick").to_numpy().astype("int64"))))
     with pytest.raises(DatasetError, match="column types differ from the format: tick is int64"):
         load_raw(out)
 

@@ -16,7 +16,7 @@ from dhg.core import protocol
 from dhg.learning.torchscript import load_model
 from dhg.learning.weights import default_model_path
 from dhg.live.client import TraineeClient
-from dhg.live.demo import ServerProcess
+from dhg.live.process import ServerProcess
 from dhg.live.services import ModelService
 from dhg.live.zenoh_config import open_zenoh, zenoh_config_json5
 from support import entry, serve, stream, wait_until

@@ -15,7 +15,7 @@ from dhg.core import errors, protocol
 from dhg.core.server import ServerSettings, start_engine
 from dhg.core.session import CuttingLaw, DeviceProfile, SessionConfig, ThermalParams
 from dhg.core.volume import HuMapping
-from dhg.live.demo import free_port
+from dhg.live.process import free_port
 from dhg.live.zenoh_config import zenoh_config_json5
 
 CORE = _bone_sim.defaults()

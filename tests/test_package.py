@@ -108,3 +108,29 @@ def test_every_module_declares_its_exports():
             if isinstance(t, ast.Name)
         ]
         assert "__all__" in names, f"{name} has no __all__"
+
+
+LAYERS = (
+    ("dhg.core",),
+    ("dhg.bone", "dhg.operators"),
+    ("dhg.data", "dhg.learning"),
+    ("dhg.live",),
+    ("dhg.view", "dhg.study"),
+    ("dhg.cli",),
+)
+"""The subpackages from the bottom up, as the README's module map orders them: a module may
+import from its own layer and the layers below, never from one above."""
+
+
+def test_each_subpackage_imports_only_from_its_layer_and_below():
+    level = {pkg: i for i, layer in enumerate(LAYERS) for pkg in layer}
+
+    def layer_of(module: str) -> int | None:
+        return next((lv for pkg, lv in level.items() if module == pkg or module.startswith(pkg + ".")), None)
+
+    for name, tree in MODULES.items():
+        mine = layer_of(name)
+        if mine is None:
+            continue
+        upward = sorted(d for d in _imports(name, tree) if (layer_of(d) or 0) > mine)
+        assert upward == [], f"{name} (layer {mine}) imports from a layer above it: {upward}"

@@ -21,7 +21,7 @@ from dhg.core.errors import EngineError, InvalidInputError
 from dhg.core.layers import Layer
 from dhg.core.server import ServerSettings, start_engine
 from dhg.live.client import TraineeClient
-from dhg.live.demo import free_port
+from dhg.live.process import free_port
 from dhg.live.runner import scheduling_hint
 from dhg.live.trainee import planned_depth_from_info
 from dhg.live.zenoh_config import zenoh_config_json5

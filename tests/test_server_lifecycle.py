@@ -14,7 +14,7 @@ import pytest
 
 from dhg.core import protocol
 from dhg.live.client import TraineeClient
-from dhg.live.demo import free_port
+from dhg.live.process import free_port
 from support import ctrl_c, read_until, readline_within, record_process
 from support import entry as _entry
 from support import serve as _serve

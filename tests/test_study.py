@@ -164,7 +164,7 @@ def test_a_live_study_drills_through_a_running_server(tmp_path):
     """``dhg study --live``: every attempt is drilled in real time through dhg-serve, which guides
     with its own model; the fading arm's schedule (gain, probe) is the server's, read over control."""
     from dhg.live.client import TraineeClient
-    from dhg.live.demo import ServerProcess, free_port
+    from dhg.live.process import ServerProcess, free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server = ServerProcess(["--listen", endpoint, "--voxel-mm", "1.0"], echo=False)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from dhg.live.client import TraineeClient
-from dhg.live.demo import free_port
+from dhg.live.process import free_port
 from dhg.view import Viewer
 from dhg.view.browser import canvas_pixels, chromium, drawn_canvas, wait_for
 from support import Stylus, entry, stops_cleanly

@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dhg.live.client import TraineeClient  # noqa: E402
-from dhg.live.demo import free_port  # noqa: E402
+from dhg.live.process import free_port  # noqa: E402
 from dhg.view import Viewer, pages  # noqa: E402
 from dhg.view.browser import chromium, drawn_canvas, wait_for  # noqa: E402
 from support import Stylus, entry, serve  # noqa: E402

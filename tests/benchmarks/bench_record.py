@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from dhg.data.dataset import load_dataset, load_raw
-from dhg.live.demo import ServerProcess, free_port
+from dhg.live.process import ServerProcess, free_port
 from dhg.live.recorder import SessionRecorder
 
 

@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dhg.live.demo import ServerProcess, free_port
+from dhg.live.process import ServerProcess, free_port
 
 # The `transport` section of Zenoh's low-latency mode (it excludes QoS; both ends must ask for it).
 LOWLATENCY = {"unicast": {"lowlatency": True, "qos": {"enabled": False}}}

@@ -24,7 +24,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from dhg.live.demo import ServerProcess, free_port
+from dhg.live.process import ServerProcess, free_port
 
 
 def main() -> None:

@@ -18,7 +18,7 @@ import numpy as np
 
 from dhg.core.surgeon import GENERIC_BREAKTHROUGH_DEPTH_M
 from dhg.live.client import TraineeClient
-from dhg.live.demo import ServerProcess, free_port
+from dhg.live.process import ServerProcess, free_port
 from dhg.live.trainee import run_trainee
 
 

@@ -28,7 +28,7 @@ import numpy as np
 from dhg.core import protocol
 from dhg.core.errors import EngineError
 from dhg.live.client import TraineeClient
-from dhg.live.demo import ServerProcess, free_port
+from dhg.live.process import ServerProcess, free_port
 
 PEAK_N = 3.3
 

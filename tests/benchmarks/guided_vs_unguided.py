@@ -21,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from dhg.live.client import TraineeClient
-from dhg.live.demo import ServerProcess, free_port
+from dhg.live.process import ServerProcess, free_port
 from dhg.live.trainee import run_trainee
 
 COLUMNS = (

@@ -421,7 +421,7 @@ def _run_recorder(rec: Any, args: argparse.Namespace, status: Callable[[float], 
 
 
 def _cmd_live_demo(args: argparse.Namespace) -> int:
-    from dhg.live.demo import run_live_demo
+    from dhg.cli.demo import run_live_demo
 
     if args.duration <= 0:
         raise ValueError("--duration must be positive")

@@ -2,4 +2,5 @@
 X-ray services (:mod:`~dhg.live.services`), ``dhg-serve``'s runner (:mod:`~dhg.live.runner`), the
 trainee client (:mod:`~dhg.live.client`, :mod:`~dhg.live.trainee`), the recorder
 (:mod:`~dhg.live.recorder`, :mod:`~dhg.live.streams`), the secure lab mode (:mod:`~dhg.live.lab`)
-and the live demo (:mod:`~dhg.live.demo`). The engine itself is :class:`dhg.Server`."""
+and ``dhg-serve`` as a child process (:mod:`~dhg.live.process`). The engine itself is
+:class:`dhg.Server`. Nothing here imports :mod:`dhg.view` or :mod:`dhg.cli`: they are clients of it."""

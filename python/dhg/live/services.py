@@ -9,6 +9,7 @@ import logging
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -90,7 +91,8 @@ class ModelService:
         self.busy = 0
         self.stale = 0
         self.batches = 0
-        self.inference_s: list[float] = []
+        self.inference_s: deque[float] = deque(maxlen=1000)
+        """The last 1,000 forward passes' durations (s)."""
         self._queue: queue.Queue[tuple[float, Any]] = queue.Queue(maxsize=max_queue)
         self._stop = threading.Event()
         # TorchScript's profiling executor optimises on the first calls (100s of ms): do them now,
@@ -173,7 +175,6 @@ class ModelService:
         dt = time.perf_counter() - t0
         self.batches += 1
         self.inference_s.append(dt)
-        del self.inference_s[:-1000]
         for (q, seq), f in zip(good, forces, strict=True):
             if not np.all(np.isfinite(f)):  # a window far outside the training ranges overflows the model
                 self._reply_error(
