@@ -129,3 +129,34 @@ def test_each_error_kind_arrives_as_its_class(coarse_phantom):
     assert set(raised) == set(_bone_sim.ERROR_KINDS)
     for kind, cls in raised.items():
         assert cls is errors.ERROR_KINDS[kind], (kind, cls)
+
+
+def test_the_command_lines_take_their_defaults_from_the_config_types():
+    """The flags are written by hand (docs/decisions/0021-cli-flags.md) but their defaults are the
+    config types' own: ``dhg train``'s make exactly ``TrainConfig()``, ``dhg-serve``'s the core's
+    ``ServerSettings()``, ``dhg study``'s the ``Protocol()`` of a study."""
+    from dhg.cli.commands import _train_config
+    from dhg.cli.main import build_parser
+    from dhg.cli.serve import serve_parser
+    from dhg.learning.presets import TrainConfig
+    from dhg.study.design import Protocol
+
+    train = build_parser().parse_args(["train", "--data", "d", "--out", "o"])
+    assert _train_config(train) == TrainConfig()
+    serve, settings = serve_parser().parse_args([]), ServerSettings()
+    assert (serve.max_sessions, serve.idle_timeout, serve.model_timeout) == (
+        settings.max_sessions,
+        settings.idle_timeout_s,
+        settings.model_timeout_s,
+    )
+    assert (serve.guidance_mode, serve.guidance_gain, serve.wait) == (
+        settings.guidance_mode,
+        settings.guidance_gain,
+        settings.wait,
+    )
+    study, protocol = build_parser().parse_args(["study", "--out", "o"]), Protocol()
+    assert (study.train, study.duration, study.probe_every) == (
+        protocol.train,
+        protocol.duration_s,
+        protocol.probe_every,
+    )
