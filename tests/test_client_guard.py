@@ -3,6 +3,7 @@ arbitrary input (hypothesis): nothing non-finite or above the device's limits is
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -149,3 +150,15 @@ def test_the_recorder_writes_only_possible_states_and_never_stops(messages):
         if wrote:
             for ep in load_dataset(Path(tmp) / "ds").episodes:
                 assert all(map(math.isfinite, ep.features.ravel())) and ep.times_s.min() >= 0
+
+
+def test_an_error_reply_becomes_the_class_of_its_kind_and_an_unknown_kind_says_so():
+    from dhg.core.errors import ERROR_KINDS, EngineError
+    from dhg.live.client import _refusal
+
+    for kind, cls in ERROR_KINDS.items():
+        exc = _refusal("k", json.dumps({"error": "what was wrong", "kind": kind}))
+        assert type(exc) is cls and "what was wrong" in str(exc)
+    newer = _refusal("k", json.dumps({"error": "x", "kind": "quota"}))
+    assert type(newer) is EngineError and "'quota', unknown to this client" in str(newer)
+    assert type(_refusal("k", "not json")) is EngineError

@@ -114,16 +114,19 @@ def all_finite(m: dict[str, Any]) -> bool:
 
 def _refusal(key: str, body: str) -> DhgError:
     """The exception for an error reply ``{"error": ..., "kind": ...}``: the class of its kind
-    (:data:`dhg.core.errors.ERROR_KINDS`; ``invalid_input`` is an :class:`InvalidInputError`), else
-    :class:`EngineError`."""
+    (:data:`dhg.core.errors.ERROR_KINDS`; ``invalid_input`` is an :class:`InvalidInputError`). A
+    kind this client does not know (a newer server) or a reply that is not one is an
+    :class:`EngineError` that says so."""
     try:
         reply = json.loads(body)
     except json.JSONDecodeError:
         reply = None
     if not isinstance(reply, dict):
         return EngineError(f"{key}: {body}")
-    cls = ERROR_KINDS.get(str(reply.get("kind")), EngineError)
-    return cls(f"{key}: {reply.get('error', body)}")
+    kind = str(reply.get("kind"))
+    if kind not in ERROR_KINDS:
+        return EngineError(f"{key}: {reply.get('error', body)} (error kind {kind!r}, unknown to this client)")
+    return ERROR_KINDS[kind](f"{key}: {reply.get('error', body)}")
 
 
 def get_replies(z: Any, key: str, payload: bytes | None = None, timeout_s: float = 2.0) -> list[tuple[str, bytes]]:

@@ -16,7 +16,7 @@ pub(crate) fn to_py(err: SimError) -> PyErr {
     let message = err.to_string();
     Python::attach(|py| {
         let class = py.import("dhg.core.errors").and_then(|m| m.getattr("ERROR_KINDS")?.get_item(err.kind()));
-        // Every kind has its class (tests/test_errors.py checks SimError::KINDS against the
+        // Every kind has its class (tests/test_one_source.py checks SimError::KINDS against the
         // table); a missing one is a bug, said as such rather than hidden behind a ValueError.
         match class.and_then(|c| c.cast_into().map_err(PyErr::from)) {
             Ok(cls) => PyErr::from_type(cls, message),
