@@ -218,11 +218,16 @@ impl DrilledVolume {
                 }
             }
         }
-        report.mass_removed_kg = mass_units / full * voxel_m3;
-        report.volume_removed_m3 = material_units as f64 / full * voxel_m3;
-        self.removed_mass_kg += report.mass_removed_kg;
-        self.removed_voxels += u64::from(report.voxels_removed);
+        self.account(&mut report, mass_units / full * voxel_m3, material_units as f64 / full * voxel_m3);
         Ok(report)
+    }
+
+    /// Adds a call's removed mass (kg) and volume (m³) to its report and to the session's totals.
+    fn account(&mut self, report: &mut RemovalReport, mass_kg: f64, volume_m3: f64) {
+        report.mass_removed_kg = mass_kg;
+        report.volume_removed_m3 = volume_m3;
+        self.removed_mass_kg += mass_kg;
+        self.removed_voxels += u64::from(report.voxels_removed);
     }
 
     /// Runs [`remove`](Self::remove) at each centre in turn (a scripted drill path), one `cut`

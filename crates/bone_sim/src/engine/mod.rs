@@ -31,10 +31,10 @@ pub mod handoff;
 pub mod realtime;
 mod slot;
 pub mod stats;
+mod tick_thread;
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
-use std::thread::{self, JoinHandle, Thread};
 use std::time::{Duration, Instant};
 
 use crate::error::{SimError, SimResult};
@@ -46,6 +46,7 @@ use crate::volume::Volume;
 use handoff::{Command, Output, PoseSample};
 use slot::Slot;
 use stats::TickStats;
+pub use tick_thread::TickThread;
 
 /// Most session slots an engine may have.
 pub const MAX_SESSIONS: usize = 1024;
@@ -533,92 +534,5 @@ impl TickCore {
         }
         self.stats.sessions.store(active, Ordering::Relaxed);
         self.stats.ticks.fetch_add(1, Ordering::Relaxed);
-    }
-}
-
-/// The running tick thread.
-#[derive(Debug)]
-pub struct TickThread {
-    stop: Arc<AtomicBool>,
-    handle: Option<JoinHandle<()>>,
-}
-
-impl TickThread {
-    /// Starts ticking `core` (see the module docs for the schedule); `notify` is unparked after
-    /// every wake-up that ticked a slot or applied a command (the comm thread, so outputs leave
-    /// without polling delay). Unpark [`thread`](Self::thread) after handing over a pose or a
-    /// command whose effect should not wait for the slot's next tick (a model prediction). With
-    /// [`WaitMode::Spin`] the thread does not sleep while a session is open: it checks for due
-    /// slots, fresh poses and commands continuously.
-    ///
-    /// # Errors
-    /// The thread could not be spawned.
-    pub fn spawn(mut core: TickCore, notify: Option<Thread>, wait: WaitMode) -> SimResult<Self> {
-        let stop = Arc::new(AtomicBool::new(false));
-        let flag = stop.clone();
-        // Returns once the thread knows its scheduling, so the health report is right at once.
-        let (ready_tx, ready_rx) = std::sync::mpsc::sync_channel::<()>(1);
-        let handle = thread::Builder::new()
-            .name("dhg-tick".into())
-            .spawn(move || {
-                // Never both: the kernel's real-time throttling (sched_rt_runtime_us, 95 % by
-                // default) would stop a spinning SCHED_FIFO thread for 50 ms every second.
-                let rt = wait == WaitMode::Sleep && realtime::promote();
-                core.stats.realtime.store(u64::from(rt), Ordering::Relaxed);
-                // Without it, at least preempt a longer-sliced thread on waking (no privilege).
-                let slice = !rt && realtime::short_slice(0);
-                core.stats.short_slice.store(u64::from(slice), Ordering::Relaxed);
-                let _ = ready_tx.send(());
-                let mut wake = Instant::now();
-                while !flag.load(Ordering::Relaxed) {
-                    let now = Instant::now();
-                    if now < wake {
-                        // With no session there is nothing to be fast for: sleep, even when
-                        // spinning (a first pose or command unparks the thread).
-                        if wait == WaitMode::Spin && core.stats.sessions.load(Ordering::Relaxed) > 0 {
-                            // `tick_due` is cheap when nothing is due (a few ns per slot) and
-                            // sees a fresh pose or command the moment it lands.
-                            std::hint::spin_loop();
-                        } else {
-                            // Woken early by the pose subscriber (or spuriously: the loop checks).
-                            thread::park_timeout(wake - now);
-                        }
-                    }
-                    let woke = Instant::now();
-                    let (ticked, next) = core.tick_due(woke);
-                    if ticked > 0 {
-                        core.stats.busy.record(woke.elapsed().as_nanos() as u64);
-                    }
-                    if ticked > 0 || core.applied > 0 {
-                        if let Some(t) = &notify {
-                            t.unpark();
-                        }
-                    }
-                    wake = next;
-                }
-            })
-            .map_err(|e| SimError::Engine(format!("cannot start the tick thread: {e}")))?;
-        let _ = ready_rx.recv(); // an error means the thread ended first: nothing to wait for
-        Ok(Self { stop, handle: Some(handle) })
-    }
-
-    /// The tick thread (to unpark when a pose arrives).
-    #[must_use]
-    pub fn thread(&self) -> Option<&Thread> {
-        self.handle.as_ref().map(JoinHandle::thread)
-    }
-
-    /// Stops the thread and waits for it (at most one tick).
-    pub fn stop(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        if let Some(h) = self.handle.take() {
-            let _ = h.join();
-        }
-    }
-}
-
-impl Drop for TickThread {
-    fn drop(&mut self) {
-        self.stop();
     }
 }

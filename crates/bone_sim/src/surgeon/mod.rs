@@ -29,11 +29,19 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
+mod geometry;
+mod senses;
 mod style;
 #[cfg(test)]
 mod tests;
 
-pub use style::{CueMeaning, Perception, Skill, SurgeonStyle};
+pub use geometry::axis_quaternion;
+use geometry::{basis, min_jerk};
+use senses::VibrationSense;
+pub use style::{
+    CueMeaning, Perception, Skill, SurgeonStyle, AIM_FOLLOW_S, CUE_LEAK_PER_S, GENERIC_BREAKTHROUGH_DEPTH_M,
+    HAND_MASS_KG, LATERAL_STIFFNESS_N_PER_M, MAX_PUSH_N, PUSH_MARGIN_N, TRACK_STIFFNESS_N_PER_M, YIELD_SETTLE_S,
+};
 
 use crate::error::{SimError, SimResult};
 use crate::path::PlannedPath;
@@ -41,29 +49,6 @@ use crate::record::{Record, TICK_S};
 use crate::session::{DrillingSession, Pose};
 use crate::volume::layer::Layer;
 
-/// Effective mass of hand and stylus at the stylus tip (kg): the default of
-/// [`SurgeonStyle::hand_mass_kg`].
-pub const HAND_MASS_KG: f64 = 0.4;
-/// How stiffly the arm follows an intended position (N/m), for the approach and holding; the
-/// default of [`SurgeonStyle::arm_stiffness_n_per_m`].
-pub const TRACK_STIFFNESS_N_PER_M: f64 = 300.0;
-/// How stiffly the arm holds the drill on its aim across the path (N/m); the default of
-/// [`SurgeonStyle::lateral_stiffness_n_per_m`].
-pub const LATERAL_STIFFNESS_N_PER_M: f64 = 250.0;
-/// Tip depth at which a surgeon without a plan expects the first cortex to give (m): about
-/// 3.5 mm of cortex less a 2.5 mm burr's reach.
-pub const GENERIC_BREAKTHROUGH_DEPTH_M: f64 = 2.2e-3;
-/// Time constant (s) with which the arm's aim follows the felt hand position.
-pub const AIM_FOLLOW_S: f64 = 0.5;
-/// How much harder than the resistance they feel (N, one reaction delay ago) a subject pushes.
-pub const PUSH_MARGIN_N: f64 = 0.4;
-/// Most axial push any subject applies, however strongly a guidance cue asks for more (N).
-pub const MAX_PUSH_N: f64 = 3.0;
-/// How fast a surgeon who yields to the guidance settles onto what it asks (s).
-pub const YIELD_SETTLE_S: f64 = 0.2;
-/// How fast the lean a cue built up fades once the cue is gone (1/s): a remembered instruction
-/// fades, and a model biased in one direction cannot wind the push up for ever.
-pub const CUE_LEAK_PER_S: f64 = 0.2;
 /// Where the hand starts along A→B (m): 25 mm before the entry.
 const START_S_M: f64 = -25e-3;
 /// Where the approach ends and the drill is aligned (m along A→B): 3 mm before the entry.
@@ -83,19 +68,6 @@ const RETRACT_M: f64 = 1e-3;
 const COOL_HYSTERESIS_C: f64 = 2.0;
 /// How long the surgeon holds still at the stop before finishing (s).
 const STOP_HOLD_S: f64 = 0.5;
-/// The hand's vibration sense, as the surgeon's model of it: the cue along the axis less its
-/// low-pass (time constant, s; about 16 Hz) is the vibration felt.
-const BUZZ_LOWPASS_S: f64 = 0.01;
-/// Smallest swing of that vibration counted (N): a tenth of a newton through a handle is well
-/// above the hand's vibration threshold (Bolanowski et al. 1988), and above the few hundredths of
-/// a newton that tremor makes the corridor's damper render.
-const BUZZ_MIN_N: f64 = 0.05;
-/// Time constant of the count of the vibration's swings (s), and how many must be counted in it
-/// for a buzz to be felt: a 100 Hz vibration swings 200 times a second (10 in 50 ms), a step in
-/// the force (a brake engaging) once. About 30 ms to recognise; felt until the count falls to
-/// half that (about 70 ms after the vibration ends), so that it does not flicker.
-const BUZZ_WINDOW_S: f64 = 0.05;
-const BUZZ_SWINGS: f64 = 5.0;
 
 /// What the surgeon means to do this tick.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -151,30 +123,38 @@ struct Felt {
     buzz: bool,
 }
 
-/// Minimum-jerk position profile from 0 to 1 (Flash & Hogan 1985).
-fn min_jerk(t: f64, duration: f64) -> f64 {
-    let x = (t / duration).clamp(0.0, 1.0);
-    x.powi(3) * (10.0 - 15.0 * x + 6.0 * x * x)
+impl Felt {
+    /// Nothing felt yet: the history before the first tick.
+    const EMPTY: Self = Self {
+        seen: Perception {
+            depth_m: 0.0,
+            temperature_c: 0.0,
+            layer: Layer::Outside,
+            breakthroughs: 0,
+            plunge_depth_m: 0.0,
+        },
+        cue_axial_n: 0.0,
+        force_axial_n: 0.0,
+        hand_s_m: 0.0,
+        buzz: false,
+    };
 }
 
-/// Two unit vectors across the unit direction `d`, with `d` a right-handed frame.
-fn basis(d: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
-    let helper = if d.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
-    let e1 = d.cross(&helper).normalize();
-    (e1, d.cross(&e1))
-}
-
-/// The stylus orientation (w, x, y, z) that points the drill's +z along the unit direction `d`.
-#[must_use]
-pub fn axis_quaternion(d: &Vector3<f64>) -> [f64; 4] {
-    let c = Vector3::z().cross(d);
-    let q = nalgebra::Vector4::new(1.0 + d.z, c.x, c.y, c.z);
-    let n = q.norm();
-    if n > 1e-9 {
-        [q.x / n, q.y / n, q.z / n, q.w / n]
-    } else {
-        [0.0, 1.0, 0.0, 0.0]
+/// Checks an attempt's duration (s) and planned breakthrough depth (m; `None`: the generic one),
+/// and returns the depth.
+fn check_attempt(max_duration_s: f64, breakthrough_depth_m: Option<f64>) -> SimResult<f64> {
+    if !(max_duration_s.is_finite() && max_duration_s > 0.0) {
+        return Err(SimError::InvalidParameter {
+            name: "max_duration_s (s)",
+            value: max_duration_s,
+            reason: "must be positive and finite",
+        });
     }
+    let depth = breakthrough_depth_m.unwrap_or(GENERIC_BREAKTHROUGH_DEPTH_M);
+    if !depth.is_finite() {
+        return Err(SimError::NonFinite { what: "breakthrough_depth_m (m)", value: depth });
+    }
+    Ok(depth)
 }
 
 /// The virtual surgeon's decisions and hand, one 1 kHz tick at a time (see the module docs).
@@ -223,13 +203,8 @@ pub struct SurgeonController {
     cooling: bool,
     /// Pausing with the drill off because a heat cue is felt (a surgeon told what it means).
     heat_pause: bool,
-    /// Ticks on which a vibration was felt in the cue (the heat cue, or anything read as one).
-    buzz_ticks: usize,
-    /// The vibration sense: low-passed cue (N), the last swing's sign, and the swing count.
-    cue_lowpass_n: f64,
-    swing_sign: f64,
-    swings: f64,
-    buzz_felt: bool,
+    /// The hand's vibration sense, reading the cue along the axis.
+    touch: VibrationSense,
     retract_until: f64,
     seen_breakthroughs: u32,
     drill_on: bool,
@@ -261,17 +236,7 @@ impl SurgeonController {
         cue_meaning: CueMeaning,
     ) -> SimResult<Self> {
         style.validate()?;
-        if !(max_duration_s.is_finite() && max_duration_s > 0.0) {
-            return Err(SimError::InvalidParameter {
-                name: "max_duration_s (s)",
-                value: max_duration_s,
-                reason: "must be positive and finite",
-            });
-        }
-        let breakthrough_depth_m = breakthrough_depth_m.unwrap_or(GENERIC_BREAKTHROUGH_DEPTH_M);
-        if !breakthrough_depth_m.is_finite() {
-            return Err(SimError::NonFinite { what: "breakthrough_depth_m (m)", value: breakthrough_depth_m });
-        }
+        let breakthrough_depth_m = check_attempt(max_duration_s, breakthrough_depth_m)?;
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let d = path.direction();
         let (e1, e2) = basis(&d);
@@ -285,19 +250,6 @@ impl SurgeonController {
         let tau = std::f64::consts::TAU;
         let tremor_phase = [rng.gen_range(0.0..tau), rng.gen_range(0.0..tau), rng.gen_range(0.0..tau)];
         let k_ou = TICK_S / DRIFT_TAU_S;
-        let empty = Felt {
-            seen: Perception {
-                depth_m: 0.0,
-                temperature_c: 0.0,
-                layer: Layer::Outside,
-                breakthroughs: 0,
-                plunge_depth_m: 0.0,
-            },
-            cue_axial_n: 0.0,
-            force_axial_n: 0.0,
-            hand_s_m: 0.0,
-            buzz: false,
-        };
         Ok(Self {
             w_tremor: tau * style.tremor_hz,
             ou_kick: style.drift_m * (2.0 * k_ou).sqrt(),
@@ -338,18 +290,14 @@ impl SurgeonController {
             pause_until: -1.0,
             cooling: false,
             heat_pause: false,
-            buzz_ticks: 0,
-            cue_lowpass_n: 0.0,
-            swing_sign: 0.0,
-            swings: 0.0,
-            buzz_felt: false,
+            touch: VibrationSense::default(),
             retract_until: -1.0,
             seen_breakthroughs: 0,
             drill_on: false,
             drill_on_t: None,
             drill_off_t: None,
             max_plunge_m: 0.0,
-            history: vec![empty; delay + SPEED_WINDOW_TICKS + 1],
+            history: vec![Felt::EMPTY; delay + SPEED_WINDOW_TICKS + 1],
             tick: 0,
             last_force_n: Vector3::zeros(),
             last_cue_n: Vector3::zeros(),
@@ -417,7 +365,7 @@ impl SurgeonController {
     /// else the hand would read as one (which a surgeon told what it means would pause for).
     #[must_use]
     pub fn buzz_felt_s(&self) -> f64 {
-        self.buzz_ticks as f64 * TICK_S
+        self.touch.felt_s()
     }
 
     fn felt(&self, tick: usize) -> &Felt {
@@ -441,8 +389,7 @@ impl SurgeonController {
         let t = tick as f64 * TICK_S;
         let d = self.d;
         let cue_axial_n = cue_n.dot(&d);
-        let buzz = self.feel_vibration(cue_axial_n);
-        self.buzz_ticks += usize::from(buzz);
+        let buzz = self.touch.feel(cue_axial_n);
         *self.felt_mut(tick) = Felt { seen: *now, cue_axial_n, force_axial_n: 0.0, hand_s_m: self.s, buzz };
         let delayed = tick.saturating_sub(self.delay);
         let seen = self.felt(delayed).seen;
@@ -460,23 +407,6 @@ impl SurgeonController {
         let (on, rpm) = if self.drill_on { (1.0, self.style.spindle_rpm) } else { (0.0, 0.0) };
         let q = self.quat;
         Some([p.x, p.y, p.z, q[0], q[1], q[2], q[3], on, rpm])
-    }
-
-    /// Whether the cue along the axis (N, this tick) carries a vibration: its swings about its
-    /// low-pass, counted over about 50 ms.
-    fn feel_vibration(&mut self, cue_axial_n: f64) -> bool {
-        self.cue_lowpass_n += (cue_axial_n - self.cue_lowpass_n) * TICK_S / BUZZ_LOWPASS_S;
-        let swing = cue_axial_n - self.cue_lowpass_n;
-        self.swings *= 1.0 - TICK_S / BUZZ_WINDOW_S;
-        if swing.abs() >= BUZZ_MIN_N {
-            let sign = swing.signum();
-            if sign * self.swing_sign <= 0.0 {
-                self.swings += 1.0;
-                self.swing_sign = sign;
-            }
-        }
-        self.buzz_felt = if self.buzz_felt { self.swings >= 0.5 * BUZZ_SWINGS } else { self.swings >= BUZZ_SWINGS };
-        self.buzz_felt
     }
 
     /// One tick of the aim's wander (Ornstein–Uhlenbeck) and of the signal-dependent push noise

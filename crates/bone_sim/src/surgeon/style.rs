@@ -6,6 +6,31 @@ use crate::error::{SimError, SimResult};
 use crate::session::SessionState;
 use crate::volume::layer::Layer;
 
+// The hand and habits every surgeon shares (the defaults of the style fields they name).
+/// Effective mass of hand and stylus at the stylus tip (kg): the default of
+/// [`SurgeonStyle::hand_mass_kg`].
+pub const HAND_MASS_KG: f64 = 0.4;
+/// How stiffly the arm follows an intended position (N/m), for the approach and holding; the
+/// default of [`SurgeonStyle::arm_stiffness_n_per_m`].
+pub const TRACK_STIFFNESS_N_PER_M: f64 = 300.0;
+/// How stiffly the arm holds the drill on its aim across the path (N/m); the default of
+/// [`SurgeonStyle::lateral_stiffness_n_per_m`].
+pub const LATERAL_STIFFNESS_N_PER_M: f64 = 250.0;
+/// Tip depth at which a surgeon without a plan expects the first cortex to give (m): about
+/// 3.5 mm of cortex less a 2.5 mm burr's reach.
+pub const GENERIC_BREAKTHROUGH_DEPTH_M: f64 = 2.2e-3;
+/// Time constant (s) with which the arm's aim follows the felt hand position.
+pub const AIM_FOLLOW_S: f64 = 0.5;
+/// How much harder than the resistance they feel (N, one reaction delay ago) a subject pushes.
+pub const PUSH_MARGIN_N: f64 = 0.4;
+/// Most axial push any subject applies, however strongly a guidance cue asks for more (N).
+pub const MAX_PUSH_N: f64 = 3.0;
+/// How fast a surgeon who yields to the guidance settles onto what it asks (s).
+pub const YIELD_SETTLE_S: f64 = 0.2;
+/// How fast the lean a cue built up fades once the cue is gone (1/s): a remembered instruction
+/// fades, and a model biased in one direction cannot wind the push up for ever.
+pub const CUE_LEAK_PER_S: f64 = 0.2;
+
 /// A subject's skill group.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
