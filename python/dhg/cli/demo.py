@@ -83,51 +83,10 @@ def _screenshot(view_url: str, client: Any, out: Path) -> str:
         holder.join()
 
 
-def run_live_demo(
-    out: str | Path,
-    duration_s: float = 20.0,
-    seed: int = 7,
-    echo_server: bool = True,
-    zenoh_config_file: str | None = None,
-) -> int:
-    """Runs the demo (see the module docstring); returns the server's exit code. A
-    ``zenoh_config_file`` goes to the server and both trainees (the endpoint stays loopback)."""
-    from rich.console import Console
+def _comparison_table(runs: list[Any]) -> Any:
+    """The runs' skill metrics and guidance and latency figures side by side, a column per run."""
     from rich.table import Table
 
-    from dhg.live.client import TraineeClient
-    from dhg.live.trainee import run_trainee
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    console = Console()
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    console.print(f"[bold]starting dhg-serve[/] on {endpoint} (phantom femur, bundled model)")
-    zcfg = ["--zenoh-config", str(zenoh_config_file)] if zenoh_config_file else []
-    view_port = free_port()
-    view_url = f"http://127.0.0.1:{view_port}"
-    server = ServerProcess(
-        ["--listen", endpoint, "--status-every", "5", "--view", str(view_port), *zcfg], echo=echo_server
-    )
-    console.print(
-        f"[bold]live view[/]: {view_url} (the instructor's page: open a novice's page from it to watch the drill)"
-    )
-    runs = []
-    shot: str | None = None
-    try:
-        for name, gain in (("guided", 1.0), ("unguided", 0.0)):
-            console.print(f"[bold]{name} novice[/]: drilling for up to {duration_s:g} s (seed {seed}) …")
-            with TraineeClient(endpoint, f"demo-{name}", zenoh_config_file=zenoh_config_file) as client:
-                run = run_trainee(client, "novice", gain, duration_s, seed)
-                if name == "guided":
-                    for view, png in client.xray().items():
-                        (out / f"{view}.png").write_bytes(png)
-                run.server_health = client.health(duration_s + 5.0)
-                if name == "guided":
-                    shot = _screenshot(view_url, client, out / "view.png")
-            runs.append(run)
-    finally:
-        code = server.stop()
     table = Table(title="Virtual novice, same hand: with and without guidance (phantom femur)")
     table.add_column("")
     for run in runs:
@@ -171,6 +130,54 @@ def run_live_demo(
             table.add_row(*_row(f"{label} {q} (ms)", [f"{r.latency[f'{key}_{q}_s'] * 1e3:.2f}" for r in runs]))
     table.add_row(*_row("forces / poses sent", [f"{r.latency['forces']} / {r.poses_sent}" for r in runs]))
     table.add_row(*_row("missed ticks (server)", [str(r.server_health["missed_ticks"]) for r in runs]))
+    return table
+
+
+def run_live_demo(
+    out: str | Path,
+    duration_s: float = 20.0,
+    seed: int = 7,
+    echo_server: bool = True,
+    zenoh_config_file: str | None = None,
+) -> int:
+    """Runs the demo (see the module docstring); returns the server's exit code. A
+    ``zenoh_config_file`` goes to the server and both trainees (the endpoint stays loopback)."""
+    from rich.console import Console
+
+    from dhg.live.client import TraineeClient
+    from dhg.live.trainee import run_trainee
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    console = Console()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    console.print(f"[bold]starting dhg-serve[/] on {endpoint} (phantom femur, bundled model)")
+    zcfg = ["--zenoh-config", str(zenoh_config_file)] if zenoh_config_file else []
+    view_port = free_port()
+    view_url = f"http://127.0.0.1:{view_port}"
+    server = ServerProcess(
+        ["--listen", endpoint, "--status-every", "5", "--view", str(view_port), *zcfg], echo=echo_server
+    )
+    console.print(
+        f"[bold]live view[/]: {view_url} (the instructor's page: open a novice's page from it to watch the drill)"
+    )
+    runs = []
+    shot: str | None = None
+    try:
+        for name, gain in (("guided", 1.0), ("unguided", 0.0)):
+            console.print(f"[bold]{name} novice[/]: drilling for up to {duration_s:g} s (seed {seed}) …")
+            with TraineeClient(endpoint, f"demo-{name}", zenoh_config_file=zenoh_config_file) as client:
+                run = run_trainee(client, "novice", gain, duration_s, seed)
+                if name == "guided":
+                    for view, png in client.xray().items():
+                        (out / f"{view}.png").write_bytes(png)
+                run.server_health = client.health(duration_s + 5.0)
+                if name == "guided":
+                    shot = _screenshot(view_url, client, out / "view.png")
+            runs.append(run)
+    finally:
+        code = server.stop()
+    table = _comparison_table(runs)
     console.print(table)
     plot = plot_live_runs(runs, out / "live.png", "Virtual novice through dhg-serve: guided vs unguided")
     console.print(

@@ -228,10 +228,8 @@ def _add_live_demo(sub: Any, epilog: str) -> None:
     p.set_defaults(func=_cmd_live_demo)
 
 
-def _cmd_trainee(args: argparse.Namespace) -> int:
-    from dhg.live.client import TraineeClient
-    from dhg.live.trainee import TraineeRun, run_course
-
+def _check_trainee_args(args: argparse.Namespace) -> None:
+    """Refuses ``dhg trainee`` flags that cannot go together, before connecting."""
     if args.duration <= 0:
         raise ValueError("--duration must be positive")
     if args.attempts < 1:
@@ -242,41 +240,10 @@ def _cmd_trainee(args: argparse.Namespace) -> int:
         raise ValueError("--fading fades the guidance: it needs --guidance on")
     if args.drill_mm is not None and not 0.0 < args.drill_mm <= 40.0:
         raise ValueError(f"--drill-mm must be a diameter in (0, 40] mm, got {args.drill_mm}")
-    burr_radius_m = None if args.drill_mm is None else args.drill_mm / 2 * 1e-3
-    gain = args.gain if args.guidance == "on" else 0.0
-    with TraineeClient(args.connect, args.session, prefix=args.prefix, zenoh_config_file=args.zenoh_config) as client:
-        client.health(1.0)  # fails fast, with a clear message, when no server answers
-        fading = None
-        if args.fading:
-            fading = {} if args.probe_every is None else {"probe_every": args.probe_every}
 
-        def finished(run: TraineeRun) -> None:
-            if args.attempts > 1:
-                m = run.metrics
-                print(
-                    f"  attempt {run.attempt + 1}: gain {run.guidance_gain:.2f}{' (probe)' if run.probe else ''}, "
-                    f"plunge {m['plunge_depth_m'] * 1e3:.2f} mm, max deviation {m['max_deviation_m'] * 1e3:.2f} mm, "
-                    f"reached B {'yes' if m['reached_target'] else 'no'}",
-                    flush=True,
-                )
 
-        runs = run_course(
-            client,
-            args.attempts,
-            args.skill,
-            gain,
-            args.duration,
-            args.seed,
-            fading=fading,
-            burr_radius_m=burr_radius_m,
-            guidance_mode=args.guidance_mode,
-            on_start=lambda mode: print(
-                f"session {client.session_id}: {args.skill}, guidance {args.guidance} ({mode}, gain {gain:g}"
-                f"{', fading' if args.fading else ''}), seed {args.seed}",
-                flush=True,
-            ),
-            on_attempt=finished,
-        )
+def _report_trainee(args: argparse.Namespace, runs: list[Any]) -> None:
+    """Prints the last attempt's drill, skill metrics and latencies; writes ``--json``."""
     run = runs[-1]
     if args.attempts > 1:
         print(f"last attempt ({args.attempts}):")
@@ -319,6 +286,49 @@ def _cmd_trainee(args: argparse.Namespace) -> int:
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(report, fh, indent=1)
+
+
+def _cmd_trainee(args: argparse.Namespace) -> int:
+    from dhg.live.client import TraineeClient
+    from dhg.live.trainee import TraineeRun, run_course
+
+    _check_trainee_args(args)
+    burr_radius_m = None if args.drill_mm is None else args.drill_mm / 2 * 1e-3
+    gain = args.gain if args.guidance == "on" else 0.0
+    with TraineeClient(args.connect, args.session, prefix=args.prefix, zenoh_config_file=args.zenoh_config) as client:
+        client.health(1.0)  # fails fast, with a clear message, when no server answers
+        fading = None
+        if args.fading:
+            fading = {} if args.probe_every is None else {"probe_every": args.probe_every}
+
+        def finished(run: TraineeRun) -> None:
+            if args.attempts > 1:
+                m = run.metrics
+                print(
+                    f"  attempt {run.attempt + 1}: gain {run.guidance_gain:.2f}{' (probe)' if run.probe else ''}, "
+                    f"plunge {m['plunge_depth_m'] * 1e3:.2f} mm, max deviation {m['max_deviation_m'] * 1e3:.2f} mm, "
+                    f"reached B {'yes' if m['reached_target'] else 'no'}",
+                    flush=True,
+                )
+
+        runs = run_course(
+            client,
+            args.attempts,
+            args.skill,
+            gain,
+            args.duration,
+            args.seed,
+            fading=fading,
+            burr_radius_m=burr_radius_m,
+            guidance_mode=args.guidance_mode,
+            on_start=lambda mode: print(
+                f"session {client.session_id}: {args.skill}, guidance {args.guidance} ({mode}, gain {gain:g}"
+                f"{', fading' if args.fading else ''}), seed {args.seed}",
+                flush=True,
+            ),
+            on_attempt=finished,
+        )
+    _report_trainee(args, runs)
     return EXIT_OK
 
 

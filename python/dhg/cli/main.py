@@ -348,6 +348,14 @@ def _add_study(sub: Any) -> None:
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    _study_who_args(p)
+    _study_attempt_args(p, d)
+    _study_run_args(p)
+    p.set_defaults(func=cmd_study)
+
+
+def _study_who_args(p: argparse.ArgumentParser) -> None:
+    """``dhg study``: where the results go, which novices, which arms and which operator model."""
     p.add_argument("--out", required=True, metavar="DIR", help="folder for results.md, results.json, study.png")
     p.add_argument("--novices", type=int, default=20, metavar="N", help="novices, seeds 1000..1000+N-1 (default 20)")
     p.add_argument("--seeds", metavar="S,S,...", help="novice seeds instead of --novices")
@@ -362,6 +370,10 @@ def _add_study(sub: Any) -> None:
         default="impedance",
         help="operator model (default impedance)",
     )
+
+
+def _study_attempt_args(p: argparse.ArgumentParser, d: Any) -> None:
+    """``dhg study``: each arm's protocol and its attempts (``d``: the :class:`Protocol` defaults)."""
     p.add_argument(
         "--train", type=int, default=d.train, metavar="N", help=f"guided training attempts per arm (default {d.train})"
     )
@@ -394,6 +406,10 @@ def _add_study(sub: Any) -> None:
         metavar="S",
         help=f"most seconds per attempt (default {d.duration_s:g})",
     )
+
+
+def _study_run_args(p: argparse.ArgumentParser) -> None:
+    """``dhg study``: offline processes, or a live server to drill through."""
     p.add_argument(
         "--workers",
         type=int,
@@ -406,7 +422,6 @@ def _add_study(sub: Any) -> None:
         help="drill through the dhg-serve at this Zenoh endpoint, in real time (its --model guides; --model unused)",
     )
     p.add_argument("--zenoh-config", metavar="FILE", help="with --live: a Zenoh JSON5 config (TLS, credentials, ...)")
-    p.set_defaults(func=cmd_study)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -209,12 +209,12 @@ def _point_mm(text: str, option: str) -> Any:
     return np.array(vals)
 
 
-def _cmd_serve(args: argparse.Namespace) -> int:
+def _serve_options(args: argparse.Namespace) -> Any:
+    """The runner's options from the flags: the role, the network, and the engine's settings
+    (with a ``--lab`` file, its stations own their sessions)."""
     from dhg.core.server import ServerSettings
     from dhg.live import runner
 
-    if args.status_every <= 0:
-        raise ValueError("--status-every must be positive")
     owners: tuple[str, ...] = ()
     per_owner = 0
     if args.lab:
@@ -232,7 +232,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         session_owners=owners,
         max_sessions_per_owner=per_owner,
     )
-    options = runner.ServeOptions(
+    return runner.ServeOptions(
         role=args.role,
         listen=args.listen,
         connect=args.connect,
@@ -242,40 +242,64 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         model_device=args.device,
         worker_id=args.worker_id,
     )
+
+
+def _load_model(args: argparse.Namespace, options: Any, described: list[str]) -> tuple[Any, Any]:
+    """The guidance model (``--model`` or the bundled one) and the options, with the corridor the
+    model's expert profiles give when this process also runs the sessions; says what it loaded in
+    ``described``."""
+    import torch
+
+    from dhg.learning.torchscript import ModelFileError, load_model
+    from dhg.learning.weights import default_model_path
+
+    torch.set_num_threads(args.model_threads or max(1, (os.cpu_count() or 2) // 4))
+    model_file = args.model or default_model_path()
+    if not os.path.isfile(model_file):
+        raise ModelFileError(f"{model_file}: no such model file (train one with 'dhg train', or omit --model)")
+    model = load_model(model_file, device=args.device)
+    described.append(f"model {model.meta.get('preset', '?')} from {model_file} on {model.device}")
+    profiles = model.profiles
+    if profiles is not None and args.role == "all":
+        # The corridor follows the experts' spread along the path (dhg.learning.profiles).
+        profile = (profiles.bin_m, tuple(profiles.corridor_n_per_m))
+        settings = dataclasses.replace(options.settings, corridor_profile=profile)
+        options = dataclasses.replace(options, settings=settings)
+        described.append(f"corridor from {profiles.episodes} expert demonstrations")
+    return model, options
+
+
+def _load_bone(args: argparse.Namespace) -> tuple[Any, Any]:
+    """The volume (``--ct`` or the phantom) and its planned path (``--entry-mm``/``--target-mm``
+    override the volume's)."""
+    volume, path = load_volume(args.ct, args.voxel_mm)
+    if (args.entry_mm is None) != (args.target_mm is None):
+        raise ValueError("give both --entry-mm and --target-mm, or neither")
+    if args.entry_mm is not None:
+        from dhg.core.path import PlannedPath
+
+        path = PlannedPath(_point_mm(args.entry_mm, "--entry-mm"), _point_mm(args.target_mm, "--target-mm"))
+    if path is None:
+        raise ValueError(f"{args.ct}: this volume has no planned path; give --entry-mm and --target-mm")
+    return volume, path
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from dhg.live import runner
+
+    if args.status_every <= 0:
+        raise ValueError("--status-every must be positive")
+    options = _serve_options(args)
     # Python hands the GIL over every 5 ms by default: a model reply could wait that long behind a
     # Zenoh callback. 0.5 ms keeps the guidance path's tail short at negligible cost.
     sys.setswitchinterval(5e-4)
     t0 = time.perf_counter()
     volume = path = model = None
-    described = []
+    described: list[str] = []
     if args.role in ("all", "model"):
-        import torch
-
-        from dhg.learning.torchscript import ModelFileError, load_model
-        from dhg.learning.weights import default_model_path
-
-        torch.set_num_threads(args.model_threads or max(1, (os.cpu_count() or 2) // 4))
-        model_file = args.model or default_model_path()
-        if not os.path.isfile(model_file):
-            raise ModelFileError(f"{model_file}: no such model file (train one with 'dhg train', or omit --model)")
-        model = load_model(model_file, device=args.device)
-        described.append(f"model {model.meta.get('preset', '?')} from {model_file} on {model.device}")
-        profiles = model.profiles
-        if profiles is not None and args.role == "all":
-            # The corridor follows the experts' spread along the path (dhg.learning.profiles).
-            profile = (profiles.bin_m, tuple(profiles.corridor_n_per_m))
-            options = dataclasses.replace(options, settings=dataclasses.replace(settings, corridor_profile=profile))
-            described.append(f"corridor from {profiles.episodes} expert demonstrations")
+        model, options = _load_model(args, options, described)
     if args.role in ("all", "sim"):
-        volume, path = load_volume(args.ct, args.voxel_mm)
-        if (args.entry_mm is None) != (args.target_mm is None):
-            raise ValueError("give both --entry-mm and --target-mm, or neither")
-        if args.entry_mm is not None:
-            from dhg.core.path import PlannedPath
-
-            path = PlannedPath(_point_mm(args.entry_mm, "--entry-mm"), _point_mm(args.target_mm, "--target-mm"))
-        if path is None:
-            raise ValueError(f"{args.ct}: this volume has no planned path; give --entry-mm and --target-mm")
+        volume, path = _load_bone(args)
         described.append(f"volume {volume}")
     with stop_on_signals() as stop:
         with runner.start(options, volume, path, model) as running:

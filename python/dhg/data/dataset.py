@@ -400,17 +400,9 @@ def _read_listed(path: Path, expected: dict[str, Any], verify_hashes: bool) -> A
     return table
 
 
-def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Dataset:
-    """Loads and validates a dataset folder.
-
-    Raises:
-        DatasetError: missing files, a card of another format/version, feature order or units that
-            differ from :mod:`dhg.core.features`, a records table whose columns or types differ from
-            :func:`records_schema`, rows that disagree with the card, interleaved or unordered
-            episodes, or a file whose hash does not match the card (truncated or corrupt).
-    """
-
-    root = Path(path)
+def _read_card(root: Path) -> dict[str, Any]:
+    """The dataset card of the folder ``root``, after checking its format, version, features
+    (names, order and units) and sampling rate."""
     card_path = root / CARD_FILE
     if not card_path.is_file():
         leftovers = sorted(p.name for p in root.parent.glob(f".{root.name}.*") if (p / CARD_FILE).is_file())
@@ -432,10 +424,11 @@ def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Da
         raise _fail(card_path, f"feature units {units} differ from {list(FEATURE_UNITS)}")
     if abs(float(card.get("sampling_rate_hz", 0)) - 1.0 / RECORD_PERIOD_S) > 1e-6:
         raise _fail(card_path, f"sampling rate {card.get('sampling_rate_hz')} Hz, expected {1.0 / RECORD_PERIOD_S}")
-    rec_path = root / RECORDS_FILE
-    if not rec_path.is_file():
-        raise _fail(root, f"no {RECORDS_FILE}")
-    table = _read_listed(rec_path, card.get("files", {}).get(RECORDS_FILE, {}), verify_hashes)
+    return card
+
+
+def _check_records_schema(rec_path: Path, table: Any) -> None:
+    """Refuses a records table whose columns, types or units differ from :func:`records_schema`."""
     want = records_schema()
     if table.schema.names != want.names:
         raise _fail(rec_path, f"columns {table.schema.names} differ from {want.names}")
@@ -448,7 +441,11 @@ def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Da
                 rec_path,
                 f"column {f.name!r} has unit {(got.metadata or {}).get(b'unit')}, expected {f.metadata[b'unit']}",
             )
-    cols = table.to_pydict()
+
+
+def _episodes(rec_path: Path, cols: dict[str, list[Any]], card: dict[str, Any]) -> list[EpisodeData]:
+    """The episodes of the records' columns ``cols``, each checked against its entry in the card:
+    contiguous rows, increasing times, finite values and the row count the card gives."""
     ids = np.asarray(cols["episode_id"], dtype=np.int64)
     starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]]) if len(ids) else np.empty(0, int)
     if len(np.unique(ids)) != len(starts):
@@ -483,7 +480,27 @@ def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Da
         )
     if len(episodes) != len(card_eps):
         raise _fail(rec_path, f"{len(episodes)} episodes in the records, {len(card_eps)} in the card")
-    return Dataset(root, card, episodes)
+    return episodes
+
+
+def load_dataset(path: str | os.PathLike[str], verify_hashes: bool = True) -> Dataset:
+    """Loads and validates a dataset folder.
+
+    Raises:
+        DatasetError: missing files, a card of another format/version, feature order or units that
+            differ from :mod:`dhg.core.features`, a records table whose columns or types differ from
+            :func:`records_schema`, rows that disagree with the card, interleaved or unordered
+            episodes, or a file whose hash does not match the card (truncated or corrupt).
+    """
+
+    root = Path(path)
+    card = _read_card(root)
+    rec_path = root / RECORDS_FILE
+    if not rec_path.is_file():
+        raise _fail(root, f"no {RECORDS_FILE}")
+    table = _read_listed(rec_path, card.get("files", {}).get(RECORDS_FILE, {}), verify_hashes)
+    _check_records_schema(rec_path, table)
+    return Dataset(root, card, _episodes(rec_path, table.to_pydict(), card))
 
 
 def raw_files(card: dict[str, Any]) -> list[str]:

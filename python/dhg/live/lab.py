@@ -166,6 +166,70 @@ def _rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> d
     return {"id": rid, "messages": messages, "flows": flows, "permission": "allow", "key_exprs": keys}
 
 
+def _station_rules(p: str, n: str, health: str, volume: str) -> list[dict[str, Any]]:
+    """Station ``n``'s rules under prefix ``p``: it drives and reads only its own sessions (``n``
+    and ``n-*``), and asks the server's health and volume."""
+    own = [f"{p}/session/{n}", f"{p}/session/{n}-$*"]
+    return [
+        _rule(f"{n}:pose", ["put"], ["ingress"], [f"{s}/pose" for s in own]),
+        _rule(
+            f"{n}:ask",
+            ["query"],
+            ["ingress"],
+            [health, volume] + [f"{s}/{leaf}" for s in own for leaf in ("control", "metrics", "xray/*", "bone")],
+        ),
+        _rule(f"{n}:replies", ["reply"], ["egress"], [health, volume] + [f"{s}/**" for s in own]),
+        _rule(
+            f"{n}:hear",
+            ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+            ["ingress"],
+            [f"{s}/{leaf}" for s in own for leaf in _HEARD],
+        ),
+        _rule(
+            f"{n}:outputs",
+            ["put", "liveliness_token"],
+            ["egress"],
+            [f"{s}/{leaf}" for s in own for leaf in _HEARD],
+        ),
+        _rule(
+            f"{n}:recover",
+            ["query"],
+            ["ingress"],
+            [f"{s}/{leaf}/**" for s in own for leaf in ("guidance", "state", "ticks")],
+        ),
+    ]
+
+
+def _instructor_rules(p: str) -> list[dict[str, Any]]:
+    """The instructors' rules under prefix ``p``: they read everything and change nothing."""
+    return [
+        _rule(
+            "instructor:read",
+            ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query", "query"],
+            ["ingress"],
+            [f"{p}/**"],
+        ),
+        _rule("instructor:hear", ["put", "reply", "liveliness_token"], ["egress"], [f"{p}/**"]),
+    ]
+
+
+def _worker_rules(p: str, n: str, volume: str) -> list[dict[str, Any]]:
+    """Model worker ``n``'s rules under prefix ``p`` (the server's own identity also serves the
+    X-rays, the bone and the volume)."""
+    own = f"{p}/model/workers/{n}"
+    extra = [f"{p}/session/*/xray/*", f"{p}/session/*/bone", volume] if n == SERVER_IDENTITY else []
+    return [
+        _rule(
+            f"{n}:serve",
+            ["declare_queryable", "reply"],
+            ["ingress"],
+            [f"{p}/model/predict", f"{own}/predict"] + extra,
+        ),
+        _rule(f"{n}:join", ["liveliness_token"], ["ingress"], [own]),
+        _rule(f"{n}:queries", ["query"], ["egress"], [f"{p}/model/predict", f"{own}/predict"] + extra),
+    ]
+
+
 def acl(lab: Lab) -> dict[str, Any]:
     """The server's access-control list (Zenoh ``access_control``) for the lab's identities."""
     p = lab.prefix
@@ -180,68 +244,14 @@ def acl(lab: Lab) -> dict[str, Any]:
 
     health, volume = f"{p}/server/health", f"{p}/server/volume"
     for st in lab.of("station"):
-        n = st.name
-        own = [f"{p}/session/{n}", f"{p}/session/{n}-$*"]
-        grant(
-            f"station:{n}",
-            [n],
-            _rule(f"{n}:pose", ["put"], ["ingress"], [f"{s}/pose" for s in own]),
-            _rule(
-                f"{n}:ask",
-                ["query"],
-                ["ingress"],
-                [health, volume] + [f"{s}/{leaf}" for s in own for leaf in ("control", "metrics", "xray/*", "bone")],
-            ),
-            _rule(f"{n}:replies", ["reply"], ["egress"], [health, volume] + [f"{s}/**" for s in own]),
-            _rule(
-                f"{n}:hear",
-                ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
-                ["ingress"],
-                [f"{s}/{leaf}" for s in own for leaf in _HEARD],
-            ),
-            _rule(
-                f"{n}:outputs",
-                ["put", "liveliness_token"],
-                ["egress"],
-                [f"{s}/{leaf}" for s in own for leaf in _HEARD],
-            ),
-            _rule(
-                f"{n}:recover",
-                ["query"],
-                ["ingress"],
-                [f"{s}/{leaf}/**" for s in own for leaf in ("guidance", "state", "ticks")],
-            ),
-        )
+        grant(f"station:{st.name}", [st.name], *_station_rules(p, st.name, health, volume))
     instructors = [i.name for i in lab.of("instructor")]
     if instructors:
-        grant(
-            "instructors",
-            instructors,
-            _rule(
-                "instructor:read",
-                ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query", "query"],
-                ["ingress"],
-                [f"{p}/**"],
-            ),
-            _rule("instructor:hear", ["put", "reply", "liveliness_token"], ["egress"], [f"{p}/**"]),
-        )
+        grant("instructors", instructors, *_instructor_rules(p))
     # A model worker joins the engine's pool under its own name only (its token and its
     # queryable), and may serve the shared key the engine queries while the pool is empty.
     for n in [i.name for i in lab.of("model_worker")] + [SERVER_IDENTITY]:
-        own = f"{p}/model/workers/{n}"
-        extra = [f"{p}/session/*/xray/*", f"{p}/session/*/bone", volume] if n == SERVER_IDENTITY else []
-        grant(
-            f"worker:{n}",
-            [n],
-            _rule(
-                f"{n}:serve",
-                ["declare_queryable", "reply"],
-                ["ingress"],
-                [f"{p}/model/predict", f"{own}/predict"] + extra,
-            ),
-            _rule(f"{n}:join", ["liveliness_token"], ["ingress"], [own]),
-            _rule(f"{n}:queries", ["query"], ["egress"], [f"{p}/model/predict", f"{own}/predict"] + extra),
-        )
+        grant(f"worker:{n}", [n], *_worker_rules(p, n, volume))
     return {
         "enabled": True,
         "default_permission": "deny",

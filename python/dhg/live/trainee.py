@@ -206,6 +206,47 @@ def run_trainee(
     )[0]
 
 
+def _drill_attempt(
+    client: TraineeClient,
+    surgeon: SurgeonController,
+    duration_s: float,
+    info: dict[str, Any],
+    *,
+    skill: Literal["expert", "novice"],
+    gain: float,
+    mode: str,
+    attempt: int,
+    breakthrough_depth_m: float | None,
+) -> TraineeRun:
+    """One attempt of :func:`run_course`: ``surgeon`` drills the client's session (created or
+    reset with the reply ``info``) for up to ``duration_s`` (s), and the attempt is returned with
+    its metrics, latencies and 10 Hz records (``breakthrough_depth_m``: the depth the surgeon
+    planned for, as :attr:`TraineeRun.planned_breakthrough_depth_m` reports it)."""
+    schedule = info.get("fading")
+    sent, wall_s = drive_surgeon(client, surgeon, duration_s)
+    time.sleep(0.25)  # let the last state and guidance messages arrive
+    states = states_since_reset(list(client.states))
+    metrics = live_metrics(client, surgeon, states)
+    return TraineeRun(
+        session_id=client.session_id,
+        skill=skill,
+        guidance_gain=gain,
+        metrics=metrics,
+        latency=client.latency_summary(),
+        records=state_records(states),
+        guidance=list(client.guidance),
+        states=states,
+        poses_sent=sent,
+        wall_s=wall_s,
+        burr_radius_m=float(info["burr_radius_m"]),
+        planned_breakthrough_depth_m=breakthrough_depth_m,
+        guidance_mode=mode,
+        attempt=attempt,
+        probe=bool(schedule and schedule.get("probe")),
+        fading=schedule,
+    )
+
+
 def run_course(
     client: TraineeClient,
     attempts: int,
@@ -260,36 +301,24 @@ def run_course(
         if attempt > 0:
             info = client.control("reset")  # ends the last attempt: a fading schedule sets this one's gain
             rng = np.random.default_rng([seed, attempt])
-        schedule = info.get("fading")
         gain = float(info.get("guidance_gain", guidance_gain))
         client.states.clear()
         client.guidance.clear()
         surgeon = SurgeonController(
             path, learner.style(style), rng, rules, breakthrough_depth_m=breakthrough_depth_m, cue_meaning=cue
         )
-        sent, wall_s = drive_surgeon(client, surgeon, duration_s)
-        time.sleep(0.25)  # let the last state and guidance messages arrive
-        states = states_since_reset(list(client.states))
-        metrics = live_metrics(client, surgeon, states)
-        learner.update(float(metrics["plunge_depth_m"]), float(metrics["max_deviation_m"]))
-        run = TraineeRun(
-            session_id=client.session_id,
+        run = _drill_attempt(
+            client,
+            surgeon,
+            duration_s,
+            info,
             skill=skill,
-            guidance_gain=gain,
-            metrics=metrics,
-            latency=client.latency_summary(),
-            records=state_records(states),
-            guidance=list(client.guidance),
-            states=states,
-            poses_sent=sent,
-            wall_s=wall_s,
-            burr_radius_m=float(info["burr_radius_m"]),
-            planned_breakthrough_depth_m=breakthrough_depth_m,
-            guidance_mode=mode,
+            gain=gain,
+            mode=mode,
             attempt=attempt,
-            probe=bool(schedule and schedule.get("probe")),
-            fading=schedule,
+            breakthrough_depth_m=breakthrough_depth_m,
         )
+        learner.update(float(run.metrics["plunge_depth_m"]), float(run.metrics["max_deviation_m"]))
         runs.append(run)
         if on_attempt is not None:
             on_attempt(run)

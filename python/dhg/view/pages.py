@@ -1,6 +1,7 @@
-"""The browser pages of ``dhg view``: a trainee's live bone, drill and X-rays, and the
-instructor's list of every session. Each page is its own viser server (viser serves one page per
-port); ``docs/viewer.md`` says why viser.
+"""The browser pages of ``dhg view``: a trainee's live bone, drill and X-rays (:class:`TraineePage`),
+and the instructor's list of every session (:class:`InstructorPage`, in :mod:`dhg.view.instructor`
+and re-exported here). Each page is its own viser server (viser serves one page per port);
+``docs/viewer.md`` says why viser. What both pages draw with is in :mod:`dhg.view.scene`.
 
 The 3D scene is drawn in millimetres (world metres × :data:`SCENE_MM_PER_M`), in the volume's
 world frame with +z up.
@@ -13,22 +14,20 @@ import io
 import logging
 import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from dhg.core.layers import Layer
 from dhg.core.session import FADING_DEFAULTS
-from dhg.view.feed import SessionFeed, VolumeData, server_sessions
+from dhg.view.feed import SessionFeed, VolumeData
+from dhg.view.instructor import InstructorPage
+from dhg.view.scene import LAYER_NAMES, SCENE_MM_PER_M, add_bone_piece, add_whole_bone, along, look_at, stop_quietly
+from dhg.view.scene import viser_server as _viser_server  # a module global: bench_browser.py swaps it
 from dhg.view.surfaces import ChunkMesh, LayerSurfaces, display_step
 
 __all__ = ["SCENE_MM_PER_M", "InstructorPage", "TraineePage"]
 
 log = logging.getLogger(__name__)
-
-SCENE_MM_PER_M = 1000.0
-"""Scene units per metre: the scene is in millimetres, the scale a surgeon reads."""
 
 ARROW_MM_PER_N = 10.0
 """Force arrows: millimetres of arrow per newton."""
@@ -50,86 +49,12 @@ PLUNGE_WARNING_M = float(FADING_DEFAULTS["plunge_tolerance_m"])
 NECROSIS_C = 47.0
 """Bone necrosis threshold (°C; Eriksson & Albrektsson 1983), drawn on the temperature plot."""
 
-_LAYER_NAMES = {int(layer): layer.name.lower() for layer in Layer}
-
 
 def _png_array(png: bytes) -> np.ndarray:
     from PIL import Image
 
     with Image.open(io.BytesIO(png)) as im:
         return np.asarray(im.convert("RGB"))
-
-
-def _viser_server(host: str, port: int, label: str) -> Any:
-    """A viser server without the banner it prints on stdout (``dhg view`` prints the URL)."""
-    import contextlib
-
-    import viser
-
-    logging.getLogger("viser").setLevel(logging.WARNING)  # it logs every connection at INFO
-    with contextlib.redirect_stdout(io.StringIO()):
-        server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
-    # viser lights a scene with an HDR environment map and shadow-casting lights by default. Drawn
-    # in software (SwiftShader: a lab PC without a GPU, the headless Chromium of the tests) the map
-    # alone kept Chromium's GPU process at 1.45 of 2 cores with one small mesh in view (0.09
-    # without it), and shadows tripled the cost of each frame of an 80k-triangle mesh (0.49 ->
-    # 0.15 cores): docs/benchmarks.md "The live view". Plain lights without shadows show the bone.
-    server.scene.configure_environment_map(None)
-    server.scene.configure_default_lights(True, cast_shadow=False)
-    return server
-
-
-def _stop_quietly(server: Any) -> None:
-    import contextlib
-
-    with contextlib.redirect_stdout(io.StringIO()):
-        server.stop()
-
-
-def _add_bone(server: Any, surfaces: LayerSurfaces, meshes: dict[str, Any], piece: ChunkMesh) -> None:
-    """Shows (or replaces, or removes when empty) one chunk's piece of a surface."""
-    name = f"/bone/{piece.name}"
-    if len(piece.faces) == 0:
-        old = meshes.pop(name, None)
-        if old is not None:
-            old.remove()
-        return
-    s = next(s for s in surfaces.surfaces if s.name == piece.surface)
-    meshes[name] = server.scene.add_mesh_simple(
-        name,
-        piece.vertices_m * SCENE_MM_PER_M,
-        piece.faces,
-        color=s.color,
-        opacity=None if s.opacity >= 1.0 else s.opacity,
-        side="double" if s.opacity < 1.0 else "front",
-        cast_shadow=False,
-        receive_shadow=False,
-    )
-
-
-def _along(d: np.ndarray) -> tuple[float, float, float, float]:
-    """The quaternion (w, x, y, z) turning the tool's +z onto direction ``d`` (half-way rotation)."""
-    d = d / np.linalg.norm(d)
-    q = np.array([1.0 + d[2], -d[1], d[0], 0.0])  # 1 + z·d, z × d
-    n = np.linalg.norm(q)
-    return (0.0, 1.0, 0.0, 0.0) if n < 1e-9 else (float(q[0] / n), float(q[1] / n), float(q[2] / n), float(q[3] / n))
-
-
-def _add_whole_bone(server: Any, surfaces: LayerSurfaces, meshes: dict[str, Any]) -> None:
-    """Marches and shows every chunk (a page's start)."""
-    for chunk in surfaces.all_chunks():
-        for piece in surfaces.mesh(chunk):
-            _add_bone(server, surfaces, meshes, piece)
-
-
-def _look_at(client: Any, volume: VolumeData) -> None:
-    """Points a new browser's camera at the bone, from the front and a little above."""
-    lo = volume.origin_m
-    hi = volume.origin_m + volume.direction @ (volume.spacing_m * np.array(volume.labels.shape[::-1]))
-    c, extent = (lo + hi) / 2 * SCENE_MM_PER_M, float(np.linalg.norm(hi - lo) * SCENE_MM_PER_M)
-    client.camera.up_direction = (0.0, 0.0, 1.0)
-    client.camera.position = tuple(c + np.array([1.0, -1.2, 0.4]) * extent * 0.45)
-    client.camera.look_at = tuple(c)
 
 
 class TraineePage:
@@ -185,7 +110,7 @@ class TraineePage:
         self._meshes: dict[str, Any] = {}
         self._build_scene(volume)
         self._build_gui()
-        self.server.on_client_connect(lambda client: _look_at(client, volume))
+        self.server.on_client_connect(lambda client: look_at(client, volume))
         self._threads = [
             threading.Thread(target=self._frame_loop, name=f"view-frames-{session_id}", daemon=True),
             threading.Thread(target=self._bone_loop, name=f"view-bone-{session_id}", daemon=True),
@@ -196,7 +121,7 @@ class TraineePage:
     # -- the scene -------------------------------------------------------------------------
     def _build_scene(self, volume: VolumeData) -> None:
         sc = self.server.scene
-        _add_whole_bone(self.server, self.surfaces, self._meshes)
+        add_whole_bone(self.server, self.surfaces, self._meshes)
         self._drill = sc.add_frame("/drill", show_axes=False)
         self._burr = sc.add_icosphere("/drill/burr", radius=1.25, color=(90, 90, 100), subdivisions=2)
         self._shaft = sc.add_cylinder(
@@ -209,7 +134,7 @@ class TraineePage:
         self._drill.visible = False
 
     def _show(self, piece: ChunkMesh) -> None:
-        _add_bone(self.server, self.surfaces, self._meshes, piece)
+        add_bone_piece(self.server, self.surfaces, self._meshes, piece)
 
     def _show_path(self, info: dict[str, Any]) -> None:
         a = np.array(info["entry_m"]) * SCENE_MM_PER_M
@@ -287,7 +212,7 @@ class TraineePage:
             ),
             row("depth", "Depth along A→B", f"{f['depth_m'] * 1e3:.2f} mm"),
             row("deviation", "Lateral deviation", f"{f['deviation_m'] * 1e3:.2f} mm"),
-            row("layer", "Layer at the tip", _LAYER_NAMES.get(int(f["layer"]), "?")),
+            row("layer", "Layer at the tip", LAYER_NAMES.get(int(f["layer"]), "?")),
             row("removed", "Bone removed", f"{st['removed_volume_m3'] * 1e9:.1f} mm³" if st else "–"),
             row("breakthroughs", "Breakthroughs", str(int(f["breakthroughs"]))),
         ]
@@ -425,7 +350,7 @@ class TraineePage:
             if pose is not None:
                 self._drill.wxyz = tuple(pose["orientation_wxyz"])
             elif self._info is not None:  # no pose heard (a lab station hears only its outputs): along A→B
-                self._drill.wxyz = _along(np.array(self._info["target_m"]) - np.array(self._info["entry_m"]))
+                self._drill.wxyz = along(np.array(self._info["target_m"]) - np.array(self._info["entry_m"]))
             self._drill.visible = True
             arrows = np.array(
                 [
@@ -490,141 +415,4 @@ class TraineePage:
         for t in self._threads:
             t.join(timeout=5.0)
         self.feed.close()
-        _stop_quietly(self.server)
-
-
-class InstructorPage:
-    """Every session on the server, with its live state and the server's metrics, refreshed each
-    second, and a link that opens its :class:`TraineePage` (``open_page(session_id)`` returns the
-    page's URL, starting the page if need be)."""
-
-    def __init__(
-        self,
-        z: Any,
-        volume: VolumeData,
-        port: int,
-        open_page: Callable[[str], str],
-        host: str = "127.0.0.1",
-        prefix: str = "dhg",
-        refresh_s: float = 1.0,
-    ) -> None:
-        from dhg.core import protocol
-
-        self._z, self.prefix, self.open_page, self.refresh_s = z, prefix, open_page, refresh_s
-        self._states: dict[str, dict[str, Any]] = {}
-        self._lock = threading.Lock()
-        self.refreshes = 0
-        self.sessions: list[str] = []
-        self._protocol = protocol
-        self._sub = z.declare_subscriber(f"{prefix}/session/*/state", self._on_state)
-        self.server = _viser_server(host, port, "DHG: instructor")
-        self.url = f"http://{host}:{self.server.get_port()}"
-        gui = self.server.gui
-        gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
-        gui.add_markdown("**DHG: every session on the server** (refreshed each second; open one to watch it)")
-        self._table = gui.add_html('<div id="dhg-sessions"></div>')
-        # The pristine bone with every trainee's tip in it, labelled.
-        surfaces = LayerSurfaces(
-            volume.labels, volume.spacing_m, volume.origin_m, volume.direction, step=display_step(volume.spacing_m)
-        )
-        self._meshes: dict[str, Any] = {}
-        _add_whole_bone(self.server, surfaces, self._meshes)
-        self._tips: dict[str, Any] = {}
-        self.server.on_client_connect(lambda client: _look_at(client, volume))
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._loop, name="view-instructor", daemon=True)
-        self._thread.start()
-
-    def _on_state(self, sample: Any) -> None:
-        sid = str(sample.key_expr).split("/")[-2]
-        try:
-            m = self._protocol.decode("state", sample.payload.to_bytes())
-        except ValueError:
-            return
-        with self._lock:
-            if sid in self._states or len(self._states) < 1024:  # a flood of fake ids stays bounded
-                self._states[sid] = m
-
-    def _loop(self) -> None:
-        from dhg.live.client import get_json
-
-        while not self._stop.is_set():
-            try:
-                ids = server_sessions(self._z, self.prefix)
-                rows = []
-                for sid in ids:
-                    url = self.open_page(sid)
-                    try:
-                        met = get_json(self._z, f"{self.prefix}/session/{sid}/metrics", None, 2.0)
-                    except Exception:
-                        met = None
-                    with self._lock:
-                        st = self._states.get(sid)
-                    rows.append(self._row(sid, url, st, met))
-                self.sessions = ids
-                self._table.content = (
-                    f'<div id="dhg-sessions">{"".join(rows)}</div>'
-                    if rows
-                    else '<p id="dhg-sessions">No sessions on the server yet.</p>'
-                )
-                self._show_tips(ids)
-                self.refreshes += 1
-            except Exception as exc:  # the server restarting: keep the last table, try again
-                log.debug("instructor page: %s", exc)
-            self._stop.wait(self.refresh_s)
-
-    @staticmethod
-    def _row(sid: str, url: str, st: dict[str, Any] | None, met: dict[str, Any] | None) -> str:
-        e = html.escape(sid)
-        if st is None:
-            live = "no state yet"
-        else:
-            f = st["features"]
-            live = (
-                f"{st['time_s']:.1f} s · depth {f[7] * 1e3:.1f} mm · {_LAYER_NAMES.get(int(f[6]), '?')} · "
-                f"{f[8]:.1f} °C · plunge {st['plunge_depth_m'] * 1e3:.1f} mm · "
-                f"deviation {st['deviation_m'] * 1e3:.1f} mm"
-            )
-        if met:
-            plunge, lateral = met["plunge_depth_m"] * 1e3, met["max_lateral_deviation_m"] * 1e3
-            attempt = (
-                f"{met['guidance_mode']} × {met['guidance_gain']:.2f} · this attempt: {met['records']} records, "
-                f"largest plunge {plunge:.1f} mm, lateral {lateral:.1f} mm, peak {met['peak_temperature_c']:.1f} °C"
-            )
-        else:
-            attempt = "no metrics yet"
-        return (
-            f'<div class="dhg-session" data-session="{e}" style="border-top:1px solid #ddd;padding:4px 0">'
-            f'<b>{e}</b> <a href="{html.escape(url)}" target="_blank" id="dhg-open-{e}">open its page</a>'
-            f'<div style="font-size:85%">{live}</div><div style="font-size:85%;color:#555">{attempt}</div></div>'
-        )
-
-    def _show_tips(self, ids: list[str]) -> None:
-        """Each listed session's tip (from its newest state) as a labelled dot in the bone."""
-        with self._lock:
-            tips = {sid: self._states[sid]["features"][3:6] for sid in ids if sid in self._states}
-        sc = self.server.scene
-        for sid in list(self._tips):
-            if sid not in tips:
-                for h in self._tips.pop(sid):
-                    h.remove()
-        for sid, tip in tips.items():
-            p = tuple(np.asarray(tip, dtype=float) * SCENE_MM_PER_M)
-            if sid in self._tips:
-                for h in self._tips[sid]:
-                    h.position = p
-            else:
-                self._tips[sid] = (
-                    sc.add_icosphere(f"/tips/{sid}", radius=1.5, color=(30, 90, 200), position=p),
-                    sc.add_label(f"/tips/{sid}-label", sid, position=p),
-                )
-
-    def close(self) -> None:
-        """Stops the refresh, the subscription and the page's server."""
-        self._stop.set()
-        self._thread.join(timeout=5.0)
-        try:
-            self._sub.undeclare()
-        except Exception:
-            pass
-        _stop_quietly(self.server)
+        stop_quietly(self.server)
