@@ -206,10 +206,19 @@ def test_the_servers_skill_metrics_are_the_ones_an_offline_attempt_reports(serve
         drift = across * np.linspace(0.0, 1.5e-3, len(depth))[:, None]
         _stream(c, path.entry_m + d * depth[:, None] + drift, q)
         _wait(lambda: c.metrics()["records"] >= 10, 10.0, "10 records for 1.2 s of poses")
-        # Let every published state arrive: the server's count and the client's agree.
-        _wait(lambda: c.metrics()["records"] == len(c.states), 10.0, "the client holding every state")
-        served = c.metrics()
-        records = state_records(list(c.states))
+        # Let every published state arrive: the server's count and the client's agree. The server
+        # keeps ticking (and recording) the held tool, so the metrics and the states compared are
+        # one snapshot: the states taken after the reply, and only when the counts match.
+        snap: dict = {}
+
+        def consistent() -> bool:
+            snap["served"] = c.metrics()
+            snap["states"] = list(c.states)
+            return snap["served"]["records"] == len(snap["states"])
+
+        _wait(consistent, 10.0, "the client holding every state")
+        served = snap["served"]
+        records = state_records(snap["states"])
         ours = skill_metrics(records, path, TaskRules(), records[-1, 4:7], 0.0, 0.0, 0.0, 0.0)
     assert served["max_lateral_deviation_m"] > 1e-3 and served["force_jerk_n_per_s"] > 0, served
     for name in ("mean_deviation_m", "max_deviation_m", "max_lateral_deviation_m", "target_distance_m"):
