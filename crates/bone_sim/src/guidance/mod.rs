@@ -50,15 +50,20 @@ use crate::path::PlannedPath;
 /// Largest accepted guidance gain.
 pub const MAX_GAIN: f64 = 4.0;
 
-/// The default [`GuidanceParams::warning_feed_m_s`] (m/s): half a novice's preferred feed
-/// (0.7–1.1 mm/s in `dhg.operators.styles.sample_style`), near the 0.3–0.6 mm/s at which controlled
-/// advancement through a far cortex keeps the plunge under a millimetre (Wallace et al. 2019).
-/// Tuned on seeds 3–8: a warning by position alone held trainees who yield to it still in the
-/// last millimetre of cortex (3 of 6 reached B against 5 of 6 unguided; docs/results.md).
+/// The default [`GuidanceParams::warning_feed_m_s`] (m/s), the safe feed: half a novice's
+/// preferred feed (0.7–1.1 mm/s in `dhg.operators.styles.sample_style`), within the 0.3–0.6 mm/s
+/// at which controlled advancement through a far cortex keeps the plunge under a millimetre
+/// (Wallace et al. 2019). The warning resists only the feed into bone beyond it (in full at
+/// twice it), as assistance given as needed (Marchal-Crespo & Reinkensmeyer 2008): a trainee
+/// already that slow, or a drill that cuts cortex no faster (a 4.5 mm burr: 0.1 mm/s typical),
+/// feels nothing. Tuned on seeds 3–8: a warning by position alone held trainees who yield to it
+/// still in the last millimetre of cortex (3 of 6 reached B against 5 of 6 unguided); one in
+/// proportion to the feed below it cost a 4.5 mm drill 43 s (4 of 6 reached B), this one 26 s
+/// (5 of 6), with the 2.5 mm plunge still cut by 70 % or more (docs/results.md).
 pub const WARNING_FEED_M_S: f64 = 0.5e-3;
 
 /// Time constant of the low-pass through which every damper of the guide (the corridor's, the
-/// brake's) and the feed-scaled warning see the tip's velocity (s): 5 ms, a 32 Hz corner. The
+/// brake's) sees the tip's velocity (s): 5 ms, a 32 Hz corner. The
 /// velocity is a finite difference of the 1 kHz tip, which moves in steps as voxels go: a damper
 /// on it chatters (Colgate & Brown 1994: velocity from differenced position must be filtered
 /// before a virtual damper acts on it). Unfiltered, the brake's 20 N·s/m turned that into swings
@@ -68,10 +73,10 @@ pub const WARNING_FEED_M_S: f64 = 0.5e-3;
 pub const VELOCITY_FILTER_S: f64 = 5e-3;
 
 /// Time constant of the feed the warning and the brake's model cue compare with
-/// `warning_feed_m_s` (s). The tip advances through cortex in voxel-sized steps: per tick its
-/// velocity is 0 or tens of mm/s, never the 0.5–1 mm/s of a feed, so a law that scales by feed
-/// needs the feed over tens of milliseconds. Read from the 1 kHz velocity, the warning flickered
-/// between nothing and its full force from one tick to the next, a buzz in the handle.
+/// `warning_feed_m_s` (s). The tip can advance in steps, tick by tick 0 or tens of mm/s, never
+/// the 0.5–1 mm/s of a feed, so a law that scales by feed needs the feed over tens of
+/// milliseconds. Read from the 1 kHz tip velocity, the warning flickered between nothing and its
+/// full force from one tick to the next, a buzz in the handle.
 pub const FEED_FILTER_S: f64 = 50e-3;
 
 /// What the guidance share renders.
@@ -146,6 +151,10 @@ pub struct GuideInput<'a> {
     pub tip_m: Point3<f64>,
     /// The tip's velocity (m/s).
     pub tip_velocity_m_s: Vector3<f64>,
+    /// The feed into bone this tick (m/s along the axis): how fast the burr cuts its way on,
+    /// 0 while it cuts nothing (in air, in its own bore, with the drill off). What the warning
+    /// and the brake's model cue ask to slow down.
+    pub cutting_feed_m_s: f64,
     /// The drill axis (unit).
     pub axis: Vector3<f64>,
     /// The planned path.
@@ -186,8 +195,8 @@ pub struct Guide {
     corridor_integral_m_s: Vector3<f64>,
     /// The tip's velocity through [`VELOCITY_FILTER_S`] (m/s): what the laws damp.
     velocity_m_s: Vector3<f64>,
-    /// The tip's velocity through [`FEED_FILTER_S`] (m/s): the feed the warning reads.
-    feed_velocity_m_s: Vector3<f64>,
+    /// The feed into bone through [`FEED_FILTER_S`] (m/s): what the warning reads.
+    feed_m_s: f64,
     share_n: Vector3<f64>,
 }
 
@@ -217,7 +226,7 @@ impl Guide {
             heat: None,
             corridor_integral_m_s: Vector3::zeros(),
             velocity_m_s: Vector3::zeros(),
-            feed_velocity_m_s: Vector3::zeros(),
+            feed_m_s: 0.0,
             share_n: Vector3::zeros(),
         }
     }
@@ -235,7 +244,7 @@ impl Guide {
         self.heat = None;
         self.corridor_integral_m_s = Vector3::zeros();
         self.velocity_m_s = Vector3::zeros();
-        self.feed_velocity_m_s = Vector3::zeros();
+        self.feed_m_s = 0.0;
         self.share_n = Vector3::zeros();
     }
 
@@ -326,7 +335,9 @@ impl Guide {
         if input.tip_velocity_m_s.iter().all(|x| x.is_finite()) {
             let v = input.tip_velocity_m_s;
             self.velocity_m_s += (v - self.velocity_m_s) * (dt_s / (VELOCITY_FILTER_S + dt_s));
-            self.feed_velocity_m_s += (v - self.feed_velocity_m_s) * (dt_s / (FEED_FILTER_S + dt_s));
+        }
+        if input.cutting_feed_m_s.is_finite() {
+            self.feed_m_s += (input.cutting_feed_m_s - self.feed_m_s) * (dt_s / (FEED_FILTER_S + dt_s));
         }
         let filtered = GuideInput { tip_velocity_m_s: self.velocity_m_s, ..*input };
         let input = &filtered;
@@ -365,7 +376,7 @@ impl Guide {
                     // through the first cortex, and 65 % fewer novices reaching B in 150 s).
                     let ease_n = self.paper_n.dot(&input.axis);
                     if ease_n > 0.0 && self.near_breakthrough(input) {
-                        f -= input.axis * (ease_n * self.slow_down(input));
+                        f -= input.axis * (ease_n * self.slow_down());
                     }
                 }
                 if mode == GuidanceMode::Shaped {
@@ -491,16 +502,17 @@ impl Guide {
         }
         let depth = input.path.depth_m(&input.tip_m);
         let ramp = ((depth - (at - p.warning_span_m)) / p.warning_span_m).clamp(0.0, 1.0);
-        -input.axis * (p.warning_n * ramp * self.slow_down(input) * self.gain)
+        -input.axis * (p.warning_n * ramp * self.slow_down() * self.gain)
     }
 
-    /// How much of a slow-down request near the breakthrough applies at the tip's feed: 1 at
-    /// `warning_feed_m_s` or faster, in proportion below, 0 on a still or withdrawing tip.
-    fn slow_down(&self, input: &GuideInput<'_>) -> f64 {
+    /// How much of a slow-down request near the breakthrough applies at the feed into bone: 0
+    /// up to `warning_feed_m_s` (the safe feed), rising to 1 at twice it; 0 on a tip that cuts
+    /// nothing (still, withdrawing, or moving through its own bore).
+    fn slow_down(&self) -> f64 {
         let feed = self.params.warning_feed_m_s;
         if feed <= 0.0 {
             return 1.0;
         }
-        (self.feed_velocity_m_s.dot(&input.axis) / feed).clamp(0.0, 1.0)
+        (self.feed_m_s / feed - 1.0).clamp(0.0, 1.0)
     }
 }

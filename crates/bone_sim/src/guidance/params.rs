@@ -45,11 +45,11 @@ pub struct GuidanceParams {
     pub warning_n: f64,
     /// How far before the predicted breakthrough the warning ramp starts (m).
     pub warning_span_m: f64,
-    /// Near the predicted breakthrough, the warning and the model's easing cue ask the trainee to
-    /// slow down: at a feed along the axis of this (m/s) or faster they resist in full, slower in
-    /// proportion, and not at all on a tip that is still, so a trainee who yields as asked is
-    /// slowed and never held still in the cortex. 0: in full at any speed (a resistance by
-    /// position alone).
+    /// The safe feed (m/s). Near the predicted breakthrough, the warning and the model's easing
+    /// cue ask the trainee to slow down to it: they resist the feed into bone beyond it, from
+    /// nothing at this feed to in full at twice it, and not at all on a slower feed, a still
+    /// tip, or a tip moving through its own bore, so a trainee who yields as asked is slowed and
+    /// never held still in the cortex. 0: in full at any speed (a resistance by position alone).
     pub warning_feed_m_s: f64,
     /// `shaped`: the heat hold engages when the tip is within this of the session's necrosis
     /// threshold (°C below it).

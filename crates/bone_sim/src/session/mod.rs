@@ -417,6 +417,7 @@ impl DrillingSession {
         let input = GuideInput {
             tip_m: self.state.tip_m,
             tip_velocity_m_s: self.tip_velocity_m_s,
+            cutting_feed_m_s: if self.pose.is_some() { self.state.feed_m_s } else { 0.0 },
             axis: self.state.axis,
             path: &self.path,
             breakthrough_depth_m: self.planned_breakthrough_m,
