@@ -1,6 +1,7 @@
 //! Plunge, breakthrough, thrust limits and retraction (issue 19): the plunge is the drill's, not
 //! the haptic coupling's; every exit from a cortex is one breakthrough and nothing else is; a
-//! derating device never drives a runaway feed; a drill never jams in its own bore.
+//! derating device never drives a runaway feed; a drill never jams in its own bore; guidance
+//! holds back a plunge and the warning before it resists only a cut faster than the safe feed.
 
 #![allow(clippy::float_cmp)]
 
@@ -415,4 +416,45 @@ fn a_plunge_slow_to_gather_speed_is_measured_to_where_the_hand_stopped_it() {
             run.tip_travel_m
         );
     }
+}
+
+#[test]
+fn the_warning_resists_a_fast_cut_and_leaves_one_at_the_safe_feed_alone() {
+    // A stylus driven into a 3 mm cortex at a set speed under `shaped` (a model replying every
+    // 100 ms with the trainee's own force: no paper cue), through the last millimetre before the
+    // planned breakthrough. At 2 mm/s (four times the safe 0.5 mm/s) the warning resists the
+    // cut; at 0.3 mm/s, below the safe feed, it renders nothing (the previous law, in proportion
+    // to the feed, resisted it with 60 % of its force).
+    let run = |speed_m_s: f64| {
+        let (mut s, surface, _) = session(&CORTEX_OVER_CANCELLOUS);
+        s.set_guidance(GuidanceMode::Shaped, 1.0).unwrap();
+        let at = s.planned_breakthrough_depth_m().expect("a planned breakthrough");
+        let zone = at - s.guide().params().warning_span_m;
+        let (mut z, mut deepest, mut strongest, mut fastest) = (surface - 1e-3, 0.0_f64, 0.0_f64, 0.0_f64);
+        for tick in 0..40_000 {
+            if tick % 100 == 0 {
+                let own = s.state().feedback_n;
+                s.set_prediction(own);
+            }
+            z += speed_m_s * 1e-3;
+            s.tick(Some(&pose(z, true)));
+            let st = s.state();
+            assert!(st.guidance_n.z <= 1e-12, "tick {tick}: guidance pushed the drill on: {}", st.guidance_n);
+            deepest = deepest.max(st.depth_m);
+            if st.depth_m > zone + 0.2e-3 && st.breakthroughs == 0 {
+                strongest = strongest.min(st.guidance_n.z);
+                fastest = fastest.max(st.feed_m_s);
+            }
+            if st.depth_m > zone + 0.6e-3 {
+                break;
+            }
+        }
+        assert!(deepest > zone + 0.6e-3, "{speed_m_s} m/s: the tip reached {deepest} m, the span starts at {zone} m");
+        (strongest, fastest, s.guide().params().warning_n)
+    };
+    let (fast, fast_feed, warning_n) = run(2e-3);
+    assert!(fast < -0.5 * warning_n, "a cut at up to {fast_feed} m/s was resisted with only {fast} N");
+    let (slow, slow_feed, _) = run(0.3e-3);
+    assert!(slow_feed < 0.5e-3, "the slow stylus cut at up to {slow_feed} m/s");
+    assert!(slow.abs() < 1e-9, "a cut at the safe feed met {slow} N");
 }
