@@ -424,7 +424,7 @@ fn the_warning_resists_a_fast_cut_and_leaves_one_at_the_safe_feed_alone() {
     // 100 ms with the trainee's own force: no paper cue), through the last millimetre before the
     // planned breakthrough. At 2 mm/s (four times the safe 0.5 mm/s) the warning resists the
     // cut; at 0.3 mm/s, below the safe feed, it renders nothing (the previous law, in proportion
-    // to the feed, resisted it with 60 % of its force).
+    // to the feed, resisted it with up to 0.11 N here).
     let run = |speed_m_s: f64| {
         let (mut s, surface, _) = session(&CORTEX_OVER_CANCELLOUS);
         s.set_guidance(GuidanceMode::Shaped, 1.0).unwrap();

@@ -63,9 +63,8 @@ pub const MAX_GAIN: f64 = 4.0;
 pub const WARNING_FEED_M_S: f64 = 0.5e-3;
 
 /// Time constant of the low-pass through which every damper of the guide (the corridor's, the
-/// brake's) sees the tip's velocity (s): 5 ms, a 32 Hz corner. The
-/// velocity is a finite difference of the 1 kHz tip, which moves in steps as voxels go: a damper
-/// on it chatters (Colgate & Brown 1994: velocity from differenced position must be filtered
+/// brake's) sees the tip's velocity (s): 5 ms, a 32 Hz corner. The velocity is a finite
+/// difference of the 1 kHz tip, which moves in steps as voxels go: a damper on it chatters (Colgate & Brown 1994: velocity from differenced position must be filtered
 /// before a virtual damper acts on it). Unfiltered, the brake's 20 N·s/m turned that into swings
 /// of the cue above 0.1 N at hundreds of hertz, which a hand feels as a buzz: an operator told
 /// that a buzz means "pause, the bone is hot" paused at 7 of 10 breakthroughs (seeds 3–12,
