@@ -159,6 +159,38 @@ def test_a_novices_result_does_not_depend_on_who_shares_its_model_batches():
     assert together.attempts["shaped"][1][1]["gain"] == 1.0
 
 
+def test_replicated_tests_measure_the_same_learned_state_and_change_nothing_else():
+    """``test_replicates``: each test is drilled K times from one learned state, each with its own
+    hand noise, and reported as their mean; the novice learns from the first alone, so training
+    and what it leaves are exactly those of the one-attempt protocol."""
+    from dhg.learning.weights import default_model_path
+
+    arms = parse_arms("none,shaped")
+    counts: list[tuple[int, int]] = []
+    one = run_study([3], arms, default_model_path(), Protocol(train=1), workers=1)
+    three = run_study(
+        [3],
+        arms,
+        default_model_path(),
+        Protocol(train=1, test_replicates=3),
+        workers=1,
+        progress=lambda done, total: counts.append((done, total)),
+    )
+    assert counts[-1] == (11, 11)  # 3 pre-test replicates, then per arm 1 training attempt and 3 post-test ones
+    for arm in ("none", "shaped"):
+        (pre1, train1, post1), (pre3, train3, post3) = one.attempts[arm][0], three.attempts[arm][0]
+        assert train3 == train1  # the same training: learned from replicate 0 only
+        for k1, k3 in ((pre1, pre3), (post1, post3)):
+            runs = k3["replicates"]
+            assert len(runs) == 3 and runs[0] == {k: v for k, v in k1.items() if k in runs[0]}
+            deviations = [r["max_deviation_m"] for r in runs]
+            assert len(set(deviations)) == 3  # each its own hand noise
+            assert k3["max_deviation_m"] == pytest.approx(np.mean(deviations))
+            assert three.values(arm, "max_deviation_m", k3["phase"])[0] == pytest.approx(np.mean(deviations))
+    with pytest.raises(InvalidInputError, match="test_replicates"):
+        run_study([3], arms, default_model_path(), Protocol(test_replicates=0))
+
+
 @pytest.mark.slow  # make test-all (and CI) runs it; make test leaves it out
 def test_a_live_study_drills_through_a_running_server(tmp_path):
     """``dhg study --live``: every attempt is drilled in real time through dhg-serve, which guides

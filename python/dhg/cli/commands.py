@@ -319,10 +319,14 @@ def cmd_study(args: argparse.Namespace) -> int:
         train=args.train,
         duration_s=args.duration,
         probe_every=args.probe_every,
+        test_replicates=args.test_replicates,
         guidance=tuple(guidance),
         burr_radius_m=None if args.drill_mm is None else args.drill_mm / 2 * 1e-3,
     )
-    prog, update = _progress(f"{len(seeds)} novices x {len(arms)} arms x {args.train + 2} attempts")
+    prog, update = _progress(
+        f"{len(seeds)} novices x {len(arms)} arms x {args.train + 2} attempts"
+        + (f", tests x {args.test_replicates}" if args.test_replicates > 1 else "")
+    )
     t0 = time.perf_counter()
     with prog:
         workers = args.workers if args.workers is not None else (len(arms) if args.live else 2)
@@ -343,6 +347,11 @@ def cmd_study(args: argparse.Namespace) -> int:
         + (f"live through the server at {args.live}" if args.live else f"offline, model {model.name}")
         + f"; per arm a guidance-free pre-test, {args.train} training attempts in the arm's guidance and a "
         f"guidance-free post-test, each of at most {args.duration:g} s"
+        + (
+            f"; each test the mean of {args.test_replicates} replicates from the same learned state"
+            if args.test_replicates > 1
+            else ""
+        )
         + (f", a {args.drill_mm:g} mm drill" if args.drill_mm is not None else "")
         + "".join(f", {n} = {v:g}" for n, v in guidance)
         + ". Each guided cell: mean (paired difference with 'none' [95 % interval]).\n\n"

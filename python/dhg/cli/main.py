@@ -344,6 +344,7 @@ def _add_study(sub: Any) -> None:
         "per novice and arm, --workers at once): the check that the server guides as the offline core does.\n\n"
         "  dhg study --out out/study --novices 20                      # seeds 1000..1019, every arm\n"
         "  dhg study --out out/s --seeds 3,4 --arms none,brake,shaped@0.5 --train 1 --operator instructed\n"
+        "  dhg study --out out/learn --arms none,shaped-fading --test-replicates 8   # learning, measured precisely\n"
         "  dhg study --out out/live --seeds 3 --arms none,shaped --train 1 --duration 60 --live tcp/127.0.0.1:7447",
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -383,6 +384,15 @@ def _study_attempt_args(p: argparse.ArgumentParser, d: Any) -> None:
         default=d.probe_every,
         metavar="N",
         help=f"fading arms: every Nth training attempt is a guidance-free probe (default {d.probe_every}; 0: none)",
+    )
+    p.add_argument(
+        "--test-replicates",
+        type=int,
+        default=d.test_replicates,
+        metavar="K",
+        help="measure each pre- and post-test as the mean of K attempts from the same learned state, each with "
+        "its own hand noise (the novice learns from the first only); one attempt's plunge varies by about 2 mm, "
+        f"so K = 8 shows 1 mm of learning that K = 1 cannot (default {d.test_replicates})",
     )
     p.add_argument(
         "--drill-mm",

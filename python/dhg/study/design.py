@@ -38,7 +38,8 @@ PHASES = ("pre", "train", "post")
 @dataclass(frozen=True)
 class Protocol:
     """Attempts per novice and arm: one guidance-free pre-test, ``train`` guided attempts, one
-    guidance-free post-test; at most ``duration_s`` (s) each."""
+    guidance-free post-test; at most ``duration_s`` (s) each. Each test is measured as the mean of
+    ``test_replicates`` replicates (:mod:`dhg.study.runner`)."""
 
     train: int = 6
     duration_s: float = 150.0
@@ -47,6 +48,10 @@ class Protocol:
     burr_radius_m: float | None = None
     """The drill's burr radius (m) for every attempt; None: the core's default (1.25 mm, a 2.5 mm
     drill). A 4.5 mm drill (2.25 mm) heats the bone enough to test the 47 °C target."""
+    test_replicates: int = 1
+    """Each pre- and post-test is drilled this many times from the same learned state, each with
+    its own hand noise, and reported as their mean; the novice learns from the first only (the
+    protocol's test attempt). A measurement's precision, not more practice."""
     guidance: tuple[tuple[str, float], ...] = ()
     """Changes to the core's guidance laws for every attempt, as (name, value) pairs of
     :attr:`dhg.DrillingSession.guidance_params` (e.g. ``("corridor_deadband_m", 0.25e-3)``); offline
@@ -67,6 +72,8 @@ class Protocol:
             raise InvalidInputError(f"a protocol needs at least one training attempt, got {self.train}")
         if not (math.isfinite(self.duration_s) and self.duration_s > 0):
             raise InvalidInputError(f"duration must be positive, got {self.duration_s}")
+        if not 1 <= self.test_replicates <= 64:
+            raise InvalidInputError(f"test_replicates must be within 1..64, got {self.test_replicates}")
         if self.probe_every < 0:
             raise InvalidInputError(f"probe_every must be 0 (none) or more, got {self.probe_every}")
 

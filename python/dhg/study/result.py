@@ -18,7 +18,8 @@ __all__ = ["Attempt", "StudyResult"]
 
 Attempt = dict[str, Any]
 """One attempt: ``phase`` (pre, train, post), ``index`` (0.. in the protocol), ``gain`` (the gain
-it was drilled at), ``probe`` (a fading probe), and the skill metrics (SI units)."""
+it was drilled at), ``probe`` (a fading probe), and the skill metrics (SI units); a test measured
+with several replicates holds their mean, and each replicate's metrics under ``replicates``."""
 
 
 @dataclass

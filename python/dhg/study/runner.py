@@ -11,6 +11,13 @@ every 10 Hz record:
    guidance-free;
 3. a guidance-free **post-test**.
 
+One attempt's plunge varies by about 2 mm (SD) with the hand's noise alone, as much as all a novice
+learns, so a test can be *measured* more precisely than one attempt allows: with
+``Protocol.test_replicates`` K, each test is drilled K times from the same learned state, each with
+its own hand noise, and reported as their mean; the learner still learns only from the first (the
+protocol's one test attempt), so K changes the measurement, not what the novice goes through. A
+simulation can do this; a study of people cannot.
+
 An arm is a guidance mode at a gain, or none. The trainee learns across the attempts
 (:class:`dhg.operators.models.Learner`, after Emken et al. 2007) from the errors it experiences, so
 guidance that hides the errors can also hide what there is to learn. Because every arm sees the
@@ -186,12 +193,23 @@ def _job(
         else:
             station.guide(mode, gain)
         guided = mode is not None
-        rng = np.random.default_rng([seed, 1, 1, index])
         cue = cue_meaning(operator, mode if guided else None)
-        m = yield from station.attempt(learner.style(base), rng, cue, guided, rules)
-        learner.update(m["plunge_depth_m"], m["max_deviation_m"])
-        on_attempt()
-        return {"phase": phase, "index": index, "gain": float(gain) if guided else 0.0, "probe": probe} | m
+        style = learner.style(base)
+        # A test is drilled test_replicates times from the same learned state, each with its own
+        # hand noise (replicate 0 is the protocol's attempt); the training attempts once.
+        replicates = protocol.test_replicates if phase in ("pre", "post") else 1
+        runs = []
+        for r in range(replicates):
+            rng = np.random.default_rng([seed, 1, 1, index] + ([r] if r else []))
+            runs.append((yield from station.attempt(style, rng, cue, guided, rules)))
+            on_attempt()
+        m = runs[0]
+        learner.update(m["plunge_depth_m"], m["max_deviation_m"])  # what was learned: replicate 0's errors
+        head = {"phase": phase, "index": index, "gain": float(gain) if guided else 0.0, "probe": probe}
+        if replicates == 1:
+            return head | m
+        mean = {k: float(np.mean([run[k] for run in runs])) for k in m}
+        return head | mean | {"replicates": runs}
 
     if arm is None:
         pre = yield from attempt(0, "pre", None, 0.0)
@@ -400,7 +418,8 @@ def run_study(
     if len(set(seeds)) != len(seeds):
         raise InvalidInputError("novice seeds repeat")
     arms = list(arms)
-    total = len(seeds) * (1 + len(arms) * (protocol.train + 1))
+    k = protocol.test_replicates
+    total = len(seeds) * (k + len(arms) * (protocol.train + k))
     done = 0
 
     def on_attempt() -> None:
