@@ -10,10 +10,12 @@ many trainees. Prints one JSON line per run (latencies in ms, server CPU in core
 it kept: each session's 1 kHz ticks written against the ticks it ran, and the recorder's CPU.
 
 ``--against-echo`` sets the server beside the transport's floor (issue 24): for each client count it
-alternates, ``--rounds`` times, a fresh ``dhg-serve`` and a fresh bare Zenoh echo with the same key
-space and QoS (``crates/bone_sim/examples/echo.rs``), runs the same load against each, and prints
-the medians and their ratios (dhg / echo) of pose → force p50 and p99 and of server CPU per
-session. On a shared VM the absolute figures move from run to run; the ratios far less.
+alternates, ``--rounds`` times, a fresh ``dhg-serve`` (ticking each session on its pose's thread),
+a fresh ``dhg-serve --tick-on thread`` (every pose handed to the tick thread: the design before) and
+a fresh bare Zenoh echo with the same key space and QoS (``crates/bone_sim/examples/echo.rs``),
+runs the same load against each, and prints the medians and their ratios (server / echo) of pose →
+force p50 and p99 and of server CPU per session. On a shared VM the absolute figures move from run
+to run; the ratios far less.
 
     cargo build --release -p bone_sim --example load --example echo
     python tests/benchmarks/bench_server.py --against-echo --seconds 20 --clients 1,4,16 --rounds 2
@@ -61,6 +63,12 @@ def main() -> None:
     p.add_argument("--against-echo", action="store_true", help="alternate dhg-serve with the bare echo; print ratios")
     p.add_argument("--rounds", type=int, default=2, help="with --against-echo: rounds of each (default 2)")
     p.add_argument("--echo", default=str(target / "release/examples/echo"), help="the echo binary")
+    p.add_argument(
+        "--variants",
+        default="dhg,dhg-thread,echo",
+        help="with --against-echo, alternated in this order: dhg (dhg-serve, ticks on the pose's thread), "
+        "dhg-thread (dhg-serve --tick-on thread: the tick thread ticks every pose), echo (must be included)",
+    )
     args = p.parse_args()
     if args.against_echo:
         _against_echo(args)
@@ -137,13 +145,16 @@ def _context_switches(pid: int) -> int:
 
 
 def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
-    """One round: a fresh ``target`` (``dhg`` or ``echo``) and the load tool with ``n`` clients."""
+    """One round: a fresh ``target`` (``dhg``, ``dhg-thread``: ``dhg-serve --tick-on thread``, or
+    ``echo``) and the load tool with ``n`` clients."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server: Any = None
     echo: subprocess.Popen[str] | None = None
-    if target == "dhg":
+    if target.startswith("dhg"):
+        tick_on = "thread" if target == "dhg-thread" else "pose"
         server = ServerProcess(
-            ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30"], echo=False
+            ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30", "--tick-on", tick_on],
+            echo=False,
         )
         pid = server.proc.pid
     else:
@@ -182,10 +193,12 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
 
 def _against_echo(args: argparse.Namespace) -> None:
     rows = []
+    variants = args.variants.split(",")
+    servers = [v for v in variants if v != "echo"]
     for n in (int(c) for c in args.clients.split(",")):
-        runs: dict[str, list[dict[str, Any]]] = {"dhg": [], "echo": []}
+        runs: dict[str, list[dict[str, Any]]] = {v: [] for v in variants}
         for _ in range(args.rounds):
-            for target in ("dhg", "echo"):
+            for target in variants:
                 run = _one_load(args, target, n)
                 runs[target].append(run)
                 print(json.dumps({"cpus": os.cpu_count(), "seconds": args.seconds, **run}), flush=True)
@@ -196,19 +209,20 @@ def _against_echo(args: argparse.Namespace) -> None:
         def med(target: str, key: str, runs: dict[str, list[dict[str, Any]]] = runs) -> float:
             return statistics.median(r[key] for r in runs[target])
 
-        rows.append(
-            (n, *(med(t, k) for k in ("p50_ms", "p99_ms", "cpu_per_session", "context_switches_per_pose")
-                  for t in ("dhg", "echo")), med("dhg", "forces_per_pose"))
-        )  # fmt: skip
+        for s in servers:
+            rows.append(
+                (n, s, *(med(t, k) for k in ("p50_ms", "p99_ms", "cpu_per_session", "context_switches_per_pose")
+                         for t in (s, "echo")), med(s, "forces_per_pose"))
+            )  # fmt: skip
     print(f"\n{args.rounds} rounds of {args.seconds:g} s each, alternating; medians; {os.cpu_count()} CPUs\n")
-    print("| clients | pose → force p50, dhg / echo (ms) | ratio | p99, dhg / echo (ms) | ratio "
-          "| server CPU per session, dhg / echo (cores) | ratio | context switches per pose, dhg / echo "
-          "| dhg forces per pose |")  # fmt: skip
-    print("|---:|---|---:|---|---:|---|---:|---|---:|")
-    for n, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp in rows:
+    print("| clients | server | pose → force p50, server / echo (ms) | ratio | p99, server / echo (ms) | ratio "
+          "| server CPU per session, server / echo (cores) | ratio | context switches per pose, server / echo "
+          "| forces per pose |")  # fmt: skip
+    print("|---:|---|---|---:|---|---:|---|---:|---|---:|")
+    for n, s, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp in rows:
         print(
-            f"| {n} | {p50d:.3f} / {p50e:.3f} | {p50d / p50e:.2f} | {p99d:.3f} / {p99e:.3f} | {p99d / p99e:.2f} "
-            f"| {cpud:.4f} / {cpue:.4f} | {cpud / cpue:.2f} | {swd:.2f} / {swe:.2f} | {fpp:.3f} |"
+            f"| {n} | {s} | {p50d:.3f} / {p50e:.3f} | {p50d / p50e:.2f} | {p99d:.3f} / {p99e:.3f} "
+            f"| {p99d / p99e:.2f} | {cpud:.4f} / {cpue:.4f} | {cpud / cpue:.2f} | {swd:.2f} / {swe:.2f} | {fpp:.3f} |"
         )
 
 

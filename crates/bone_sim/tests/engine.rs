@@ -244,7 +244,7 @@ fn set_burr_swaps_the_drill_of_one_slot_and_a_new_session_gets_the_default_again
 fn outputs_the_comm_side_cannot_take_are_dropped_and_counted_and_the_tick_goes_on() {
     let (mut core, mut link, surface) = engine(1);
     activate(&mut link, 0, 1, 1.0);
-    let capacity = link.outputs.buffer().capacity();
+    let capacity = link.outputs.capacity();
     // Nobody drains the outputs: one force a tick (and a state every 100) fill the ring.
     let ticks = capacity + 500;
     for seq in 1..=ticks {

@@ -4,7 +4,7 @@
 mod common;
 
 use bone_sim::engine::handoff::{Output, PoseSample};
-use bone_sim::engine::{EngineLink, TickCore, GRACE_PERIODS};
+use bone_sim::engine::{EngineLink, PoseTick, TickCore, CLAIM_RETRY, GRACE_PERIODS};
 use common::engine::*;
 use std::sync::atomic::Ordering;
 
@@ -267,6 +267,67 @@ fn replay(arrivals_us: &[u64], lag_us: u64) -> (u64, f64, Vec<f64>) {
     (ticks, end.duration_since(t0).as_secs_f64() / 1e-3, waits)
 }
 
+/// [`replay`] with lag 0 as the server runs it: each pose first tries to tick its slot on the
+/// thread that received it ([`PoseTicker`](bone_sim::engine::PoseTicker)); the tick thread wakes
+/// at its deadlines, and at a pose that could not tick (which unparks it). Returns the same as
+/// [`replay`], and the ticks the poses' thread ran (checked against the engine's count).
+fn replay_on_pose_thread(arrivals_us: &[u64]) -> (u64, f64, Vec<f64>, u64) {
+    let (mut core, mut link, surface, t0) = started();
+    let end = t0 + us(*arrivals_us.last().unwrap());
+    let (mut ticks, mut on_pose, mut wake, mut waiting) = (1u64, 0u64, t0 + MS, None);
+    let mut waits = Vec::with_capacity(arrivals_us.len());
+    for (k, &a) in arrivals_us.iter().enumerate() {
+        let arrival = t0 + us(a);
+        while wake < arrival {
+            // The tick thread's own wake-ups before this pose.
+            let (n, next) = core.tick_due(wake);
+            ticks += u64::from(n);
+            if n > 0 {
+                if let Some(p) = waiting.take() {
+                    waits.push(wake.duration_since(p).as_secs_f64());
+                }
+            }
+            wake = next;
+        }
+        if arrival > end {
+            break;
+        }
+        send(&mut link, 0, 1, k as u32 + 1, surface - 1e-3);
+        match link.ticker.tick(0, 1, arrival) {
+            PoseTick::Ticked { .. } => {
+                (ticks, on_pose) = (ticks + 1, on_pose + 1);
+                waiting = None;
+                waits.push(0.0);
+                wake = core.tick_due(arrival).1; // where the tick thread would look next
+            }
+            PoseTick::NotDue | PoseTick::Claimed => {
+                waiting = Some(arrival);
+                let (n, next) = core.tick_due(arrival); // unparked
+                assert_eq!(n, 0, "the tick thread ticked a pose its own thread found not due");
+                wake = next;
+            }
+        }
+        drain(&mut link);
+    }
+    assert_eq!(link.stats.pose_thread_ticks.load(Ordering::Relaxed), on_pose, "the engine's count");
+    (ticks, end.duration_since(t0).as_secs_f64() / 1e-3, waits, on_pose)
+}
+
+#[test]
+fn ticking_on_the_poses_thread_keeps_the_schedule_exactly() {
+    // The recorded busy host's clients, replayed both ways: every pose handed to the tick thread
+    // (woken at once), and every pose first trying its own thread. Same ticks, same waits.
+    for arrivals in recorded_clients() {
+        let (ticks, periods, waits) = replay(&arrivals, 0);
+        let (ticks_p, periods_p, waits_p, on_pose) = replay_on_pose_thread(&arrivals);
+        eprintln!("{ticks} / {ticks_p} ticks in {periods:.0} periods, {on_pose} on the poses' thread");
+        assert_eq!((ticks_p, periods_p), (ticks, periods));
+        assert_eq!(waits_p, waits, "a pose waited differently for its tick");
+        let share = on_pose as f64 / arrivals.len() as f64;
+        assert!(share >= 0.9, "only {:.1} % of the poses ticked on their own thread", share * 100.0);
+    }
+}
+
 /// The two recorded clients' arrivals (µs after the start).
 fn recorded_clients() -> Vec<Vec<u64>> {
     let text = include_str!("data/pose_arrivals_16_clients_2_cores.txt");
@@ -388,4 +449,53 @@ fn a_whole_period_late_counts_missed_ticks_and_buys_no_burst() {
     assert_eq!(core.tick_due(t0 + us(3600)).0, 0);
     assert_eq!(core.tick_due(t0 + us(4150)).0, 0);
     assert_eq!(core.tick_due(t0 + us(4200)).0, 1);
+}
+
+#[test]
+fn a_due_pose_ticks_on_its_own_thread_and_an_early_one_waits_for_the_tick_thread() {
+    let (mut core, mut link, surface, t0) = started();
+    drain(&mut link);
+    send(&mut link, 0, 1, 1, surface - 1e-3);
+    let PoseTick::Ticked { force: Output::Force { msg, published, .. }, state: None } = link.ticker.tick(0, 1, t0 + MS)
+    else {
+        panic!("a pose a period after the last tick did not tick its slot")
+    };
+    assert_eq!((msg.pose_seq, published), (1, false), "the force of that pose, not yet put");
+    assert_eq!(core.tick_due(t0 + MS + us(10)).0, 0, "the tick thread ticked the pose again");
+    // 0.2 periods later: early (the budget lets a pose tick from 0.7 periods); the tick thread
+    // ticks it when it may.
+    send(&mut link, 0, 1, 2, surface - 1e-3);
+    assert!(matches!(link.ticker.tick(0, 1, t0 + MS + us(200)), PoseTick::NotDue));
+    let (n, next) = core.tick_due(t0 + MS + us(200));
+    assert_eq!(n, 0);
+    assert!(near(next, t0 + MS + us(700)), "the early pose ticks 0.3 periods early, not before");
+    assert_eq!(core.tick_due(next).0, 1);
+    assert_eq!(forces(&drain(&mut link)).last().unwrap().pose_seq, 2);
+    // A pose written for another generation (a new session whose activation the tick thread has
+    // not applied yet) is left to the tick thread.
+    send(&mut link, 0, 2, 3, surface - 1e-3);
+    assert!(matches!(link.ticker.tick(0, 2, t0 + 3 * MS), PoseTick::NotDue));
+    assert_eq!(link.stats.pose_thread_ticks.load(Ordering::Relaxed), 1);
+}
+
+#[test]
+fn a_slot_held_by_another_thread_is_passed_over_and_its_commands_wait() {
+    let (mut core, mut link, surface, t0) = started();
+    drain(&mut link);
+    send(&mut link, 0, 1, 1, surface - 1e-3);
+    let ticker = link.ticker.clone();
+    let held = ticker.session(0).unwrap(); // a pose's thread in the middle of a tick
+    assert!(matches!(link.ticker.tick(0, 1, t0 + MS), PoseTick::Claimed));
+    link.commands.push(prediction(1, [0.0, 0.0, 0.2], 7)).unwrap();
+    let (n, next) = core.tick_due(t0 + MS);
+    assert_eq!((n, core.commands_applied()), (0, 0), "it ticked or changed a slot another thread held");
+    assert!(next <= t0 + MS + CLAIM_RETRY, "it does not look again soon enough");
+    assert_eq!(link.stats.sessions.load(Ordering::Relaxed), 1, "a held session still counts");
+    assert!(drain(&mut link).is_empty());
+    drop(held);
+    let (n, _) = core.tick_due(t0 + MS + CLAIM_RETRY);
+    assert_eq!((n, core.commands_applied()), (1, 1));
+    let out = drain(&mut link);
+    assert!(matches!(out.first(), Some(Output::Guidance { msg, .. }) if msg.window_seq == 1), "{out:?}");
+    assert_eq!(forces(&out).last().unwrap().pose_seq, 1);
 }

@@ -194,6 +194,16 @@ def _session_args(p: argparse.ArgumentParser, d: Any) -> None:
         "instead while a session is open, keeping two cores at 100 %%: use it on a machine with cores to "
         "spare that cannot give the tick thread SCHED_FIFO, never on a 2-core machine",
     )
+    g.add_argument(
+        "--tick-on",
+        choices=("pose", "thread"),
+        default=d.tick_on,
+        help="where a pose ticks its session. 'pose' (default): a pose that finds its session due ticks it "
+        "on the Zenoh thread that received it and the force leaves from there, no thread hand-off; the "
+        "tick thread ticks the rest (a late or early pose, a silent client). 'thread': every pose is handed "
+        "to the tick thread and every force to the publisher thread (the design before; for comparison: "
+        "about twice the server CPU per session)",
+    )
     g.add_argument("--status-every", type=float, default=5.0, metavar="S", help="status line period (default 5 s)")
 
 
@@ -229,6 +239,7 @@ def _serve_options(args: argparse.Namespace) -> Any:
         guidance_mode=args.guidance_mode,
         guidance_gain=args.guidance_gain,
         wait=args.wait,
+        tick_on=args.tick_on,
         session_owners=owners,
         max_sessions_per_owner=per_owner,
     )

@@ -50,6 +50,11 @@ class ServerSettings:
     """How the 1 kHz tick thread and the force publisher wait: ``"sleep"`` (idle cores stay idle),
     or ``"spin"`` (while a session is open each keeps a core at 100 %, so no wake-up latency is added
     to a force; for hosts with cores to spare and no real-time scheduling)."""
+    tick_on: str = _SERVER["tick_on"]
+    """Where a pose ticks its session: ``"pose"`` (the default: a pose that finds its session due
+    ticks it on the Zenoh thread that received it, and the force leaves from there) or
+    ``"thread"`` (every pose is handed to the tick thread and its force to the comm thread: two
+    thread hand-offs per pose, the design before; for comparison)."""
 
     def native(self) -> dict[str, Any]:
         """The dict ``dhg._bone_sim.Server`` takes (the core's ``ServerSettings``)."""

@@ -1,6 +1,7 @@
 //! What crosses between the communication side and the tick thread. Everything here is plain
-//! data moved through lock-free structures: an SPSC ring of [`Command`]s into the tick thread, an
-//! SPSC ring of [`Output`]s out of it, and one triple buffer per session slot for the newest pose.
+//! data moved through lock-free structures: an SPSC ring of [`Command`]s into the tick thread, a
+//! bounded multi-producer queue of [`Output`]s out of every tick, and one triple buffer per
+//! session slot for the newest pose.
 
 use std::time::Instant;
 
@@ -97,7 +98,24 @@ pub enum Command {
     },
 }
 
-/// What the tick thread hands out.
+impl Command {
+    /// The slot it is for.
+    #[must_use]
+    pub fn slot(&self) -> u16 {
+        match self {
+            Self::Activate { slot, .. }
+            | Self::Release { slot }
+            | Self::Reset { slot }
+            | Self::SetPath { slot, .. }
+            | Self::SetBurr { slot, .. }
+            | Self::SetGuidance { slot, .. }
+            | Self::Prediction { slot, .. }
+            | Self::Snapshot { slot } => *slot,
+        }
+    }
+}
+
+/// What a tick (on the tick thread or a pose's thread) hands out.
 #[derive(Debug, Clone, Copy)]
 pub enum Output {
     /// The force rendered this tick.
@@ -113,6 +131,11 @@ pub enum Output {
         /// When the server received the pose this force was computed from; `None` when the
         /// tick had no fresh pose.
         received: Option<Instant>,
+        /// The slot's ticks since the engine started (never reset): which of two forces is newer.
+        order: u64,
+        /// Whether the force already left (put by the thread its pose arrived on): the comm side
+        /// only records it.
+        published: bool,
     },
     /// The 10 Hz record and state.
     State {

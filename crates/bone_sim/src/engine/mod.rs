@@ -1,10 +1,19 @@
-//! The real-time engine: every session slot stepped once per 1 ms on a dedicated thread.
+//! The real-time engine: every session slot stepped once per 1 ms.
 //!
-//! The tick thread owns the sessions. It talks to the rest of the server only through lock-free
-//! structures made at start-up ([`handoff`]): an SPSC ring of commands in, an SPSC ring of outputs
-//! out, a triple buffer per slot carrying the newest pose, and one triple buffer for bone
-//! snapshots. Sessions, their reserved bricks and the rings are all allocated before the first
-//! tick, so a tick never allocates, locks or does I/O.
+//! A session ticks on one of two threads. A pose that finds its slot due ticks it on the thread
+//! that received it ([`PoseTicker`]; with Zenoh, the thread of the pose's subscriber callback,
+//! which then puts the force itself): no hand-off, no wake-up between a pose and its force. The
+//! tick thread ([`TickCore`], run by [`TickThread`]) ticks what no pose starts (a slot whose pose
+//! is late or came early, a silent client) and applies commands. Each slot is behind a claim
+//! (`Mutex::try_lock`, which never waits): whoever holds it ticks; the other side goes on, the
+//! tick thread retrying within [`CLAIM_RETRY`], the pose's thread leaving the pose to the tick
+//! thread. Around that, everything is lock-free and made at start-up ([`handoff`]): an SPSC ring
+//! of commands in, a bounded multi-producer queue of outputs out, a triple buffer per slot
+//! carrying the newest pose, and one triple buffer for bone snapshots. Sessions, their reserved
+//! bricks and the queues are all allocated before the first tick, so a tick never allocates,
+//! waits for a lock or does I/O.
+//!
+//! Why: `docs/decisions/0023-tick-on-the-pose-thread.md`.
 //!
 //! Each slot ticks once per 1 ms on average, **locked to its client's poses**. Every slot has a
 //! tick budget that fills by one period per 1 ms and is spent by one per tick; its deadline is
@@ -24,8 +33,8 @@
 //! client gets 1 kHz on average. A tick a whole period or more past its deadline (and grace) skips
 //! the missed periods and counts them: the budget banks at most [`WAKE_SLACK_PERIODS`] past the
 //! point where the slot ticks without a pose, so a stall never buys a burst, while a thread that
-//! wakes a little late loses no time. The pose subscriber unparks the tick thread when it hands
-//! over a pose.
+//! wakes a little late loses no time. A pose that cannot tick on its own thread (early, or its
+//! slot claimed) unparks the tick thread.
 
 pub mod handoff;
 pub mod realtime;
@@ -34,7 +43,7 @@ pub mod stats;
 mod tick_thread;
 
 use std::sync::atomic::Ordering;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
 use std::time::{Duration, Instant};
 
 use crate::error::{SimError, SimResult};
@@ -54,6 +63,9 @@ pub const MAX_SESSIONS: usize = 1024;
 const OUTPUT_SLACK_PER_SLOT: usize = 128;
 /// Commands applied per tick at most (the rest wait for the next tick).
 const COMMANDS_PER_TICK: usize = 256;
+/// How soon the tick thread looks again at a slot it found claimed by a pose's thread (which
+/// holds it for one tick, a few µs), or at a command for it.
+pub const CLAIM_RETRY: Duration = Duration::from_micros(50);
 /// The tick period (1 kHz).
 ///
 /// Why this value: `docs/decisions/0005-pose-locked-schedule.md`.
@@ -161,6 +173,191 @@ struct Schedule {
 impl Schedule {
     fn new(now: Instant) -> Self {
         Self { clock: None, streaming: false, seen: now, arrivals: 0, poses_per_tick: 1.0 }
+    }
+}
+
+/// A slot and its schedule: what a claim covers.
+#[derive(Debug)]
+struct SlotState {
+    slot: Slot,
+    schedule: Schedule,
+}
+
+impl SlotState {
+    /// Ticks the slot if it is due at `now` (see the module docs), emitting its outputs. Returns
+    /// whether it ticked and when it is next due.
+    fn step(&mut self, idx: u16, now: Instant, stats: &TickStats, emit: impl FnMut(Output)) -> (bool, Instant) {
+        let period_s = TICK_PERIOD.as_secs_f64();
+        let (s, sched) = (&mut self.slot, &mut self.schedule);
+        let clock = sched.clock.get_or_insert(SlotClock { last: now, tokens: 1.0 });
+        let elapsed = now.saturating_duration_since(clock.last).as_secs_f64() / period_s;
+        if s.poll_pose() {
+            sched.seen = now;
+            sched.arrivals += 1;
+        }
+        let fresh = s.pose_pending();
+        let timer = timer_until(sched.streaming, clock.tokens, elapsed);
+        // A fresh pose that came before the budget could tick it, and not right behind the
+        // last tick (its phase is ahead of the slot's; it is not a burst), counts its whole
+        // wait 2 % fast, so the slot's phase drifts onto its client's. Cut where the pose
+        // could tick, the 2 % was lost whenever the thread woke late, and the slot never
+        // locked. Other ticks count plain time: a surplus banked on every tick filled the
+        // bank, and each late wake-up then dropped some (the slot ran slow). Not for a client
+        // sending faster than 1 kHz, which would take all of the 2 %.
+        let fast_client = sched.poses_per_tick > FAST_CLIENT_POSES_PER_TICK;
+        let seen_after = sched.seen.saturating_duration_since(clock.last).as_secs_f64() / period_s;
+        let ahead = clock.tokens + seen_after < 1.0 - EARLY_PERIODS && seen_after >= LOCK_MIN_GAP_PERIODS;
+        let lock = if fresh && ahead && !fast_client { LOCK_RATE } else { 1.0 };
+        let have = clock.tokens + elapsed * lock;
+        let until = if fresh {
+            let short = (1.0 - EARLY_PERIODS - have) / lock;
+            // Waiting longer means the slot is out of phase with its client (its poses came in a
+            // burst after a stall): this pose waits for the schedule, and the client's next pose,
+            // in phase, ticks the moment it arrives. Judged as of the pose's arrival (`short`
+            // then was `short + waited`), so how often the thread looks changes nothing: a
+            // spinning thread would otherwise tick every deferred pose once `short` shrank.
+            let waited = now.saturating_duration_since(sched.seen).as_secs_f64() / period_s;
+            if short + waited <= MAX_POSE_WAIT_PERIODS {
+                short
+            } else {
+                timer
+            }
+        } else {
+            timer
+        };
+        if until > DUE_SLACK_PERIODS {
+            return (false, now + ceil_us(until * period_s));
+        }
+        // How far past its schedule the slot ticks: the thread woke late (a fresh pose is on time).
+        let late_periods = (-timer).max(0.0);
+        let late_ns = (late_periods * period_s * 1e9) as u64;
+        stats.lateness.record(late_ns);
+        stats.max_lateness_ns.fetch_max(late_ns, Ordering::Relaxed);
+        let behind = late_periods.floor();
+        if behind >= 1.0 {
+            stats.missed.fetch_add(behind as u64, Ordering::Relaxed);
+        }
+        if let Some(t) = s.tick(idx, emit) {
+            stats.pose_to_tick.record(now.saturating_duration_since(t).as_nanos() as u64);
+        }
+        let bank = due_periods(sched.streaming) + WAKE_SLACK_PERIODS;
+        *clock = SlotClock { last: now, tokens: have.min(bank) - 1.0 };
+        sched.poses_per_tick += POSE_RATE_WEIGHT * (f64::from(sched.arrivals) - sched.poses_per_tick);
+        sched.arrivals = 0;
+        sched.streaming |= fresh;
+        (true, now + ceil_us(timer_until(sched.streaming, clock.tokens, 0.0) * period_s))
+    }
+}
+
+/// Claims a slot if no other thread holds it (never waits). A tick that panicked left its slot
+/// consistent at each step, so a poisoned claim is taken over.
+fn claim(cell: &Mutex<SlotState>) -> Option<MutexGuard<'_, SlotState>> {
+    match cell.try_lock() {
+        Ok(g) => Some(g),
+        Err(TryLockError::Poisoned(p)) => Some(p.into_inner()),
+        Err(TryLockError::WouldBlock) => None,
+    }
+}
+
+/// Waits for a slot's claim (tests and diagnostics only: the real-time paths use [`claim`]).
+fn claim_waiting(cell: &Mutex<SlotState>) -> MutexGuard<'_, SlotState> {
+    cell.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// The outputs' queue: every ticking thread pushes, the comm side pops.
+pub type OutputQueue = crossbeam_queue::ArrayQueue<Output>;
+
+/// Where a session's pose ticks it.
+///
+/// Why: `docs/decisions/0023-tick-on-the-pose-thread.md`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TickOn {
+    /// A pose that finds its slot due ticks it on the thread that received it, and its force
+    /// leaves from there (the default); the tick thread ticks the rest.
+    #[default]
+    Pose,
+    /// Every pose is handed to the tick thread, which ticks, and the comm thread puts the force:
+    /// two thread hand-offs per pose (the design before issue 24, kept for comparison).
+    Thread,
+}
+
+impl TickOn {
+    /// The setting's name: `"pose"` or `"thread"`.
+    #[must_use]
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Pose => "pose",
+            Self::Thread => "thread",
+        }
+    }
+}
+
+/// What [`PoseTicker::tick`] did with a pose.
+#[derive(Debug, Clone, Copy)]
+#[allow(clippy::large_enum_variant)] // returned by value on the pose's thread: boxing would allocate per tick
+pub enum PoseTick {
+    /// The slot ticked on this thread: its force, and every 100th tick its state.
+    Ticked {
+        /// The force (an [`Output::Force`]).
+        force: Output,
+        /// The 10 Hz state (an [`Output::State`]), if this tick made one.
+        state: Option<Output>,
+    },
+    /// The slot was not due (the pose came early) or not ready (its session's commands are not
+    /// applied yet): the tick thread ticks it at its time.
+    NotDue,
+    /// Another thread held the slot (the tick thread, ticking it or applying a command).
+    Claimed,
+}
+
+/// A handle that ticks a slot on the calling thread when a pose makes it due (see the module
+/// docs). Cheap to clone; every clone shares the slots.
+#[derive(Debug, Clone)]
+pub struct PoseTicker {
+    cells: Arc<[Mutex<SlotState>]>,
+    outputs: Arc<OutputQueue>,
+    stats: Arc<TickStats>,
+}
+
+impl PoseTicker {
+    /// Ticks `slot` now if the pose just handed over (written for `generation`) makes it due:
+    /// the same schedule as the tick thread's, judged at `now`. Never waits, allocates or does
+    /// I/O; the caller publishes what it returns (or queues it with [`emit`](Self::emit)).
+    #[must_use]
+    pub fn tick(&self, slot: u16, generation: u32, now: Instant) -> PoseTick {
+        let Some(cell) = self.cells.get(usize::from(slot)) else { return PoseTick::NotDue };
+        let Some(mut st) = claim(cell) else { return PoseTick::Claimed };
+        if !st.slot.active || st.slot.generation != generation {
+            return PoseTick::NotDue;
+        }
+        let (mut force, mut state) = (None, None);
+        let (ticked, _) = st.step(slot, now, &self.stats, |out| match out {
+            Output::Force { .. } => force = Some(out),
+            _ => state = Some(out),
+        });
+        drop(st);
+        match force {
+            Some(force) if ticked => {
+                self.stats.ticks.fetch_add(1, Ordering::Relaxed);
+                self.stats.pose_thread_ticks.fetch_add(1, Ordering::Relaxed);
+                PoseTick::Ticked { force, state }
+            }
+            _ => PoseTick::NotDue,
+        }
+    }
+
+    /// The drilling session of `slot` (tests and diagnostics: waits for a tick on another thread
+    /// to end, and holds the slot, so that no tick runs, until dropped).
+    #[must_use]
+    pub fn session(&self, slot: usize) -> Option<SessionRef<'_>> {
+        self.cells.get(slot).map(|c| SessionRef(claim_waiting(c)))
+    }
+
+    /// Queues an output for the comm side (counted as dropped if the queue is full).
+    #[allow(clippy::large_types_passed_by_value)] // moved into the queue: by value is the point
+    pub fn emit(&self, out: Output) {
+        TickCore::emit(&self.outputs, &self.stats, out);
     }
 }
 
@@ -274,14 +471,15 @@ pub struct Snapshot {
     pub bone: DrilledVolume,
 }
 
-/// Everything the tick thread owns.
+/// What the tick thread holds: the slots (shared, each behind its claim, with the
+/// [`PoseTicker`]s), the command ring's consumer and the snapshot buffer.
 #[derive(Debug)]
 pub struct TickCore {
-    slots: Vec<Slot>,
-    /// Per slot: its schedule.
-    schedule: Vec<Schedule>,
+    cells: Arc<[Mutex<SlotState>]>,
+    /// Per slot: whether it was active when last claimed (counted while another thread holds it).
+    was_active: Vec<bool>,
     commands: rtrb::Consumer<Command>,
-    outputs: rtrb::Producer<Output>,
+    outputs: Arc<OutputQueue>,
     snapshot: triple_buffer::Input<Snapshot>,
     default_path: PlannedPath,
     stats: Arc<TickStats>,
@@ -294,8 +492,10 @@ pub struct TickCore {
 pub struct EngineLink {
     /// Commands into the tick thread (single producer: keep it behind one owner).
     pub commands: rtrb::Producer<Command>,
-    /// Outputs of the tick thread (single consumer).
-    pub outputs: rtrb::Consumer<Output>,
+    /// Outputs of every tick, wherever it ran (pop from one consumer).
+    pub outputs: Arc<OutputQueue>,
+    /// Ticks a slot on the thread that received its pose.
+    pub ticker: PoseTicker,
     /// One newest-pose writer per slot.
     pub poses: Vec<triple_buffer::Input<PoseSample>>,
     /// Bone snapshots.
@@ -312,121 +512,127 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
     config.validate()?;
     let n = config.max_sessions;
     let (commands_tx, commands_rx) = rtrb::RingBuffer::new(4 * COMMANDS_PER_TICK.max(n));
-    let (outputs_tx, outputs_rx) = rtrb::RingBuffer::new(OUTPUT_SLACK_PER_SLOT * n + 1024);
+    let outputs = Arc::new(OutputQueue::new(OUTPUT_SLACK_PER_SLOT * n + 1024));
+    let now = Instant::now();
     let mut slots = Vec::with_capacity(n);
     let mut poses = Vec::with_capacity(n);
     for _ in 0..n {
         let (tx, rx) = triple_buffer::triple_buffer(&PoseSample::default());
         let mut session = DrillingSession::new(volume.clone(), config.default_path.clone(), config.session.clone())?;
         session.reserve_bricks(config.reserve_bricks);
-        slots.push(Slot::new(session, config.guidance.clone(), rx)?);
+        let slot = Slot::new(session, config.guidance.clone(), rx)?;
+        slots.push(Mutex::new(SlotState { slot, schedule: Schedule::new(now) }));
         poses.push(tx);
     }
     let blank =
         Snapshot { slot: 0, generation: 0, bone: DrilledVolume::with_reserve(volume.clone(), config.reserve_bricks) };
     let (snap_tx, snap_rx) = triple_buffer::triple_buffer(&blank);
     let stats = Arc::new(TickStats::default());
+    let cells: Arc<[Mutex<SlotState>]> = slots.into();
+    let ticker = PoseTicker { cells: cells.clone(), outputs: outputs.clone(), stats: stats.clone() };
     let core = TickCore {
-        schedule: vec![Schedule::new(Instant::now()); slots.len()],
-        slots,
+        was_active: vec![false; cells.len()],
+        cells,
         commands: commands_rx,
-        outputs: outputs_tx,
+        outputs: outputs.clone(),
         snapshot: snap_tx,
         default_path: config.default_path.clone(),
         stats: stats.clone(),
         applied: 0,
     };
-    let link = EngineLink { commands: commands_tx, outputs: outputs_rx, poses, snapshot: snap_rx, stats };
+    let link = EngineLink { commands: commands_tx, outputs, ticker, poses, snapshot: snap_rx, stats };
     Ok((core, link))
+}
+
+/// A claimed slot's session (tests and diagnostics).
+#[derive(Debug)]
+pub struct SessionRef<'a>(MutexGuard<'a, SlotState>);
+
+impl std::ops::Deref for SessionRef<'_> {
+    type Target = DrillingSession;
+    fn deref(&self) -> &DrillingSession {
+        &self.0.slot.session
+    }
 }
 
 impl TickCore {
     /// Number of slots.
     #[must_use]
     pub fn slots(&self) -> usize {
-        self.slots.len()
+        self.cells.len()
     }
 
-    /// The drilling session of `slot` (tests and diagnostics).
+    /// The drilling session of `slot` (tests and diagnostics: waits for a tick on another thread
+    /// to end, and holds the slot until dropped).
     #[must_use]
-    pub fn session(&self, slot: usize) -> Option<&DrillingSession> {
-        self.slots.get(slot).map(|s| &s.session)
+    pub fn session(&self, slot: usize) -> Option<SessionRef<'_>> {
+        self.cells.get(slot).map(|c| SessionRef(claim_waiting(c)))
     }
 
-    #[allow(clippy::large_types_passed_by_value)] // moved into the ring / consumed: by value is the point
-    fn emit(outputs: &mut rtrb::Producer<Output>, stats: &TickStats, out: Output) {
+    #[allow(clippy::large_types_passed_by_value)] // moved into the queue / consumed: by value is the point
+    fn emit(outputs: &OutputQueue, stats: &TickStats, out: Output) {
         if outputs.push(out).is_err() {
             stats.dropped_outputs.fetch_add(1, Ordering::Relaxed);
         }
     }
 
-    fn apply(&mut self, cmd: Command) {
-        let slot_of = |s: u16| s as usize;
+    /// Applies `cmd` to its slot, which the caller has claimed (`st`).
+    fn apply(&mut self, st: &mut SlotState, cmd: Command) {
+        let s = &mut st.slot;
         match cmd {
-            Command::Activate { slot, generation, path, mode, gain } => {
-                let default = &self.default_path;
-                if let Some(s) = self.slots.get_mut(slot_of(slot)) {
-                    s.activate(generation, path.unwrap_or_else(|| default.clone()), mode, gain);
-                    self.schedule[slot_of(slot)] = Schedule::new(Instant::now());
-                }
+            Command::Activate { generation, path, mode, gain, .. } => {
+                s.activate(generation, path.unwrap_or_else(|| self.default_path.clone()), mode, gain);
+                st.schedule = Schedule::new(Instant::now());
             }
-            Command::Release { slot } => {
-                if let Some(s) = self.slots.get_mut(slot_of(slot)) {
-                    s.active = false;
-                }
+            Command::Release { .. } => s.active = false,
+            Command::Reset { .. } => s.reset(),
+            Command::SetPath { path, .. } => s.session.set_path(path),
+            // Checked by the sender; a bad value would leave the session as it was.
+            Command::SetBurr { radius_m, .. } => {
+                let _ = s.session.set_burr_radius(radius_m);
             }
-            Command::Reset { slot } => {
-                if let Some(s) = self.slots.get_mut(slot_of(slot)) {
-                    s.reset();
-                }
-            }
-            Command::SetPath { slot, path } => {
-                if let Some(s) = self.slots.get_mut(slot_of(slot)) {
-                    s.session.set_path(path);
-                }
-            }
-            Command::SetBurr { slot, radius_m } => {
-                if let Some(s) = self.slots.get_mut(slot_of(slot)) {
-                    // Checked by the sender; a bad value would leave the session as it was.
-                    let _ = s.session.set_burr_radius(radius_m);
-                }
-            }
-            Command::SetGuidance { slot, mode, gain } => {
-                if let Some(s) = self.slots.get_mut(slot_of(slot)) {
-                    s.set_guidance(mode, gain);
-                }
-            }
+            Command::SetGuidance { mode, gain, .. } => s.set_guidance(mode, gain),
             Command::Prediction { slot, generation, window_seq, predicted_n, latency_s, pose_client_time_ns } => {
-                if let Some(s) = self.slots.get_mut(slot_of(slot)) {
-                    if s.active && s.generation == generation {
-                        let out = s.prediction(slot, window_seq, predicted_n, latency_s, pose_client_time_ns);
-                        Self::emit(&mut self.outputs, &self.stats, out);
-                    }
+                if s.active && s.generation == generation {
+                    let out = s.prediction(slot, window_seq, predicted_n, latency_s, pose_client_time_ns);
+                    Self::emit(&self.outputs, &self.stats, out);
                 }
             }
             Command::Snapshot { slot } => {
-                if let Some(s) = self.slots.get(slot_of(slot)) {
-                    let buf = self.snapshot.input_buffer_mut();
-                    buf.slot = slot;
-                    buf.generation = s.generation;
-                    // Same volume by construction, so this cannot fail.
-                    let _ = buf.bone.copy_from(s.session.bone());
-                    self.snapshot.publish();
-                    Self::emit(&mut self.outputs, &self.stats, Output::Snapshot { slot, generation: s.generation });
-                }
+                let buf = self.snapshot.input_buffer_mut();
+                buf.slot = slot;
+                buf.generation = s.generation;
+                // Same volume by construction, so this cannot fail.
+                let _ = buf.bone.copy_from(s.session.bone());
+                self.snapshot.publish();
+                Self::emit(&self.outputs, &self.stats, Output::Snapshot { slot, generation: s.generation });
             }
         }
     }
 
-    fn apply_commands(&mut self) {
+    /// Applies waiting commands in order, each under its slot's claim. Returns false if it
+    /// stopped at a command whose slot another thread held (it stays first in the ring).
+    fn apply_commands(&mut self, wait: bool) -> bool {
         self.applied = 0;
+        let cells = self.cells.clone();
         for _ in 0..COMMANDS_PER_TICK {
-            match self.commands.pop() {
-                Ok(cmd) => self.apply(cmd),
-                Err(_) => break,
+            let Ok(slot) = self.commands.peek().map(Command::slot) else { break };
+            match cells.get(usize::from(slot)) {
+                Some(cell) => {
+                    let Some(mut st) = (if wait { Some(claim_waiting(cell)) } else { claim(cell) }) else {
+                        return false;
+                    };
+                    if let Ok(cmd) = self.commands.pop() {
+                        self.apply(&mut st, cmd);
+                    }
+                }
+                None => {
+                    let _ = self.commands.pop(); // no such slot: nothing to apply it to
+                }
             }
             self.applied += 1;
         }
+        true
     }
 
     /// Commands the last [`tick_due`](Self::tick_due) (or [`tick`](Self::tick)) applied. A model
@@ -437,80 +643,31 @@ impl TickCore {
     }
 
     /// Applies waiting commands, then ticks every active slot that is due at `now` (see the
-    /// module docs). Returns the number of slot ticks and when the next slot becomes due (at
-    /// most one period away, so commands are never left waiting longer).
+    /// module docs). A slot another thread holds (a pose ticking it) is passed over and looked at
+    /// again within [`CLAIM_RETRY`]. Returns the number of slot ticks and when the next slot
+    /// becomes due (at most one period away, so commands are never left waiting longer).
     pub fn tick_due(&mut self, now: Instant) -> (u32, Instant) {
-        self.apply_commands();
-        let period_s = TICK_PERIOD.as_secs_f64();
         let mut next = now + TICK_PERIOD;
+        if !self.apply_commands(false) {
+            next = next.min(now + CLAIM_RETRY);
+        }
         let mut ticked = 0;
         let mut active = 0;
-        let (outputs, stats) = (&mut self.outputs, &self.stats);
-        for (i, s) in self.slots.iter_mut().enumerate() {
-            if !s.active {
+        let (outputs, stats) = (&*self.outputs, &*self.stats);
+        for (i, cell) in self.cells.iter().enumerate() {
+            let Some(mut st) = claim(cell) else {
+                active += u64::from(self.was_active[i]);
+                next = next.min(now + CLAIM_RETRY);
+                continue;
+            };
+            self.was_active[i] = st.slot.active;
+            if !st.slot.active {
                 continue;
             }
             active += 1;
-            let sched = &mut self.schedule[i];
-            let clock = sched.clock.get_or_insert(SlotClock { last: now, tokens: 1.0 });
-            let elapsed = now.saturating_duration_since(clock.last).as_secs_f64() / period_s;
-            if s.poll_pose() {
-                sched.seen = now;
-                sched.arrivals += 1;
-            }
-            let fresh = s.pose_pending();
-            let timer = timer_until(sched.streaming, clock.tokens, elapsed);
-            // A fresh pose that came before the budget could tick it, and not right behind the
-            // last tick (its phase is ahead of the slot's; it is not a burst), counts its whole
-            // wait 2 % fast, so the slot's phase drifts onto its client's. Cut where the pose
-            // could tick, the 2 % was lost whenever the thread woke late, and the slot never
-            // locked. Other ticks count plain time: a surplus banked on every tick filled the
-            // bank, and each late wake-up then dropped some (the slot ran slow). Not for a client
-            // sending faster than 1 kHz, which would take all of the 2 %.
-            let fast_client = sched.poses_per_tick > FAST_CLIENT_POSES_PER_TICK;
-            let seen_after = sched.seen.saturating_duration_since(clock.last).as_secs_f64() / period_s;
-            let ahead = clock.tokens + seen_after < 1.0 - EARLY_PERIODS && seen_after >= LOCK_MIN_GAP_PERIODS;
-            let lock = if fresh && ahead && !fast_client { LOCK_RATE } else { 1.0 };
-            let have = clock.tokens + elapsed * lock;
-            let until = if fresh {
-                let short = (1.0 - EARLY_PERIODS - have) / lock;
-                // Waiting longer means the slot is out of phase with its client (its poses came in a
-                // burst after a stall): this pose waits for the schedule, and the client's next pose,
-                // in phase, ticks the moment it arrives. Judged as of the pose's arrival (`short`
-                // then was `short + waited`), so how often the thread looks changes nothing: a
-                // spinning thread would otherwise tick every deferred pose once `short` shrank.
-                let waited = now.saturating_duration_since(sched.seen).as_secs_f64() / period_s;
-                if short + waited <= MAX_POSE_WAIT_PERIODS {
-                    short
-                } else {
-                    timer
-                }
-            } else {
-                timer
-            };
-            if until > DUE_SLACK_PERIODS {
-                next = next.min(now + ceil_us(until * period_s));
-                continue;
-            }
-            // How far past its schedule the slot ticks: the thread woke late (a fresh pose is on time).
-            let late_periods = (-timer).max(0.0);
-            let late_ns = (late_periods * period_s * 1e9) as u64;
-            stats.lateness.record(late_ns);
-            stats.max_lateness_ns.fetch_max(late_ns, Ordering::Relaxed);
-            let behind = late_periods.floor();
-            if behind >= 1.0 {
-                stats.missed.fetch_add(behind as u64, Ordering::Relaxed);
-            }
-            if let Some(t) = s.tick(i as u16, |out| Self::emit(outputs, stats, out)) {
-                stats.pose_to_tick.record(now.saturating_duration_since(t).as_nanos() as u64);
-            }
-            ticked += 1;
-            let bank = due_periods(sched.streaming) + WAKE_SLACK_PERIODS;
-            *clock = SlotClock { last: now, tokens: have.min(bank) - 1.0 };
-            sched.poses_per_tick += POSE_RATE_WEIGHT * (f64::from(sched.arrivals) - sched.poses_per_tick);
-            sched.arrivals = 0;
-            sched.streaming |= fresh;
-            next = next.min(now + ceil_us(timer_until(sched.streaming, clock.tokens, 0.0) * period_s));
+            let (did, due) = st.step(i as u16, now, stats, |out| Self::emit(outputs, stats, out));
+            ticked += u32::from(did);
+            next = next.min(due);
         }
         self.stats.sessions.store(active, Ordering::Relaxed);
         if ticked > 0 {
@@ -521,15 +678,17 @@ impl TickCore {
     }
 
     /// One tick of every active slot, due or not: commands first, then the sessions (tests and
-    /// offline stepping; the tick thread uses [`tick_due`](Self::tick_due)).
+    /// offline stepping; waits for each slot's claim; the tick thread uses
+    /// [`tick_due`](Self::tick_due)).
     pub fn tick(&mut self) {
-        self.apply_commands();
+        self.apply_commands(true);
         let mut active = 0;
-        let (outputs, stats) = (&mut self.outputs, &self.stats);
-        for (i, s) in self.slots.iter_mut().enumerate() {
-            if s.active {
+        let (outputs, stats) = (&*self.outputs, &*self.stats);
+        for (i, cell) in self.cells.iter().enumerate() {
+            let mut st = claim_waiting(cell);
+            if st.slot.active {
                 active += 1;
-                s.tick(i as u16, |out| Self::emit(outputs, stats, out));
+                st.slot.tick(i as u16, |out| Self::emit(outputs, stats, out));
             }
         }
         self.stats.sessions.store(active, Ordering::Relaxed);

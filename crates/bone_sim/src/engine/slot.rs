@@ -22,6 +22,8 @@ pub(crate) struct Slot {
     pose_seq: u32,
     pose_time_ns: u64,
     record_seq: u32,
+    /// Ticks since the engine started, over every session the slot held (never reset).
+    order: u64,
     voxel_m3: f64,
     /// The burr a fresh session starts with (m).
     default_burr_m: f64,
@@ -66,6 +68,7 @@ impl Slot {
             pose_seq: 0,
             pose_time_ns: 0,
             record_seq: 0,
+            order: 0,
             voxel_m3,
             default_burr_m,
         })
@@ -154,6 +157,7 @@ impl Slot {
             }
         }
         let out = self.session.tick(fresh.as_ref());
+        self.order += 1;
         let rendered = out.force_n;
         let s = self.session.state();
         let share = s.guidance_n;
@@ -168,6 +172,8 @@ impl Slot {
             slot: idx,
             generation: self.generation,
             received,
+            order: self.order,
+            published: false,
             pose: self.session.pose().copied(),
             msg: ForceMsg {
                 flags: fl,

@@ -109,6 +109,8 @@ impl HistogramSnapshot {
 pub struct TickStats {
     /// Ticks run.
     pub ticks: AtomicU64,
+    /// Of them, those run on the thread that received their pose (`engine::PoseTicker`).
+    pub pose_thread_ticks: AtomicU64,
     /// Ticks skipped because the thread woke a whole period or more late.
     pub missed: AtomicU64,
     /// Wake-up lateness after each deadline (10 µs buckets, see [`BUCKETS`]).
@@ -130,7 +132,8 @@ pub struct TickStats {
     /// [`BUCKETS`]): the handoff, the tick thread's wake-up, and any wait for the slot's budget.
     pub pose_to_tick: Histogram,
     /// The server's part of pose → force: from a pose's arrival in the subscriber to the put of
-    /// the force computed from it (10 µs buckets, see [`BUCKETS`]; recorded by the comm thread).
+    /// the force computed from it (10 µs buckets, see [`BUCKETS`]; recorded by whichever thread
+    /// put it).
     pub pose_to_put: Histogram,
 }
 
@@ -138,6 +141,7 @@ impl Default for TickStats {
     fn default() -> Self {
         Self {
             ticks: AtomicU64::new(0),
+            pose_thread_ticks: AtomicU64::new(0),
             missed: AtomicU64::new(0),
             lateness: Histogram::new(10_000),
             busy: Histogram::new(2_000),

@@ -1,5 +1,6 @@
-//! The comm thread: drains the tick thread's outputs, publishes them, keeps each session's window
-//! of records and sends the model queries. It sleeps until the tick thread unparks it, or spins
+//! The comm thread: drains the outputs of every tick, publishes them (but the forces a pose's own
+//! thread already put), keeps each session's window of records and the batches of its ticks, and
+//! sends the model queries. It sleeps until a tick unparks it (at most [`IDLE_WAKE`]), or spins
 //! ([`WaitMode::Spin`]).
 
 use std::collections::VecDeque;
@@ -16,10 +17,12 @@ use zenoh::Wait;
 use zenoh_ext::{AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
 
 use super::pool::Outcome;
+use super::registry::ForcePublisher;
 use super::{lock, Shared, ZENOH_IO_THREADS};
 use crate::engine::handoff::{Command, Output};
 use crate::engine::realtime;
 use crate::engine::stats::HistogramSnapshot;
+use crate::engine::OutputQueue;
 use crate::engine::WaitMode;
 use crate::error::{SimError, SimResult};
 use crate::protocol::{self, TickBatch, WINDOW_RECORDS};
@@ -30,12 +33,16 @@ use crate::session::Pose;
 const HISTORY_S: usize = 600;
 /// Model round trips kept for the latency quantiles.
 const LATENCIES_KEPT: usize = 2000;
+/// Longest the comm thread sleeps: forces a pose's thread already put are queued without waking
+/// it, only to be added to the recorders' batches, so it takes them in this often.
+pub(crate) const IDLE_WAKE: Duration = Duration::from_millis(5);
 
 /// One second's cumulative tick statistics.
 #[derive(Debug, Clone)]
 pub(crate) struct StatsSample {
     pub(crate) at: Instant,
     pub(crate) ticks: u64,
+    pub(crate) pose_thread_ticks: u64,
     pub(crate) missed: u64,
     pub(crate) lateness: HistogramSnapshot,
     pub(crate) busy: HistogramSnapshot,
@@ -50,6 +57,7 @@ impl StatsSample {
         Self {
             at: self.at,
             ticks: self.ticks - b.ticks,
+            pose_thread_ticks: self.pose_thread_ticks - b.pose_thread_ticks,
             missed: self.missed - b.missed,
             lateness: self.lateness.since(&b.lateness),
             busy: self.busy.since(&b.busy),
@@ -71,6 +79,7 @@ pub(crate) fn sample(shared: &Shared) -> StatsSample {
     StatsSample {
         at: Instant::now(),
         ticks: s.ticks.load(Ordering::Relaxed),
+        pose_thread_ticks: s.pose_thread_ticks.load(Ordering::Relaxed),
         missed: s.missed.load(Ordering::Relaxed),
         lateness: s.lateness.snapshot(),
         busy: s.busy.snapshot(),
@@ -82,7 +91,7 @@ pub(crate) fn sample(shared: &Shared) -> StatsSample {
 /// A session's publishers and model window.
 struct Outlet {
     generation: u32,
-    force: zenoh::pubsub::Publisher<'static>,
+    force: Arc<ForcePublisher>,
     guidance: AdvancedPublisher<'static>,
     state: AdvancedPublisher<'static>,
     ticks: AdvancedPublisher<'static>,
@@ -170,7 +179,7 @@ impl Comm {
                 info.id.clone()?
             };
             let key = |leaf: &str| format!("{}/session/{id}/{leaf}", self.shared.prefix);
-            let force = self
+            let publisher = self
                 .session
                 .declare_publisher(key("force"))
                 .encoding(encoding("force"))
@@ -179,6 +188,12 @@ impl Comm {
                 .express(true)
                 .wait()
                 .ok()?;
+            let force = Arc::new(ForcePublisher { generation, publisher });
+            // From now on the session's poses put their own forces (if they tick it).
+            match lock(&self.shared.registry).slots.get_mut(i) {
+                Some(info) if info.generation == generation => info.force = Some(force.clone()),
+                _ => return None,
+            }
             // State and guidance are recorded for datasets, but a slow or frozen subscriber must
             // never hold up the comm thread (and with it every session's forces): they drop
             // rather than block, and keep the last RECORDED_HISTORY samples for recorders to
@@ -215,15 +230,14 @@ impl Comm {
     #[allow(clippy::large_types_passed_by_value)] // moved into the ring / consumed: by value is the point
     fn handle(&mut self, out: Output) {
         match out {
-            Output::Force { slot, generation, msg, pose, received } => {
+            Output::Force { slot, generation, msg, pose, received, order, published } => {
+                let shared = self.shared.clone();
                 if let Some(o) = self.outlet(slot, generation) {
                     o.pose_time_ns = msg.pose_client_time_ns;
-                    let _ = o.force.put(protocol::encode_force(&msg).to_vec()).wait();
-                    let put_at = Instant::now();
-                    o.add_tick(&msg, pose.as_ref());
-                    if let Some(t) = received {
-                        self.shared.stats.pose_to_put.record(put_at.duration_since(t).as_nanos() as u64);
+                    if !published {
+                        put_force(&shared, &o.force, slot, &msg, received, order);
                     }
+                    o.add_tick(&msg, pose.as_ref());
                 }
             }
             Output::State { slot, generation, record, msg } => {
@@ -362,7 +376,7 @@ impl Comm {
         }
     }
 
-    fn run(&mut self, mut outputs: rtrb::Consumer<Output>, wait: WaitMode) {
+    fn run(&mut self, outputs: &OutputQueue, wait: WaitMode) {
         // A force waits for this thread's wake-up: preempt longer-sliced threads (no privilege).
         let slice = realtime::short_slice(0);
         self.shared.counters.comm_short_slice.store(u64::from(slice), Ordering::Relaxed);
@@ -374,10 +388,10 @@ impl Comm {
             if wait == WaitMode::Spin && self.shared.stats.sessions.load(Ordering::Relaxed) > 0 {
                 std::hint::spin_loop();
             } else {
-                // The tick thread unparks this thread after each wake-up that produced output.
-                thread::park_timeout(Duration::from_millis(5));
+                // A tick unparks this thread when it queued output to publish.
+                thread::park_timeout(IDLE_WAKE);
             }
-            drain_forces_first(&mut outputs, &mut later, |out| self.handle(out));
+            drain_forces_first(outputs, &mut later, |out| self.handle(out));
             if Instant::now() >= next_housekeeping {
                 self.housekeeping(&mut io_sessions);
                 next_housekeeping += Duration::from_secs(1);
@@ -395,13 +409,9 @@ impl Comm {
 /// force, including those that arrive meanwhile, goes out before each of the other outputs, which
 /// wait in `later` (kept across calls, so its capacity is reused). Why:
 /// `docs/decisions/0008-forces-first.md`.
-fn drain_forces_first(
-    outputs: &mut rtrb::Consumer<Output>,
-    later: &mut VecDeque<Output>,
-    mut handle: impl FnMut(Output),
-) {
+fn drain_forces_first(outputs: &OutputQueue, later: &mut VecDeque<Output>, mut handle: impl FnMut(Output)) {
     loop {
-        while let Ok(out) = outputs.pop() {
+        while let Some(out) = outputs.pop() {
             if matches!(out, Output::Force { .. }) {
                 handle(out);
             } else {
@@ -411,6 +421,28 @@ fn drain_forces_first(
         let Some(out) = later.pop_front() else { return };
         handle(out);
     }
+}
+
+/// Puts a session's force (from the comm thread, or from the thread its pose arrived on), unless
+/// a newer force of the slot is already out (`order`: the slot's tick count), and records the
+/// pose → put time. Returns whether it put.
+pub(crate) fn put_force(
+    shared: &Shared,
+    force: &ForcePublisher,
+    slot: u16,
+    msg: &protocol::ForceMsg,
+    received: Option<Instant>,
+    order: u64,
+) -> bool {
+    let newest = shared.last_put.get(usize::from(slot)).map_or(0, |n| n.fetch_max(order, Ordering::AcqRel));
+    if newest >= order {
+        return false; // superseded: a newer force left first; the recorders' batch still has it
+    }
+    let _ = force.publisher.put(protocol::encode_force(msg).to_vec()).wait();
+    if let Some(t) = received {
+        shared.stats.pose_to_put.record(t.elapsed().as_nanos() as u64);
+    }
+    true
 }
 
 /// The model's input from a session's last records (oldest first, at least one): the last
@@ -478,7 +510,7 @@ fn follow_workers(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResult<(
 pub(crate) fn spawn(
     session: zenoh::Session,
     shared: Arc<Shared>,
-    outputs: rtrb::Consumer<Output>,
+    outputs: Arc<OutputQueue>,
     wait: WaitMode,
 ) -> SimResult<JoinHandle<()>> {
     follow_workers(&session, &shared)?;
@@ -496,7 +528,7 @@ pub(crate) fn spawn(
     let mut comm = Comm { session, shared, outlets: (0..slots).map(|_| None).collect(), querier };
     thread::Builder::new()
         .name("dhg-comm".into())
-        .spawn(move || comm.run(outputs, wait))
+        .spawn(move || comm.run(&outputs, wait))
         .map_err(|e| SimError::Engine(format!("cannot start the comm thread: {e}")))
 }
 
@@ -506,7 +538,15 @@ mod tests {
     use crate::protocol::ForceMsg;
 
     fn force(slot: u16) -> Output {
-        Output::Force { slot, generation: 1, msg: ForceMsg::default(), pose: None, received: None }
+        Output::Force {
+            slot,
+            generation: 1,
+            msg: ForceMsg::default(),
+            pose: None,
+            received: None,
+            order: 1,
+            published: false,
+        }
     }
 
     fn other(slot: u16) -> Output {
@@ -550,20 +590,20 @@ mod tests {
 
     #[test]
     fn forces_go_out_before_other_outputs_even_those_that_arrive_meanwhile() {
-        let (mut tx, mut rx) = rtrb::RingBuffer::new(16);
+        let queue = OutputQueue::new(16);
         for out in [other(0), force(1), other(2), force(3)] {
-            tx.push(out).unwrap();
+            queue.push(out).unwrap();
         }
         let mut later = VecDeque::new();
         let mut order = Vec::new();
-        drain_forces_first(&mut rx, &mut later, |out| {
-            // While the first slow output is handled, the tick thread emits another force.
+        drain_forces_first(&queue, &mut later, |out| {
+            // While the first slow output is handled, a tick emits another force.
             if matches!(out, Output::Snapshot { slot: 0, .. }) {
-                tx.push(force(4)).unwrap();
+                queue.push(force(4)).unwrap();
             }
             order.push(name(&out));
         });
         assert_eq!(order, ["F1", "F3", "S0", "F4", "S2"]);
-        assert!(later.is_empty() && rx.is_empty());
+        assert!(later.is_empty() && queue.is_empty());
     }
 }

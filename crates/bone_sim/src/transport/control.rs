@@ -12,11 +12,14 @@ use zenoh::query::Query;
 use zenoh::sample::{Locality, Sample};
 use zenoh::Wait;
 
+use super::comm::put_force;
+use super::registry::ForcePublisher;
 use super::replies::{
     Closed, ErrorReply, HealthReply, MetricsReply, ModelHealth, PathLayer, Refused, SessionInfo, ShortSlices,
 };
 use super::{lock, Shared};
-use crate::engine::handoff::Command;
+use crate::engine::handoff::{Command, Output};
+use crate::engine::{PoseTick, TickOn};
 use crate::error::{SimError, SimResult};
 use crate::guidance::{check_gain, Fading, FadingParams, GuidanceMode};
 use crate::path::PlannedPath;
@@ -76,17 +79,49 @@ fn on_pose(shared: &Shared, id: &str, sample: &Sample, received: std::time::Inst
         Err(r) => return count_refusal(shared, r),
     };
     let mut reg = lock(&shared.registry);
-    match reg.open(id, None) {
-        Ok((slot, _)) => {
-            reg.pose(slot, &msg, received);
-            drop(reg);
-            shared.counters.poses.fetch_add(1, Ordering::Relaxed);
-            if let Some(t) = shared.tick_thread.get() {
-                t.unpark(); // the slot may tick now rather than at its next deadline
-            }
+    let Ok((slot, _)) = reg.open(id, None) else {
+        shared.counters.sessions_refused.fetch_add(1, Ordering::Relaxed);
+        return;
+    };
+    reg.pose(slot, &msg, received);
+    let info = &reg.slots[usize::from(slot)];
+    let (generation, force) =
+        (info.generation, info.force.as_ref().filter(|f| f.generation == info.generation).cloned());
+    drop(reg);
+    shared.counters.poses.fetch_add(1, Ordering::Relaxed);
+    if shared.config.tick_on == TickOn::Pose {
+        if let PoseTick::Ticked { force: out, state } = shared.ticker.tick(slot, generation, Instant::now()) {
+            return tick_here(shared, force.as_deref(), out, state);
         }
-        Err(_) => {
-            shared.counters.sessions_refused.fetch_add(1, Ordering::Relaxed);
+    }
+    if let Some(t) = shared.tick_thread.get() {
+        t.unpark(); // the slot may tick now rather than at its next deadline
+    }
+}
+
+/// A pose ticked its session on this thread: the force leaves from here (once the comm thread has
+/// declared the session's publisher), and goes to the comm thread only for the recorders' batch;
+/// it is woken only for what it must publish (the first forces, the 10 Hz state).
+#[allow(clippy::large_types_passed_by_value)] // moved into the queue: by value is the point
+fn tick_here(shared: &Shared, publisher: Option<&ForcePublisher>, out: Output, state: Option<Output>) {
+    let mut wake_comm = state.is_some();
+    let out = match (out, publisher) {
+        (Output::Force { slot, generation, msg, pose, received, order, .. }, Some(p)) => {
+            let published = put_force(shared, p, slot, &msg, received, order);
+            Output::Force { slot, generation, msg, pose, received, order, published }
+        }
+        (out, _) => {
+            wake_comm = true;
+            out
+        }
+    };
+    shared.ticker.emit(out);
+    if let Some(s) = state {
+        shared.ticker.emit(s);
+    }
+    if wake_comm {
+        if let Some(t) = shared.comm_thread.get() {
+            t.unpark();
         }
     }
 }
@@ -456,6 +491,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
         max_sessions: reg.slots.len(),
         window_s: window,
         ticks: d.ticks,
+        ticks_on_pose_thread: d.pose_thread_ticks,
         missed_ticks: d.missed,
         missed_ticks_total: now.missed,
         tick_lateness_p50_s: d.lateness.quantile_s(0.5),
@@ -477,6 +513,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
             zenoh_io: n(&c.io_short_slices),
         },
         tick_wait: shared.wait.name(),
+        tick_on: shared.config.tick_on.name(),
         poses: n(&c.poses),
         refused: Refused {
             wrong_size: n(&c.wrong_size),

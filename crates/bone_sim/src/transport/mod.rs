@@ -30,7 +30,7 @@ use zenoh::Wait;
 
 use crate::engine::handoff::Command;
 use crate::engine::stats::TickStats;
-use crate::engine::{self, EngineConfig, Snapshot, TickThread, WaitMode};
+use crate::engine::{self, EngineConfig, PoseTicker, Snapshot, TickOn, TickThread, WaitMode};
 use crate::error::{SimError, SimResult};
 use crate::guidance::{GuidanceMode, GuidanceParams};
 use crate::path::PlannedPath;
@@ -79,6 +79,9 @@ pub struct ServerSettings {
     pub max_sessions_per_owner: usize,
     /// How the tick and comm threads wait.
     pub wait: WaitMode,
+    /// Where a pose ticks its session: on the thread that received it (`pose`), or handed to the
+    /// tick thread (`thread`, the design before, for comparison).
+    pub tick_on: TickOn,
 }
 
 impl Default for ServerSettings {
@@ -97,6 +100,7 @@ impl Default for ServerSettings {
             session_owners: Vec::new(),
             max_sessions_per_owner: 0,
             wait: WaitMode::default(),
+            tick_on: TickOn::default(),
         }
     }
 }
@@ -134,6 +138,7 @@ impl ServerSettings {
             model_timeout_s: self.model_timeout_s,
             zenoh_json5,
             owners: registry::Owners { names: self.session_owners.clone(), max_sessions: self.max_sessions_per_owner },
+            tick_on: self.tick_on,
         };
         Ok((engine, server))
     }
@@ -152,6 +157,8 @@ pub struct ServerConfig {
     pub zenoh_json5: String,
     /// Session owners (stations) and how many sessions each may hold.
     pub owners: registry::Owners,
+    /// Where a pose ticks its session.
+    pub tick_on: TickOn,
 }
 
 impl ServerConfig {
@@ -238,8 +245,15 @@ pub struct Shared {
     pub(crate) snapshot: Mutex<triple_buffer::Output<Snapshot>>,
     pub(crate) snapshot_seq: AtomicU64,
     pub(crate) stopping: AtomicBool,
-    /// The tick thread, unparked by the pose subscriber after it hands over a pose.
+    /// The tick thread, unparked by the pose subscriber after it hands over a pose it did not tick.
     pub(crate) tick_thread: std::sync::OnceLock<std::thread::Thread>,
+    /// The comm thread, unparked by a pose's thread that queued output for it.
+    pub(crate) comm_thread: std::sync::OnceLock<std::thread::Thread>,
+    /// Ticks a session on the thread its pose arrived on ([`TickOn::Pose`]).
+    pub(crate) ticker: PoseTicker,
+    /// Per slot: the order (`Output::Force::order`) of the newest force put, so that an older
+    /// force, still queued for the comm thread, never follows a newer one out.
+    pub(crate) last_put: Box<[AtomicU64]>,
     pub(crate) config: ServerConfig,
     /// How the tick and comm threads wait (for the health report).
     pub(crate) wait: WaitMode,
@@ -302,6 +316,9 @@ impl Server {
             snapshot_seq: AtomicU64::new(0),
             stopping: AtomicBool::new(false),
             tick_thread: std::sync::OnceLock::new(),
+            comm_thread: std::sync::OnceLock::new(),
+            ticker: link.ticker,
+            last_put: (0..engine_config.max_sessions).map(|_| AtomicU64::new(0)).collect(),
             config,
             wait: engine_config.wait,
             started: Instant::now(),
@@ -309,6 +326,7 @@ impl Server {
         });
         control::declare(&session, &shared)?;
         let comm = comm::spawn(session.clone(), shared.clone(), link.outputs, engine_config.wait)?;
+        let _ = shared.comm_thread.set(comm.thread().clone());
         let tick = TickThread::spawn(core, Some(comm.thread().clone()), engine_config.wait)?;
         // Until this is set the tick thread still polls every period; after, poses wake it.
         if let Some(t) = tick.thread() {

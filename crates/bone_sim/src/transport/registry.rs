@@ -66,6 +66,16 @@ mod id_tests {
     }
 }
 
+/// A session's force publisher, shared with the threads its poses arrive on: a pose that ticks
+/// its session there puts the force from there (`docs/decisions/0023-tick-on-the-pose-thread.md`).
+#[derive(Debug)]
+pub struct ForcePublisher {
+    /// The slot generation (session) it publishes for.
+    pub generation: u32,
+    /// The publisher of `<prefix>/session/<id>/force`.
+    pub publisher: zenoh::pubsub::Publisher<'static>,
+}
+
 /// One slot as the comm side knows it.
 #[derive(Debug)]
 pub struct SlotInfo {
@@ -98,6 +108,8 @@ pub struct SlotInfo {
     /// The window sequence number of the newest model reply applied in this assignment: a reply
     /// to an older window (however late it comes) is ignored.
     pub applied_window_seq: Option<u32>,
+    /// The session's force publisher, once the comm thread has declared it.
+    pub force: Option<std::sync::Arc<ForcePublisher>>,
 }
 
 /// The slot table plus the command producer.
@@ -168,6 +180,7 @@ impl Registry {
                 attempt_first_pose: 0,
                 applied_window_seq: None,
                 last_pose_at: None,
+                force: None,
             })
             .collect();
         Self {
@@ -237,6 +250,7 @@ impl Registry {
         info.attempt_first_pose = 0;
         info.applied_window_seq = None;
         info.last_pose_at = None;
+        info.force = None;
         self.by_id.insert(id.to_owned(), slot as u16);
         Ok((slot as u16, true))
     }

@@ -139,6 +139,8 @@ pub struct HealthReply {
     pub window_s: f64,
     /// Session ticks in the window, summed over sessions.
     pub ticks: u64,
+    /// Of them, those a pose ran on the thread that received it, whose force left from there.
+    pub ticks_on_pose_thread: u64,
     /// Periods a session's tick came a whole period or more past its deadline, in the window.
     pub missed_ticks: u64,
     /// The same since the server started.
@@ -173,6 +175,8 @@ pub struct HealthReply {
     pub short_slices: ShortSlices,
     /// `"sleep"` or `"spin"` (`dhg-serve --wait`).
     pub tick_wait: &'static str,
+    /// `"pose"` or `"thread"` (`dhg-serve --tick-on`).
+    pub tick_on: &'static str,
     /// Poses received.
     pub poses: u64,
     /// Puts refused, by reason.

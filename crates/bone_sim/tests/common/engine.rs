@@ -48,7 +48,7 @@ pub fn prediction(window_seq: u32, predicted_n: [f64; 3], pose_client_time_ns: u
 
 pub fn drain(link: &mut EngineLink) -> Vec<Output> {
     let mut out = Vec::new();
-    while let Ok(o) = link.outputs.pop() {
+    while let Some(o) = link.outputs.pop() {
         out.push(o);
     }
     out
