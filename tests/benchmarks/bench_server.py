@@ -65,9 +65,10 @@ def main() -> None:
     p.add_argument("--echo", default=str(target / "release/examples/echo"), help="the echo binary")
     p.add_argument(
         "--variants",
-        default="dhg,dhg-thread,echo",
+        default="dhg,dhg-thread,dhg-sim,echo",
         help="with --against-echo, alternated in this order: dhg (dhg-serve, ticks on the pose's thread), "
-        "dhg-thread (dhg-serve --tick-on thread: the tick thread ticks every pose), echo (must be included)",
+        "dhg-thread (dhg-serve --tick-on thread: the tick thread ticks every pose), dhg-sim (dhg-serve --role "
+        "sim, the model service in a process of its own, its CPU reported apart), echo (must be included)",
     )
     args = p.parse_args()
     if args.against_echo:
@@ -145,17 +146,24 @@ def _context_switches(pid: int) -> int:
 
 
 def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
-    """One round: a fresh ``target`` (``dhg``, ``dhg-thread``: ``dhg-serve --tick-on thread``, or
-    ``echo``) and the load tool with ``n`` clients."""
+    """One round: a fresh ``target`` and the load tool with ``n`` clients. Targets: ``dhg``
+    (``dhg-serve``: engine and model service in one process), ``dhg-thread`` (``dhg-serve --tick-on
+    thread``), ``dhg-sim`` (``dhg-serve --role sim``, the engine, with the model service in a second
+    process, ``--role model``, whose CPU is reported apart as ``model_cpu_per_session``), ``echo``."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server: Any = None
+    model: Any = None
     echo: subprocess.Popen[str] | None = None
     if target.startswith("dhg"):
         tick_on = "thread" if target == "dhg-thread" else "pose"
+        role = "sim" if target == "dhg-sim" else "all"
         server = ServerProcess(
-            ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30", "--tick-on", tick_on],
+            ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30", "--tick-on", tick_on,
+             "--role", role],
             echo=False,
-        )
+        )  # fmt: skip
+        if role == "sim":
+            model = ServerProcess(["--role", "model", "--connect", endpoint, "--status-every", "30"], echo=False)
         pid = server.proc.pid
     else:
         echo = subprocess.Popen([args.echo, "--listen", endpoint], stderr=subprocess.PIPE, text=True)
@@ -163,13 +171,18 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         pid = echo.pid
     try:
         switches0 = _context_switches(pid)
+        model_cpu0 = _cpu_s(model.proc.pid) if model is not None else 0.0
+        t0 = time.perf_counter()
         r = subprocess.run(
             [args.load, "--connect", endpoint, "--clients", str(n), "--seconds", str(args.seconds),
              "--server-pid", str(pid)],
             capture_output=True, text=True, timeout=args.seconds + 120,
         )  # fmt: skip
         switches = _context_switches(pid) - switches0
+        model_cores = (_cpu_s(model.proc.pid) - model_cpu0) / (time.perf_counter() - t0) if model is not None else 0.0
     finally:
+        if model is not None:
+            model.stop()
         if server is not None:
             server.stop()
         if echo is not None:
@@ -188,7 +201,15 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         "forces_per_pose": out["forces_per_pose"],
         # Over the whole load run (its 2 s warm-up and the connects included): per pose sent.
         "context_switches_per_pose": switches / (n * (args.seconds + 2.0) * 1000.0),
+        # The model service's process (dhg-sim only), over the whole load run.
+        "model_cpu_per_session": model_cores / n,
     }
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU time (user + system, s) of process ``pid`` so far (Linux ``/proc``)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _against_echo(args: argparse.Namespace) -> None:
@@ -212,17 +233,19 @@ def _against_echo(args: argparse.Namespace) -> None:
         for s in servers:
             rows.append(
                 (n, s, *(med(t, k) for k in ("p50_ms", "p99_ms", "cpu_per_session", "context_switches_per_pose")
-                         for t in (s, "echo")), med(s, "forces_per_pose"))
+                         for t in (s, "echo")), med(s, "forces_per_pose"), med(s, "model_cpu_per_session"))
             )  # fmt: skip
     print(f"\n{args.rounds} rounds of {args.seconds:g} s each, alternating; medians; {os.cpu_count()} CPUs\n")
     print("| clients | server | pose → force p50, server / echo (ms) | ratio | p99, server / echo (ms) | ratio "
           "| server CPU per session, server / echo (cores) | ratio | context switches per pose, server / echo "
-          "| forces per pose |")  # fmt: skip
-    print("|---:|---|---|---:|---|---:|---|---:|---|---:|")
-    for n, s, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp in rows:
+          "| forces per pose | model service's process, CPU per session (cores) |")  # fmt: skip
+    print("|---:|---|---|---:|---|---:|---|---:|---|---:|---:|")
+    for n, s, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp, mcpu in rows:
+        model = f"{mcpu:.4f}" if s == "dhg-sim" else "(in the server)"
         print(
             f"| {n} | {s} | {p50d:.3f} / {p50e:.3f} | {p50d / p50e:.2f} | {p99d:.3f} / {p99e:.3f} "
-            f"| {p99d / p99e:.2f} | {cpud:.4f} / {cpue:.4f} | {cpud / cpue:.2f} | {swd:.2f} / {swe:.2f} | {fpp:.3f} |"
+            f"| {p99d / p99e:.2f} | {cpud:.4f} / {cpue:.4f} | {cpud / cpue:.2f} | {swd:.2f} / {swe:.2f} | {fpp:.3f} "
+            f"| {model} |"
         )
 
 

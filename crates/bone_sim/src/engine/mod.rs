@@ -309,6 +309,9 @@ pub enum PoseTick {
     NotDue,
     /// Another thread held the slot (the tick thread, ticking it or applying a command).
     Claimed,
+    /// The slot's newest force has not left yet (it waits for the comm side): the tick thread
+    /// ticks this pose, so that forces leave in order.
+    Behind,
 }
 
 /// A handle that ticks a slot on the calling thread when a pose makes it due (see the module
@@ -322,14 +325,21 @@ pub struct PoseTicker {
 
 impl PoseTicker {
     /// Ticks `slot` now if the pose just handed over (written for `generation`) makes it due:
-    /// the same schedule as the tick thread's, judged at `now`. Never waits, allocates or does
-    /// I/O; the caller publishes what it returns (or queues it with [`emit`](Self::emit)).
+    /// the same schedule as the tick thread's, judged at `now`. `out_up_to` is the `order` of the
+    /// slot's newest force that has left (or been let go); if the slot has made a newer one, that
+    /// force still waits for the comm side, and a force made here would overtake it: the pose is
+    /// left to the tick thread ([`PoseTick::Behind`]), whose force follows the waiting one. Never
+    /// waits, allocates or does I/O; the caller publishes what it returns (or queues it with
+    /// [`emit`](Self::emit)).
     #[must_use]
-    pub fn tick(&self, slot: u16, generation: u32, now: Instant) -> PoseTick {
+    pub fn tick(&self, slot: u16, generation: u32, now: Instant, out_up_to: u64) -> PoseTick {
         let Some(cell) = self.cells.get(usize::from(slot)) else { return PoseTick::NotDue };
         let Some(mut st) = claim(cell) else { return PoseTick::Claimed };
         if !st.slot.active || st.slot.generation != generation {
             return PoseTick::NotDue;
+        }
+        if st.slot.order() > out_up_to {
+            return PoseTick::Behind;
         }
         let (mut force, mut state) = (None, None);
         let (ticked, _) = st.step(slot, now, &self.stats, |out| match out {

@@ -74,6 +74,12 @@ impl Slot {
         })
     }
 
+    /// Ticks since the engine started, over every session the slot held: the `order` of its
+    /// newest force.
+    pub(crate) fn order(&self) -> u64 {
+        self.order
+    }
+
     /// Takes in the newest pose if one came since the last call; returns whether one did.
     pub(crate) fn poll_pose(&mut self) -> bool {
         let newer = self.poses.update();

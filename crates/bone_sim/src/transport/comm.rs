@@ -35,7 +35,7 @@ const HISTORY_S: usize = 600;
 const LATENCIES_KEPT: usize = 2000;
 /// Longest the comm thread sleeps: forces a pose's thread already put are queued without waking
 /// it, only to be added to the recorders' batches, so it takes them in this often.
-pub(crate) const IDLE_WAKE: Duration = Duration::from_millis(5);
+pub(crate) const IDLE_WAKE: Duration = Duration::from_millis(20);
 
 /// One second's cumulative tick statistics.
 #[derive(Debug, Clone)]
@@ -238,6 +238,10 @@ impl Comm {
                         put_force(&shared, &o.force, slot, &msg, received, order);
                     }
                     o.add_tick(&msg, pose.as_ref());
+                } else if let Some(n) = shared.last_put.get(usize::from(slot)) {
+                    // Of a session that ended: let go, so that the slot's next forces may leave
+                    // from their poses' threads.
+                    n.fetch_max(order, Ordering::AcqRel);
                 }
             }
             Output::State { slot, generation, record, msg } => {
