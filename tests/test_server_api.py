@@ -87,6 +87,34 @@ def test_a_spinning_engine_serves_a_zenoh_client_says_so_sleeps_when_idle_and_st
     assert not srv.running
 
 
+@pytest.mark.parametrize("tick_on", ["pose", "thread"])
+def test_a_pose_ticks_its_session_on_the_thread_that_received_it_unless_told_not_to(coarse_phantom, tick_on):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    conf = zenoh_config_json5([endpoint], mode="router")
+    srv = start_engine(coarse_phantom.volume, coarse_phantom.path, conf, ServerSettings(tick_on=tick_on))
+    try:
+        forces: list[dict] = []
+        with TraineeClient(endpoint, f"on-{tick_on}", on_force=forces.append) as c:
+            a = np.array(c.create()["entry_m"])
+            for _ in range(400):  # 0.4 s at about 1 kHz, hovering 5 mm off A
+                last = c.send_pose(a - [0.0, 0.0, 5e-3], (1.0, 0.0, 0.0, 0.0), False, 0.0)
+                time.sleep(1e-3)
+            wait_until(lambda: forces and forces[-1]["pose_seq"] == last, 10.0, "a force echoing the last pose")
+            h = srv.health()
+        seqs = [m["pose_seq"] for m in list(forces)]
+        assert seqs == sorted(seqs), "forces echoed poses out of order"
+        assert h["tick_on"] == tick_on
+        assert 0 <= h["ticks_on_pose_thread"] <= h["ticks"]
+        if tick_on == "pose":
+            # Most poses come a period or more after the last tick and tick where they arrive; an
+            # early one (sleep() overshoots, then catches up) or a late one is the tick thread's.
+            assert h["ticks_on_pose_thread"] >= 0.3 * h["poses"], h
+        else:
+            assert h["ticks_on_pose_thread"] == 0, "a pose ticked its session although told not to"
+    finally:
+        srv.stop()
+
+
 SLICE_NS = 100_000
 """The slice the server asks for (``LATENCY_SLICE_NS``)."""
 

@@ -68,7 +68,8 @@ def main() -> None:
         default="dhg,dhg-thread,dhg-sim,echo",
         help="with --against-echo, alternated in this order: dhg (dhg-serve, ticks on the pose's thread), "
         "dhg-thread (dhg-serve --tick-on thread: the tick thread ticks every pose), dhg-sim (dhg-serve --role "
-        "sim, the model service in a process of its own, its CPU reported apart), echo (must be included)",
+        "sim, the model service in a process of its own, its CPU reported apart), dhg-engine (dhg-serve --role "
+        "sim and no model service), echo (must be included)",
     )
     args = p.parse_args()
     if args.against_echo:
@@ -149,20 +150,23 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
     """One round: a fresh ``target`` and the load tool with ``n`` clients. Targets: ``dhg``
     (``dhg-serve``: engine and model service in one process), ``dhg-thread`` (``dhg-serve --tick-on
     thread``), ``dhg-sim`` (``dhg-serve --role sim``, the engine, with the model service in a second
-    process, ``--role model``, whose CPU is reported apart as ``model_cpu_per_session``), ``echo``."""
+    process, ``--role model``, whose CPU is reported apart as ``model_cpu_per_session``),
+    ``dhg-engine`` (``--role sim`` with no model service: the sessions tick, their model queries go
+    unanswered; what the engine costs without the model's forward passes on the same cores),
+    ``echo``."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server: Any = None
     model: Any = None
     echo: subprocess.Popen[str] | None = None
     if target.startswith("dhg"):
         tick_on = "thread" if target == "dhg-thread" else "pose"
-        role = "sim" if target == "dhg-sim" else "all"
+        role = "sim" if target in ("dhg-sim", "dhg-engine") else "all"
         server = ServerProcess(
             ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30", "--tick-on", tick_on,
              "--role", role],
             echo=False,
         )  # fmt: skip
-        if role == "sim":
+        if target == "dhg-sim":
             model = ServerProcess(["--role", "model", "--connect", endpoint, "--status-every", "30"], echo=False)
         pid = server.proc.pid
     else:

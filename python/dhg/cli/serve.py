@@ -202,7 +202,7 @@ def _session_args(p: argparse.ArgumentParser, d: Any) -> None:
         "on the Zenoh thread that received it and the force leaves from there, no thread hand-off; the "
         "tick thread ticks the rest (a late or early pose, a silent client). 'thread': every pose is handed "
         "to the tick thread and every force to the publisher thread (the design before; for comparison: "
-        "about twice the server CPU per session)",
+        "pose → force p50 about 1.35 times as long, 14-17 %% more server CPU on a 2-core VM)",
     )
     g.add_argument("--status-every", type=float, default=5.0, metavar="S", help="status line period (default 5 s)")
 
