@@ -84,12 +84,7 @@ fn ticks_do_not_allocate() {
                 input.write(sample);
                 if slot % 2 == 1 {
                     // The pose's own thread: ticks the slot and queues what it made.
-                    if let PoseTick::Ticked { force, state } = ticker.tick(slot as u16, 1, now, u64::MAX) {
-                        ticker.emit(force);
-                        if let Some(s) = state {
-                            ticker.emit(s);
-                        }
-                    }
+                    let _ = ticker.tick(slot as u16, 1, now, u64::MAX, true);
                 }
             }
             if k % 100 == 50 {

@@ -293,7 +293,7 @@ fn replay_on_pose_thread(arrivals_us: &[u64]) -> (u64, f64, Vec<f64>, u64) {
             break;
         }
         send(&mut link, 0, 1, k as u32 + 1, surface - 1e-3);
-        match link.ticker.tick(0, 1, arrival, u64::MAX) {
+        match link.ticker.tick(0, 1, arrival, u64::MAX, false) {
             PoseTick::Ticked { .. } => {
                 (ticks, on_pose) = (ticks + 1, on_pose + 1);
                 waiting = None;
@@ -458,18 +458,20 @@ fn a_due_pose_ticks_on_its_own_thread_and_an_early_one_waits_for_the_tick_thread
     send(&mut link, 0, 1, 1, surface - 1e-3);
     // The force of the first tick (the tick thread's, order 1) has not left: this one would
     // overtake it.
-    assert!(matches!(link.ticker.tick(0, 1, t0 + MS, 0), PoseTick::Behind));
-    let PoseTick::Ticked { force: Output::Force { msg, published, order, .. }, state: None } =
-        link.ticker.tick(0, 1, t0 + MS, 1)
+    assert!(matches!(link.ticker.tick(0, 1, t0 + MS, 0, true), PoseTick::Behind));
+    let PoseTick::Ticked { force: Output::Force { msg, published, order, .. }, state: false } =
+        link.ticker.tick(0, 1, t0 + MS, 1, true)
     else {
         panic!("a pose a period after the last tick did not tick its slot")
     };
-    assert_eq!((msg.pose_seq, published, order), (1, false, 2), "the force of that pose, not yet put");
+    assert_eq!((msg.pose_seq, published, order), (1, true, 2), "the force of that pose, for the caller to put");
+    let queued = forces(&drain(&mut link));
+    assert_eq!(queued.iter().map(|f| f.pose_seq).collect::<Vec<_>>(), [1], "queued too, for the recorders");
     assert_eq!(core.tick_due(t0 + MS + us(10)).0, 0, "the tick thread ticked the pose again");
     // 0.2 periods later: early (the budget lets a pose tick from 0.7 periods); the tick thread
     // ticks it when it may.
     send(&mut link, 0, 1, 2, surface - 1e-3);
-    assert!(matches!(link.ticker.tick(0, 1, t0 + MS + us(200), 2), PoseTick::NotDue));
+    assert!(matches!(link.ticker.tick(0, 1, t0 + MS + us(200), 2, true), PoseTick::NotDue));
     let (n, next) = core.tick_due(t0 + MS + us(200));
     assert_eq!(n, 0);
     assert!(near(next, t0 + MS + us(700)), "the early pose ticks 0.3 periods early, not before");
@@ -478,7 +480,7 @@ fn a_due_pose_ticks_on_its_own_thread_and_an_early_one_waits_for_the_tick_thread
     // A pose written for another generation (a new session whose activation the tick thread has
     // not applied yet) is left to the tick thread.
     send(&mut link, 0, 2, 3, surface - 1e-3);
-    assert!(matches!(link.ticker.tick(0, 2, t0 + 3 * MS, u64::MAX), PoseTick::NotDue));
+    assert!(matches!(link.ticker.tick(0, 2, t0 + 3 * MS, u64::MAX, true), PoseTick::NotDue));
     assert_eq!(link.stats.pose_thread_ticks.load(Ordering::Relaxed), 1);
 }
 
@@ -489,7 +491,7 @@ fn a_slot_held_by_another_thread_is_passed_over_and_its_commands_wait() {
     send(&mut link, 0, 1, 1, surface - 1e-3);
     let ticker = link.ticker.clone();
     let held = ticker.session(0).unwrap(); // a pose's thread in the middle of a tick
-    assert!(matches!(link.ticker.tick(0, 1, t0 + MS, u64::MAX), PoseTick::Claimed));
+    assert!(matches!(link.ticker.tick(0, 1, t0 + MS, u64::MAX, true), PoseTick::Claimed));
     link.commands.push(prediction(1, [0.0, 0.0, 0.2], 7)).unwrap();
     let (n, next) = core.tick_due(t0 + MS);
     assert_eq!((n, core.commands_applied()), (0, 0), "it ticked or changed a slot another thread held");

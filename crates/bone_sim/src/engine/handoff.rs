@@ -133,8 +133,7 @@ pub enum Output {
         received: Option<Instant>,
         /// The slot's ticks since the engine started (never reset): which of two forces is newer.
         order: u64,
-        /// Whether the force already left (put by the thread its pose arrived on): the comm side
-        /// only records it.
+        /// Whether the thread its pose arrived on puts it (the comm side only records it).
         published: bool,
     },
     /// The 10 Hz record and state.

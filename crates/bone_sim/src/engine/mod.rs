@@ -297,12 +297,12 @@ impl TickOn {
 #[derive(Debug, Clone, Copy)]
 #[allow(clippy::large_enum_variant)] // returned by value on the pose's thread: boxing would allocate per tick
 pub enum PoseTick {
-    /// The slot ticked on this thread: its force, and every 100th tick its state.
+    /// The slot ticked on this thread, and its outputs are queued (in the slot's order).
     Ticked {
-        /// The force (an [`Output::Force`]).
+        /// A copy of the force queued (an [`Output::Force`]), for the caller to put.
         force: Output,
-        /// The 10 Hz state (an [`Output::State`]), if this tick made one.
-        state: Option<Output>,
+        /// Whether this tick also queued the 10 Hz state (the comm side publishes it).
+        state: bool,
     },
     /// The slot was not due (the pose came early) or not ready (its session's commands are not
     /// applied yet): the tick thread ticks it at its time.
@@ -328,11 +328,14 @@ impl PoseTicker {
     /// the same schedule as the tick thread's, judged at `now`. `out_up_to` is the `order` of the
     /// slot's newest force that has left (or been let go); if the slot has made a newer one, that
     /// force still waits for the comm side, and a force made here would overtake it: the pose is
-    /// left to the tick thread ([`PoseTick::Behind`]), whose force follows the waiting one. Never
-    /// waits, allocates or does I/O; the caller publishes what it returns (or queues it with
-    /// [`emit`](Self::emit)).
+    /// left to the tick thread ([`PoseTick::Behind`]), whose force follows the waiting one.
+    ///
+    /// The tick's outputs are queued before the slot is let go, so a slot's outputs queue in the
+    /// order its ticks ran, wherever they ran (the recorders' batches read a tick that goes back as
+    /// a reset). With `publish_here` the force is queued marked `published`: the caller puts it
+    /// (the copy returned), and the comm side only records it. Never waits, allocates or does I/O.
     #[must_use]
-    pub fn tick(&self, slot: u16, generation: u32, now: Instant, out_up_to: u64) -> PoseTick {
+    pub fn tick(&self, slot: u16, generation: u32, now: Instant, out_up_to: u64, publish_here: bool) -> PoseTick {
         let Some(cell) = self.cells.get(usize::from(slot)) else { return PoseTick::NotDue };
         let Some(mut st) = claim(cell) else { return PoseTick::Claimed };
         if !st.slot.active || st.slot.generation != generation {
@@ -341,10 +344,21 @@ impl PoseTicker {
         if st.slot.order() > out_up_to {
             return PoseTick::Behind;
         }
-        let (mut force, mut state) = (None, None);
-        let (ticked, _) = st.step(slot, now, &self.stats, |out| match out {
-            Output::Force { .. } => force = Some(out),
-            _ => state = Some(out),
+        let (mut force, mut state) = (None, false);
+        let (outputs, stats) = (&*self.outputs, &*self.stats);
+        let (ticked, _) = st.step(slot, now, stats, |out| {
+            let out = match out {
+                Output::Force { slot, generation, msg, pose, received, order, .. } => {
+                    let f = Output::Force { slot, generation, msg, pose, received, order, published: publish_here };
+                    force = Some(f);
+                    f
+                }
+                other => {
+                    state = true;
+                    other
+                }
+            };
+            TickCore::emit(outputs, stats, out);
         });
         drop(st);
         match force {
@@ -362,12 +376,6 @@ impl PoseTicker {
     #[must_use]
     pub fn session(&self, slot: usize) -> Option<SessionRef<'_>> {
         self.cells.get(slot).map(|c| SessionRef(claim_waiting(c)))
-    }
-
-    /// Queues an output for the comm side (counted as dropped if the queue is full).
-    #[allow(clippy::large_types_passed_by_value)] // moved into the queue: by value is the point
-    pub fn emit(&self, out: Output) {
-        TickCore::emit(&self.outputs, &self.stats, out);
     }
 }
 

@@ -91,9 +91,9 @@ fn on_pose(shared: &Shared, id: &str, sample: &Sample, received: std::time::Inst
     shared.counters.poses.fetch_add(1, Ordering::Relaxed);
     if shared.config.tick_on == TickOn::Pose {
         let out_up_to = shared.last_put.get(usize::from(slot)).map_or(0, |n| n.load(Ordering::Acquire));
-        if let PoseTick::Ticked { force: out, state } = shared.ticker.tick(slot, generation, Instant::now(), out_up_to)
-        {
-            return tick_here(shared, force.as_deref(), out, state);
+        let tick = shared.ticker.tick(slot, generation, Instant::now(), out_up_to, force.is_some());
+        if let PoseTick::Ticked { force: out, state } = tick {
+            return tick_here(shared, force.as_deref(), &out, state);
         }
     }
     if let Some(t) = shared.tick_thread.get() {
@@ -101,27 +101,14 @@ fn on_pose(shared: &Shared, id: &str, sample: &Sample, received: std::time::Inst
     }
 }
 
-/// A pose ticked its session on this thread: the force leaves from here (once the comm thread has
-/// declared the session's publisher), and goes to the comm thread only for the recorders' batch;
-/// it is woken only for what it must publish (the first forces, the 10 Hz state).
-#[allow(clippy::large_types_passed_by_value)] // moved into the queue: by value is the point
-fn tick_here(shared: &Shared, publisher: Option<&ForcePublisher>, out: Output, state: Option<Output>) {
-    let mut wake_comm = state.is_some();
-    let out = match (out, publisher) {
-        (Output::Force { slot, generation, msg, pose, received, order, .. }, Some(p)) => {
-            let published = put_force(shared, p, slot, &msg, received, order);
-            Output::Force { slot, generation, msg, pose, received, order, published }
-        }
-        (out, _) => {
-            wake_comm = true;
-            out
-        }
-    };
-    shared.ticker.emit(out);
-    if let Some(s) = state {
-        shared.ticker.emit(s);
+/// A pose ticked its session on this thread (its outputs are queued): the force leaves from here
+/// once the comm thread has declared the session's publisher, and the comm thread only records it;
+/// the comm thread is woken only for what it must publish (the first forces, the 10 Hz state).
+fn tick_here(shared: &Shared, publisher: Option<&ForcePublisher>, force: &Output, state: bool) {
+    if let (Output::Force { slot, msg, received, order, .. }, Some(p)) = (force, publisher) {
+        put_force(shared, p, *slot, msg, *received, *order);
     }
-    if wake_comm {
+    if state || publisher.is_none() {
         if let Some(t) = shared.comm_thread.get() {
             t.unpark();
         }
