@@ -10,7 +10,7 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use bone_sim::engine::handoff::{Command, PoseSample};
-use bone_sim::engine::{build, EngineConfig, PoseTick};
+use bone_sim::engine::{build, EngineConfig};
 use bone_sim::guidance::GuidanceMode;
 use bone_sim::{Layer, PlannedPath, Pose};
 use common::{slab, H};
