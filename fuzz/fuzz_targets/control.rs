@@ -32,6 +32,7 @@ fn server() -> &'static Mutex<Server> {
                 "scouting": {"multicast": {"enabled": false}}}"#
                 .into(),
             owners: bone_sim::transport::registry::Owners { names: vec!["s1".into()], max_sessions: 2 },
+            tick_on: bone_sim::engine::TickOn::default(),
         };
         Mutex::new(Server::start(&volume, &engine, config).expect("a server"))
     })
