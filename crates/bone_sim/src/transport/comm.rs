@@ -429,7 +429,7 @@ fn drain_forces_first(outputs: &OutputQueue, later: &mut VecDeque<Output>, mut h
 
 /// Puts a session's force (from the comm thread, or from the thread its pose arrived on), unless
 /// a newer force of the slot is already out (`order`: the slot's tick count), and records the
-/// pose → put time. Returns whether it put.
+/// pose → put time.
 pub(crate) fn put_force(
     shared: &Shared,
     force: &ForcePublisher,
@@ -437,16 +437,15 @@ pub(crate) fn put_force(
     msg: &protocol::ForceMsg,
     received: Option<Instant>,
     order: u64,
-) -> bool {
+) {
     let newest = shared.last_put.get(usize::from(slot)).map_or(0, |n| n.fetch_max(order, Ordering::AcqRel));
     if newest >= order {
-        return false; // superseded: a newer force left first; the recorders' batch still has it
+        return; // superseded: a newer force left first; the recorders' batch still has it
     }
     let _ = force.publisher.put(protocol::encode_force(msg).to_vec()).wait();
     if let Some(t) = received {
         shared.stats.pose_to_put.record(t.elapsed().as_nanos() as u64);
     }
-    true
 }
 
 /// The model's input from a session's last records (oldest first, at least one): the last
