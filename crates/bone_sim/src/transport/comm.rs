@@ -238,10 +238,13 @@ impl Comm {
                         put_force(&shared, &o.force, slot, &msg, received, order);
                     }
                     o.add_tick(&msg, pose.as_ref());
-                } else if let Some(n) = shared.last_put.get(usize::from(slot)) {
+                } else {
                     // Of a session that ended: let go, so that the slot's next forces may leave
                     // from their poses' threads.
-                    n.fetch_max(order, Ordering::AcqRel);
+                    for n in [&shared.put_begun, &shared.put_done].into_iter().filter_map(|a| a.get(usize::from(slot)))
+                    {
+                        n.fetch_max(order, Ordering::AcqRel);
+                    }
                 }
             }
             Output::State { slot, generation, record, msg } => {
@@ -438,11 +441,15 @@ pub(crate) fn put_force(
     received: Option<Instant>,
     order: u64,
 ) {
-    let newest = shared.last_put.get(usize::from(slot)).map_or(0, |n| n.fetch_max(order, Ordering::AcqRel));
+    let i = usize::from(slot);
+    let newest = shared.put_begun.get(i).map_or(0, |n| n.fetch_max(order, Ordering::AcqRel));
     if newest >= order {
         return; // superseded: a newer force left first; the recorders' batch still has it
     }
     let _ = force.publisher.put(protocol::encode_force(msg).to_vec()).wait();
+    if let Some(n) = shared.put_done.get(i) {
+        n.fetch_max(order, Ordering::AcqRel);
+    }
     if let Some(t) = received {
         shared.stats.pose_to_put.record(t.elapsed().as_nanos() as u64);
     }

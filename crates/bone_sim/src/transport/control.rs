@@ -90,7 +90,7 @@ fn on_pose(shared: &Shared, id: &str, sample: &Sample, received: std::time::Inst
     drop(reg);
     shared.counters.poses.fetch_add(1, Ordering::Relaxed);
     if shared.config.tick_on == TickOn::Pose {
-        let out_up_to = shared.last_put.get(usize::from(slot)).map_or(0, |n| n.load(Ordering::Acquire));
+        let out_up_to = shared.put_done.get(usize::from(slot)).map_or(0, |n| n.load(Ordering::Acquire));
         let tick = shared.ticker.tick(slot, generation, Instant::now(), out_up_to, force.is_some());
         if let PoseTick::Ticked { force: out, state } = tick {
             return tick_here(shared, force.as_deref(), &out, state);

@@ -251,9 +251,13 @@ pub struct Shared {
     pub(crate) comm_thread: std::sync::OnceLock<std::thread::Thread>,
     /// Ticks a session on the thread its pose arrived on ([`TickOn::Pose`]).
     pub(crate) ticker: PoseTicker,
-    /// Per slot: the order (`Output::Force::order`) of the newest force put, so that an older
-    /// force, still queued for the comm thread, never follows a newer one out.
-    pub(crate) last_put: Box<[AtomicU64]>,
+    /// Per slot: the order (`Output::Force::order`) of the newest force whose put has begun, so
+    /// that an older force, still queued for the comm thread, never follows a newer one out.
+    pub(crate) put_begun: Box<[AtomicU64]>,
+    /// Per slot: the order of the newest force whose put has ended (or that was let go). A pose's
+    /// thread ticks its slot only when every force the slot made is out: its own put then cannot
+    /// overtake one still under way on the comm thread.
+    pub(crate) put_done: Box<[AtomicU64]>,
     pub(crate) config: ServerConfig,
     /// How the tick and comm threads wait (for the health report).
     pub(crate) wait: WaitMode,
@@ -318,7 +322,8 @@ impl Server {
             tick_thread: std::sync::OnceLock::new(),
             comm_thread: std::sync::OnceLock::new(),
             ticker: link.ticker,
-            last_put: (0..engine_config.max_sessions).map(|_| AtomicU64::new(0)).collect(),
+            put_begun: (0..engine_config.max_sessions).map(|_| AtomicU64::new(0)).collect(),
+            put_done: (0..engine_config.max_sessions).map(|_| AtomicU64::new(0)).collect(),
             config,
             wait: engine_config.wait,
             started: Instant::now(),
