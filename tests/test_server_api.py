@@ -25,7 +25,7 @@ from dhg.live.process import free_port
 from dhg.live.runner import scheduling_hint
 from dhg.live.trainee import planned_depth_from_info
 from dhg.live.zenoh_config import zenoh_config_json5
-from support import wait_until
+from support import Stylus, wait_until
 
 
 @pytest.fixture()
@@ -96,10 +96,12 @@ def test_a_pose_ticks_its_session_on_the_thread_that_received_it_unless_told_not
         forces: list[dict] = []
         with TraineeClient(endpoint, f"on-{tick_on}", on_force=forces.append) as c:
             a = np.array(c.create()["entry_m"])
-            for _ in range(400):  # 0.4 s at about 1 kHz, hovering 5 mm off A
-                last = c.send_pose(a - [0.0, 0.0, 5e-3], (1.0, 0.0, 0.0, 0.0), False, 0.0)
-                time.sleep(1e-3)
-            wait_until(lambda: forces and forces[-1]["pose_seq"] == last, 10.0, "a force echoing the last pose")
+            hand = Stylus(c, (1.0, 0.0, 0.0, 0.0))  # 1 kHz, hovering 5 mm off A
+            try:
+                hand.move(np.repeat([a - [0.0, 0.0, 5e-3]], 400, axis=0))
+                wait_until(lambda: hand.idle() and len(forces) >= 400, 30.0, "400 poses sent and their forces")
+            finally:
+                hand.stop()
             h = srv.health()
         seqs = [m["pose_seq"] for m in list(forces)]
         assert seqs == sorted(seqs), "forces echoed poses out of order"
