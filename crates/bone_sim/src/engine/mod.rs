@@ -34,8 +34,13 @@
 //! the missed periods and counts them: the budget banks at most [`WAKE_SLACK_PERIODS`] past the
 //! point where the slot ticks without a pose, so a stall never buys a burst, while a thread that
 //! wakes a little late loses no time. A pose that cannot tick on its own thread (early, or its
-//! slot claimed) unparks the tick thread.
+//! slot claimed) rings the tick thread's bell.
+//!
+//! The tick thread sleeps on an [`Alarm`] set for the earliest slot deadline, which a pose's
+//! thread moves later after ticking its slot: while every client's poses come in time, the tick
+//! thread does not wake at all. Why: `docs/decisions/0024-the-tick-threads-alarm.md`.
 
+pub mod alarm;
 pub mod handoff;
 pub mod realtime;
 mod slot;
@@ -52,6 +57,7 @@ use crate::path::PlannedPath;
 use crate::session::{DrillingSession, SessionConfig};
 use crate::volume::drilled::DrilledVolume;
 use crate::volume::Volume;
+pub use alarm::Alarm;
 use handoff::{Command, Output, PoseSample};
 use slot::Slot;
 use stats::TickStats;
@@ -66,6 +72,9 @@ const COMMANDS_PER_TICK: usize = 256;
 /// How soon the tick thread looks again at a slot it found claimed by a pose's thread (which
 /// holds it for one tick, a few µs), or at a command for it.
 pub const CLAIM_RETRY: Duration = Duration::from_micros(50);
+/// Longest the tick thread sleeps when no slot is due: what a command handed over without
+/// ringing the bell (none in the server: [`CommandSender`] rings) would wait at most.
+pub const IDLE_WAKE: Duration = Duration::from_millis(20);
 /// The tick period (1 kHz).
 ///
 /// Why this value: `docs/decisions/0005-pose-locked-schedule.md`.
@@ -321,6 +330,7 @@ pub struct PoseTicker {
     cells: Arc<[Mutex<SlotState>]>,
     outputs: Arc<OutputQueue>,
     stats: Arc<TickStats>,
+    alarm: Arc<Alarm>,
 }
 
 impl PoseTicker {
@@ -346,7 +356,7 @@ impl PoseTicker {
         }
         let (mut force, mut state) = (None, false);
         let (outputs, stats) = (&*self.outputs, &*self.stats);
-        let (ticked, _) = st.step(slot, now, stats, |out| {
+        let (ticked, due) = st.step(slot, now, stats, |out| {
             let out = match out {
                 Output::Force { slot, generation, msg, pose, received, order, .. } => {
                     let f = Output::Force { slot, generation, msg, pose, received, order, published: publish_here };
@@ -360,6 +370,7 @@ impl PoseTicker {
             };
             TickCore::emit(outputs, stats, out);
         });
+        self.alarm.publish(usize::from(slot), Some(due));
         drop(st);
         match force {
             Some(force) if ticked => {
@@ -371,11 +382,50 @@ impl PoseTicker {
         }
     }
 
+    /// After a [`PoseTick::Ticked`] (and the put of its force): moves the tick thread's alarm past
+    /// the deadline this tick pushed out, so that the tick thread does not wake for a slot its
+    /// pose already ticked ([`Alarm::postpone`]; never waits, at most one system call).
+    pub fn postpone_alarm(&self) {
+        self.alarm.postpone();
+    }
+
+    /// After any other [`PoseTick`]: rings the tick thread's bell, so that it ticks the pose at
+    /// its time (an early pose's, which is sooner than the slot's deadline) or at once.
+    pub fn wake_tick_thread(&self) {
+        self.alarm.ring();
+    }
+
+    /// The tick thread's alarm (diagnostics and tests).
+    #[must_use]
+    pub fn alarm(&self) -> &Alarm {
+        &self.alarm
+    }
+
     /// The drilling session of `slot` (tests and diagnostics: waits for a tick on another thread
     /// to end, and holds the slot, so that no tick runs, until dropped).
     #[must_use]
     pub fn session(&self, slot: usize) -> Option<SessionRef<'_>> {
         self.cells.get(slot).map(|c| SessionRef(claim_waiting(c)))
+    }
+}
+
+/// The comm side's end of the command ring: every command pushed rings the tick thread's bell,
+/// so that it is applied now, not at the next deadline (single producer: keep it behind one owner).
+#[derive(Debug)]
+pub struct CommandSender {
+    ring: rtrb::Producer<Command>,
+    alarm: Arc<Alarm>,
+}
+
+impl CommandSender {
+    /// Queues `cmd` for the tick thread and wakes it.
+    ///
+    /// # Errors
+    /// The ring is full (the tick thread is stalled).
+    pub fn push(&mut self, cmd: Command) -> SimResult<()> {
+        self.ring.push(cmd).map_err(|_| SimError::Engine("the engine's command ring is full".into()))?;
+        self.alarm.ring();
+        Ok(())
     }
 }
 
@@ -503,13 +553,17 @@ pub struct TickCore {
     stats: Arc<TickStats>,
     /// Commands the last [`TickCore::tick_due`] applied.
     applied: usize,
+    /// Whether the last [`TickCore::tick_due`] passed over a claimed slot or command (to look
+    /// again within [`CLAIM_RETRY`]).
+    retry: bool,
+    alarm: Arc<Alarm>,
 }
 
 /// The comm side's ends of the handoff structures.
 #[derive(Debug)]
 pub struct EngineLink {
     /// Commands into the tick thread (single producer: keep it behind one owner).
-    pub commands: rtrb::Producer<Command>,
+    pub commands: CommandSender,
     /// Outputs of every tick, wherever it ran (pop from one consumer).
     pub outputs: Arc<OutputQueue>,
     /// Ticks a slot on the thread that received its pose.
@@ -546,8 +600,11 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
         Snapshot { slot: 0, generation: 0, bone: DrilledVolume::with_reserve(volume.clone(), config.reserve_bricks) };
     let (snap_tx, snap_rx) = triple_buffer::triple_buffer(&blank);
     let stats = Arc::new(TickStats::default());
+    let alarm = Arc::new(Alarm::new(n)?);
+    alarm.enable(config.wait == WaitMode::Sleep);
     let cells: Arc<[Mutex<SlotState>]> = slots.into();
-    let ticker = PoseTicker { cells: cells.clone(), outputs: outputs.clone(), stats: stats.clone() };
+    let ticker =
+        PoseTicker { cells: cells.clone(), outputs: outputs.clone(), stats: stats.clone(), alarm: alarm.clone() };
     let core = TickCore {
         was_active: vec![false; cells.len()],
         cells,
@@ -557,8 +614,11 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
         default_path: config.default_path.clone(),
         stats: stats.clone(),
         applied: 0,
+        retry: false,
+        alarm: alarm.clone(),
     };
-    let link = EngineLink { commands: commands_tx, outputs, ticker, poses, snapshot: snap_rx, stats };
+    let commands = CommandSender { ring: commands_tx, alarm };
+    let link = EngineLink { commands, outputs, ticker, poses, snapshot: snap_rx, stats };
     Ok((core, link))
 }
 
@@ -653,6 +713,19 @@ impl TickCore {
         true
     }
 
+    /// Whether the last [`tick_due`](Self::tick_due) passed over a slot another thread held, or
+    /// a command for it: look again within [`CLAIM_RETRY`].
+    #[must_use]
+    pub fn retry(&self) -> bool {
+        self.retry
+    }
+
+    /// The alarm the tick thread sleeps on.
+    #[must_use]
+    pub fn alarm(&self) -> &Arc<Alarm> {
+        &self.alarm
+    }
+
     /// Commands the last [`tick_due`](Self::tick_due) (or [`tick`](Self::tick)) applied. A model
     /// prediction emits its guidance message as it is applied, not at the slot's next tick.
     #[must_use]
@@ -661,12 +734,14 @@ impl TickCore {
     }
 
     /// Applies waiting commands, then ticks every active slot that is due at `now` (see the
-    /// module docs). A slot another thread holds (a pose ticking it) is passed over and looked at
-    /// again within [`CLAIM_RETRY`]. Returns the number of slot ticks and when the next slot
-    /// becomes due (at most one period away, so commands are never left waiting longer).
+    /// module docs), publishing each slot's next deadline to the [`Alarm`]. A slot another
+    /// thread holds (a pose ticking it) is passed over and looked at again within
+    /// [`CLAIM_RETRY`]. Returns the number of slot ticks and when the next slot becomes due (at
+    /// most [`IDLE_WAKE`] away).
     pub fn tick_due(&mut self, now: Instant) -> (u32, Instant) {
-        let mut next = now + TICK_PERIOD;
-        if !self.apply_commands(false) {
+        let mut next = now + IDLE_WAKE;
+        self.retry = !self.apply_commands(false);
+        if self.retry {
             next = next.min(now + CLAIM_RETRY);
         }
         let mut ticked = 0;
@@ -676,14 +751,17 @@ impl TickCore {
             let Some(mut st) = claim(cell) else {
                 active += u64::from(self.was_active[i]);
                 next = next.min(now + CLAIM_RETRY);
+                self.retry = true;
                 continue;
             };
             self.was_active[i] = st.slot.active;
             if !st.slot.active {
+                self.alarm.publish(i, None);
                 continue;
             }
             active += 1;
             let (did, due) = st.step(i as u16, now, stats, |out| Self::emit(outputs, stats, out));
+            self.alarm.publish(i, Some(due));
             ticked += u32::from(did);
             next = next.min(due);
         }

@@ -111,6 +111,9 @@ pub struct TickStats {
     pub ticks: AtomicU64,
     /// Of them, those run on the thread that received their pose (`engine::PoseTicker`).
     pub pose_thread_ticks: AtomicU64,
+    /// Times the sleeping tick thread woke (its alarm, its bell, or a retry; not counted when it
+    /// spins).
+    pub wakes: AtomicU64,
     /// Ticks skipped because the thread woke a whole period or more late.
     pub missed: AtomicU64,
     /// Wake-up lateness after each deadline (10 µs buckets, see [`BUCKETS`]).
@@ -142,6 +145,7 @@ impl Default for TickStats {
         Self {
             ticks: AtomicU64::new(0),
             pose_thread_ticks: AtomicU64::new(0),
+            wakes: AtomicU64::new(0),
             missed: AtomicU64::new(0),
             lateness: Histogram::new(10_000),
             busy: Histogram::new(2_000),

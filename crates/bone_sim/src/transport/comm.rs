@@ -324,11 +324,9 @@ impl Comm {
             if sent_cmd {
                 shared.counters.model_replies.fetch_add(1, Ordering::Relaxed);
                 // The guidance message leaves as the prediction is applied: now, not at the
-                // session's next tick (up to 1 ms away, more for a paused client). Why:
+                // session's next tick (up to 1 ms away, more for a paused client): sending the
+                // command rang the tick thread's bell. Why:
                 // docs/decisions/0009-model-reply-wakes-the-tick.md.
-                if let Some(t) = shared.tick_thread.get() {
-                    t.unpark();
-                }
             }
             let mut m = lock(&shared.model);
             m.last_reply = Some(Instant::now());

@@ -93,12 +93,13 @@ fn on_pose(shared: &Shared, id: &str, sample: &Sample, received: std::time::Inst
         let out_up_to = shared.put_done.get(usize::from(slot)).map_or(0, |n| n.load(Ordering::Acquire));
         let tick = shared.ticker.tick(slot, generation, Instant::now(), out_up_to, force.is_some());
         if let PoseTick::Ticked { force: out, state } = tick {
-            return tick_here(shared, force.as_deref(), &out, state);
+            tick_here(shared, force.as_deref(), &out, state);
+            // After the put: the tick thread need not wake for the deadline this tick moved.
+            shared.ticker.postpone_alarm();
+            return;
         }
     }
-    if let Some(t) = shared.tick_thread.get() {
-        t.unpark(); // the slot may tick now rather than at its next deadline
-    }
+    shared.ticker.wake_tick_thread(); // the slot may tick now rather than at its next deadline
 }
 
 /// A pose ticked its session on this thread (its outputs are queued): the force leaves from here

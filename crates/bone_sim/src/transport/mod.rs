@@ -245,8 +245,6 @@ pub struct Shared {
     pub(crate) snapshot: Mutex<triple_buffer::Output<Snapshot>>,
     pub(crate) snapshot_seq: AtomicU64,
     pub(crate) stopping: AtomicBool,
-    /// The tick thread, unparked by the pose subscriber after it hands over a pose it did not tick.
-    pub(crate) tick_thread: std::sync::OnceLock<std::thread::Thread>,
     /// The comm thread, unparked by a pose's thread that queued output for it.
     pub(crate) comm_thread: std::sync::OnceLock<std::thread::Thread>,
     /// Ticks a session on the thread its pose arrived on ([`TickOn::Pose`]).
@@ -319,7 +317,6 @@ impl Server {
             snapshot: Mutex::new(link.snapshot),
             snapshot_seq: AtomicU64::new(0),
             stopping: AtomicBool::new(false),
-            tick_thread: std::sync::OnceLock::new(),
             comm_thread: std::sync::OnceLock::new(),
             ticker: link.ticker,
             put_begun: (0..engine_config.max_sessions).map(|_| AtomicU64::new(0)).collect(),
@@ -333,10 +330,6 @@ impl Server {
         let comm = comm::spawn(session.clone(), shared.clone(), link.outputs, engine_config.wait)?;
         let _ = shared.comm_thread.set(comm.thread().clone());
         let tick = TickThread::spawn(core, Some(comm.thread().clone()), engine_config.wait)?;
-        // Until this is set the tick thread still polls every period; after, poses wake it.
-        if let Some(t) = tick.thread() {
-            let _ = shared.tick_thread.set(t.clone());
-        }
         Ok(Self { shared, session, tick, comm: Some(comm) })
     }
 

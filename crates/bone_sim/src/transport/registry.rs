@@ -6,6 +6,7 @@ use std::collections::HashMap;
 use std::time::Instant;
 
 use crate::engine::handoff::{Command, PoseSample};
+use crate::engine::CommandSender;
 use crate::error::{SimError, SimResult};
 use crate::guidance::{Fading, GuidanceMode};
 use crate::path::PlannedPath;
@@ -116,7 +117,7 @@ pub struct SlotInfo {
 #[derive(Debug)]
 pub struct Registry {
     /// Commands into the tick thread.
-    pub commands: rtrb::Producer<Command>,
+    pub commands: CommandSender,
     /// Session id → slot.
     pub by_id: HashMap<String, u16>,
     /// The slots.
@@ -155,7 +156,7 @@ impl Registry {
     /// A registry over the engine's pose writers.
     #[must_use]
     pub fn new(
-        commands: rtrb::Producer<Command>,
+        commands: CommandSender,
         poses: Vec<triple_buffer::Input<PoseSample>>,
         default_path: PlannedPath,
         (default_mode, default_gain): (GuidanceMode, f64),
@@ -200,7 +201,7 @@ impl Registry {
     /// # Errors
     /// The ring is full (the tick thread is stalled).
     pub fn send(&mut self, cmd: Command) -> SimResult<()> {
-        self.commands.push(cmd).map_err(|_| SimError::Engine("the engine's command ring is full".into()))
+        self.commands.push(cmd)
     }
 
     /// The slot of `id`, if it has one.
@@ -233,9 +234,13 @@ impl Registry {
         let generation = info.generation.wrapping_add(1);
         let path = path.unwrap_or_else(|| self.default_path.clone());
         let (mode, gain) = (self.default_mode, self.default_gain);
-        self.commands
-            .push(Command::Activate { slot: slot as u16, generation, path: Some(path.clone()), mode, gain })
-            .map_err(|_| SimError::Engine("the engine's command ring is full".into()))?;
+        self.commands.push(Command::Activate {
+            slot: slot as u16,
+            generation,
+            path: Some(path.clone()),
+            mode,
+            gain,
+        })?;
         let info = &mut self.slots[slot];
         info.id = Some(id.to_owned());
         info.generation = generation;
