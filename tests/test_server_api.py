@@ -107,12 +107,28 @@ def test_a_pose_ticks_its_session_on_the_thread_that_received_it_unless_told_not
         assert seqs == sorted(seqs), "forces echoed poses out of order"
         assert h["tick_on"] == tick_on
         assert 0 <= h["ticks_on_pose_thread"] <= h["ticks"]
+        assert h["tick_thread_wakes"] > 0, "the tick thread never woke, not even for the session's creation"
         if tick_on == "pose":
             # Most poses come a period or more after the last tick and tick where they arrive; an
             # early one (sleep() overshoots, then catches up) or a late one is the tick thread's.
             assert h["ticks_on_pose_thread"] >= 0.3 * h["poses"], h
         else:
             assert h["ticks_on_pose_thread"] == 0, "a pose ticked its session although told not to"
+    finally:
+        srv.stop()
+
+
+def test_an_idle_servers_tick_thread_sleeps_until_something_wakes_it(coarse_phantom):
+    # With no session nothing is due: the tick thread sleeps until a command or a pose wakes it,
+    # with a 20 ms backstop (IDLE_WAKE). It used to sleep a period at most, so that a command
+    # would not wait longer: 1,000 wake-ups a second for nothing.
+    conf = zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
+    srv = start_engine(coarse_phantom.volume, coarse_phantom.path, conf, ServerSettings())
+    try:
+        wait_until(lambda: srv.health()["uptime_s"] >= 1.5, 30.0, "the server up for 1.5 s")
+        h = srv.health()
+        assert h["sessions"] == 0
+        assert h["tick_thread_wakes"] <= 60 * h["window_s"] + 20, h
     finally:
         srv.stop()
 

@@ -83,10 +83,8 @@ fn ticks_do_not_allocate() {
                 };
                 input.write(sample);
                 if slot % 2 == 1 {
-                    // The pose's own thread: ticks the slot and queues what it made, then moves
-                    // the tick thread's alarm past the deadline it pushed out.
+                    // The pose's own thread: ticks the slot and queues what it made.
                     let _ = ticker.tick(slot as u16, 1, now, u64::MAX, true);
-                    ticker.postpone_alarm();
                 }
             }
             if k % 100 == 50 {
@@ -110,11 +108,8 @@ fn ticks_do_not_allocate() {
             if k % 500 == 250 {
                 link.commands.push(Command::Snapshot { slot: (k / 500 % 4) as u16 }).unwrap();
             }
-            // The tick thread's own entry point, on a synthetic clock: one period per pose; then
-            // its alarm set and waited on (at once: the commands rang the bell).
+            // The tick thread's own entry point, on a synthetic clock: one period per pose.
             core.tick_due(now);
-            core.alarm().set(core.alarm().earliest());
-            core.alarm().wait(std::time::Duration::ZERO);
             while link.outputs.pop().is_some() {}
         }
     };

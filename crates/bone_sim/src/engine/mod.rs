@@ -34,13 +34,10 @@
 //! the missed periods and counts them: the budget banks at most [`WAKE_SLACK_PERIODS`] past the
 //! point where the slot ticks without a pose, so a stall never buys a burst, while a thread that
 //! wakes a little late loses no time. A pose that cannot tick on its own thread (early, or its
-//! slot claimed) rings the tick thread's bell.
-//!
-//! The tick thread sleeps on an [`Alarm`] set for the earliest slot deadline, which a pose's
-//! thread moves later after ticking its slot: while every client's poses come in time, the tick
-//! thread does not wake at all. Why: `docs/decisions/0024-the-tick-threads-alarm.md`.
+//! slot claimed) wakes the tick thread, and so does every command ([`CommandSender`]): the tick
+//! thread sleeps until its earliest slot deadline, not a period at most. Why:
+//! `docs/decisions/0024-the-tick-thread-sleeps-to-its-deadlines.md`.
 
-pub mod alarm;
 pub mod handoff;
 pub mod realtime;
 mod slot;
@@ -48,7 +45,8 @@ pub mod stats;
 mod tick_thread;
 
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock, TryLockError};
+use std::thread::Thread;
 use std::time::{Duration, Instant};
 
 use crate::error::{SimError, SimResult};
@@ -57,7 +55,6 @@ use crate::path::PlannedPath;
 use crate::session::{DrillingSession, SessionConfig};
 use crate::volume::drilled::DrilledVolume;
 use crate::volume::Volume;
-pub use alarm::Alarm;
 use handoff::{Command, Output, PoseSample};
 use slot::Slot;
 use stats::TickStats;
@@ -72,8 +69,8 @@ const COMMANDS_PER_TICK: usize = 256;
 /// How soon the tick thread looks again at a slot it found claimed by a pose's thread (which
 /// holds it for one tick, a few µs), or at a command for it.
 pub const CLAIM_RETRY: Duration = Duration::from_micros(50);
-/// Longest the tick thread sleeps when no slot is due: what a command handed over without
-/// ringing the bell (none in the server: [`CommandSender`] rings) would wait at most.
+/// Longest the tick thread sleeps when no slot is due: what a command handed over without waking
+/// it (none in the server: [`CommandSender`] wakes it) would wait at most.
 pub const IDLE_WAKE: Duration = Duration::from_millis(20);
 /// The tick period (1 kHz).
 ///
@@ -330,7 +327,7 @@ pub struct PoseTicker {
     cells: Arc<[Mutex<SlotState>]>,
     outputs: Arc<OutputQueue>,
     stats: Arc<TickStats>,
-    alarm: Arc<Alarm>,
+    waker: Arc<TickWaker>,
 }
 
 impl PoseTicker {
@@ -356,7 +353,7 @@ impl PoseTicker {
         }
         let (mut force, mut state) = (None, false);
         let (outputs, stats) = (&*self.outputs, &*self.stats);
-        let (ticked, due) = st.step(slot, now, stats, |out| {
+        let (ticked, _) = st.step(slot, now, stats, |out| {
             let out = match out {
                 Output::Force { slot, generation, msg, pose, received, order, .. } => {
                     let f = Output::Force { slot, generation, msg, pose, received, order, published: publish_here };
@@ -370,7 +367,6 @@ impl PoseTicker {
             };
             TickCore::emit(outputs, stats, out);
         });
-        self.alarm.publish(usize::from(slot), Some(due));
         drop(st);
         match force {
             Some(force) if ticked => {
@@ -382,23 +378,10 @@ impl PoseTicker {
         }
     }
 
-    /// After a [`PoseTick::Ticked`] (and the put of its force): moves the tick thread's alarm past
-    /// the deadline this tick pushed out, so that the tick thread does not wake for a slot its
-    /// pose already ticked ([`Alarm::postpone`]; never waits, at most one system call).
-    pub fn postpone_alarm(&self) {
-        self.alarm.postpone();
-    }
-
-    /// After any other [`PoseTick`]: rings the tick thread's bell, so that it ticks the pose at
+    /// After any [`PoseTick`] but `Ticked`: wakes the tick thread, so that it ticks the pose at
     /// its time (an early pose's, which is sooner than the slot's deadline) or at once.
     pub fn wake_tick_thread(&self) {
-        self.alarm.ring();
-    }
-
-    /// The tick thread's alarm (diagnostics and tests).
-    #[must_use]
-    pub fn alarm(&self) -> &Alarm {
-        &self.alarm
+        self.waker.wake();
     }
 
     /// The drilling session of `slot` (tests and diagnostics: waits for a tick on another thread
@@ -409,12 +392,30 @@ impl PoseTicker {
     }
 }
 
-/// The comm side's end of the command ring: every command pushed rings the tick thread's bell,
-/// so that it is applied now, not at the next deadline (single producer: keep it behind one owner).
+/// Wakes the tick thread once it runs (before, there is nothing to wake: it starts by looking).
+#[derive(Debug, Default)]
+pub struct TickWaker(OnceLock<Thread>);
+
+impl TickWaker {
+    /// Unparks the tick thread: a wake-up before it parks is kept (its next park returns at once).
+    pub fn wake(&self) {
+        if let Some(t) = self.0.get() {
+            t.unpark();
+        }
+    }
+
+    /// Names the calling thread as the one to wake (the tick thread, as it starts).
+    pub(crate) fn register(&self) {
+        let _ = self.0.set(std::thread::current());
+    }
+}
+
+/// The comm side's end of the command ring: every command pushed wakes the tick thread, so that
+/// it is applied now, not at the next deadline (single producer: keep it behind one owner).
 #[derive(Debug)]
 pub struct CommandSender {
     ring: rtrb::Producer<Command>,
-    alarm: Arc<Alarm>,
+    waker: Arc<TickWaker>,
 }
 
 impl CommandSender {
@@ -424,7 +425,7 @@ impl CommandSender {
     /// The ring is full (the tick thread is stalled).
     pub fn push(&mut self, cmd: Command) -> SimResult<()> {
         self.ring.push(cmd).map_err(|_| SimError::Engine("the engine's command ring is full".into()))?;
-        self.alarm.ring();
+        self.waker.wake();
         Ok(())
     }
 }
@@ -553,10 +554,7 @@ pub struct TickCore {
     stats: Arc<TickStats>,
     /// Commands the last [`TickCore::tick_due`] applied.
     applied: usize,
-    /// Whether the last [`TickCore::tick_due`] passed over a claimed slot or command (to look
-    /// again within [`CLAIM_RETRY`]).
-    retry: bool,
-    alarm: Arc<Alarm>,
+    waker: Arc<TickWaker>,
 }
 
 /// The comm side's ends of the handoff structures.
@@ -600,11 +598,10 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
         Snapshot { slot: 0, generation: 0, bone: DrilledVolume::with_reserve(volume.clone(), config.reserve_bricks) };
     let (snap_tx, snap_rx) = triple_buffer::triple_buffer(&blank);
     let stats = Arc::new(TickStats::default());
-    let alarm = Arc::new(Alarm::new(n)?);
-    alarm.enable(config.wait == WaitMode::Sleep);
+    let waker = Arc::new(TickWaker::default());
     let cells: Arc<[Mutex<SlotState>]> = slots.into();
     let ticker =
-        PoseTicker { cells: cells.clone(), outputs: outputs.clone(), stats: stats.clone(), alarm: alarm.clone() };
+        PoseTicker { cells: cells.clone(), outputs: outputs.clone(), stats: stats.clone(), waker: waker.clone() };
     let core = TickCore {
         was_active: vec![false; cells.len()],
         cells,
@@ -614,10 +611,9 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
         default_path: config.default_path.clone(),
         stats: stats.clone(),
         applied: 0,
-        retry: false,
-        alarm: alarm.clone(),
+        waker: waker.clone(),
     };
-    let commands = CommandSender { ring: commands_tx, alarm };
+    let commands = CommandSender { ring: commands_tx, waker };
     let link = EngineLink { commands, outputs, ticker, poses, snapshot: snap_rx, stats };
     Ok((core, link))
 }
@@ -713,17 +709,10 @@ impl TickCore {
         true
     }
 
-    /// Whether the last [`tick_due`](Self::tick_due) passed over a slot another thread held, or
-    /// a command for it: look again within [`CLAIM_RETRY`].
+    /// What wakes the thread running this core.
     #[must_use]
-    pub fn retry(&self) -> bool {
-        self.retry
-    }
-
-    /// The alarm the tick thread sleeps on.
-    #[must_use]
-    pub fn alarm(&self) -> &Arc<Alarm> {
-        &self.alarm
+    pub fn waker(&self) -> &Arc<TickWaker> {
+        &self.waker
     }
 
     /// Commands the last [`tick_due`](Self::tick_due) (or [`tick`](Self::tick)) applied. A model
@@ -734,14 +723,12 @@ impl TickCore {
     }
 
     /// Applies waiting commands, then ticks every active slot that is due at `now` (see the
-    /// module docs), publishing each slot's next deadline to the [`Alarm`]. A slot another
-    /// thread holds (a pose ticking it) is passed over and looked at again within
-    /// [`CLAIM_RETRY`]. Returns the number of slot ticks and when the next slot becomes due (at
-    /// most [`IDLE_WAKE`] away).
+    /// module docs). A slot another thread holds (a pose ticking it) is passed over and looked
+    /// at again within [`CLAIM_RETRY`]. Returns the number of slot ticks and when the next slot
+    /// becomes due (at most [`IDLE_WAKE`] away: commands wake the thread).
     pub fn tick_due(&mut self, now: Instant) -> (u32, Instant) {
         let mut next = now + IDLE_WAKE;
-        self.retry = !self.apply_commands(false);
-        if self.retry {
+        if !self.apply_commands(false) {
             next = next.min(now + CLAIM_RETRY);
         }
         let mut ticked = 0;
@@ -751,17 +738,14 @@ impl TickCore {
             let Some(mut st) = claim(cell) else {
                 active += u64::from(self.was_active[i]);
                 next = next.min(now + CLAIM_RETRY);
-                self.retry = true;
                 continue;
             };
             self.was_active[i] = st.slot.active;
             if !st.slot.active {
-                self.alarm.publish(i, None);
                 continue;
             }
             active += 1;
             let (did, due) = st.step(i as u16, now, stats, |out| Self::emit(outputs, stats, out));
-            self.alarm.publish(i, Some(due));
             ticked += u32::from(did);
             next = next.min(due);
         }

@@ -43,6 +43,7 @@ pub(crate) struct StatsSample {
     pub(crate) at: Instant,
     pub(crate) ticks: u64,
     pub(crate) pose_thread_ticks: u64,
+    pub(crate) wakes: u64,
     pub(crate) missed: u64,
     pub(crate) lateness: HistogramSnapshot,
     pub(crate) busy: HistogramSnapshot,
@@ -58,6 +59,7 @@ impl StatsSample {
             at: self.at,
             ticks: self.ticks - b.ticks,
             pose_thread_ticks: self.pose_thread_ticks - b.pose_thread_ticks,
+            wakes: self.wakes - b.wakes,
             missed: self.missed - b.missed,
             lateness: self.lateness.since(&b.lateness),
             busy: self.busy.since(&b.busy),
@@ -80,6 +82,7 @@ pub(crate) fn sample(shared: &Shared) -> StatsSample {
         at: Instant::now(),
         ticks: s.ticks.load(Ordering::Relaxed),
         pose_thread_ticks: s.pose_thread_ticks.load(Ordering::Relaxed),
+        wakes: s.wakes.load(Ordering::Relaxed),
         missed: s.missed.load(Ordering::Relaxed),
         lateness: s.lateness.snapshot(),
         busy: s.busy.snapshot(),
@@ -325,7 +328,7 @@ impl Comm {
                 shared.counters.model_replies.fetch_add(1, Ordering::Relaxed);
                 // The guidance message leaves as the prediction is applied: now, not at the
                 // session's next tick (up to 1 ms away, more for a paused client): sending the
-                // command rang the tick thread's bell. Why:
+                // command woke the tick thread. Why:
                 // docs/decisions/0009-model-reply-wakes-the-tick.md.
             }
             let mut m = lock(&shared.model);

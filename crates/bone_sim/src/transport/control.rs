@@ -93,10 +93,7 @@ fn on_pose(shared: &Shared, id: &str, sample: &Sample, received: std::time::Inst
         let out_up_to = shared.put_done.get(usize::from(slot)).map_or(0, |n| n.load(Ordering::Acquire));
         let tick = shared.ticker.tick(slot, generation, Instant::now(), out_up_to, force.is_some());
         if let PoseTick::Ticked { force: out, state } = tick {
-            tick_here(shared, force.as_deref(), &out, state);
-            // After the put: the tick thread need not wake for the deadline this tick moved.
-            shared.ticker.postpone_alarm();
-            return;
+            return tick_here(shared, force.as_deref(), &out, state);
         }
     }
     shared.ticker.wake_tick_thread(); // the slot may tick now rather than at its next deadline
@@ -482,6 +479,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
         window_s: window,
         ticks: d.ticks,
         ticks_on_pose_thread: d.pose_thread_ticks,
+        tick_thread_wakes: d.wakes,
         missed_ticks: d.missed,
         missed_ticks_total: now.missed,
         tick_lateness_p50_s: d.lateness.quantile_s(0.5),

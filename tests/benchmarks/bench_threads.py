@@ -1,0 +1,153 @@
+"""Where a server's CPU goes, thread by thread: ``dhg-serve --role sim`` (the engine, no model
+service) and the bare Zenoh echo (``crates/bone_sim/examples/echo.rs``) under the same load tool,
+alternated, with each thread's CPU and voluntary context switches (its wake-ups) read from
+``/proc`` over the middle of the run. Prints one line per run and a table of medians.
+
+``--other PYTHONPATH`` adds a second engine build as the variant ``other``: a checkout of another
+commit whose ``python/dhg`` holds its own extension (``cargo build --release -p bone_sim --features
+python --lib``, then copy ``libbone_sim.so`` to ``python/dhg/_bone_sim.cpython-*.so``), so that two
+builds are compared in one alternating run (issue 24).
+
+    cargo build --release -p bone_sim --example load --example echo
+    python tests/benchmarks/bench_threads.py --clients 1,4,16 --rounds 2 [--other /tmp/old/python]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import statistics
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+from dhg.live.process import ServerProcess, free_port
+
+TARGET = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/dhg/target")) / "release/examples"
+
+
+def threads(pid: int) -> dict[str, tuple[str, float, int]]:
+    """Thread id → (name, CPU s, voluntary context switches) of process ``pid`` now."""
+    tick = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
+            status = Path(f"/proc/{pid}/task/{tid}/status").read_text()
+        except FileNotFoundError:  # the thread ended
+            continue
+        name = stat[stat.index("(") + 1 : stat.rindex(")")]
+        f = stat.rsplit(")", 1)[1].split()
+        switches = int(status.split("\nvoluntary_ctxt_switches:")[1].split()[0])
+        out[tid] = (name, (int(f[11]) + int(f[12])) / tick, switches)
+    return out
+
+
+def one(variant: str, n: int, seconds: float, other: str | None) -> dict[str, Any]:
+    """One run: a fresh server of ``variant`` and ``n`` load-tool clients."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    if variant == "echo":
+        server: Any = subprocess.Popen([str(TARGET / "echo"), "--listen", endpoint], stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 60
+        while True:  # the echo declares its keys before it listens
+            try:
+                socket.create_connection(("127.0.0.1", port), 0.5).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline or server.poll() is not None:
+                    raise SystemExit("the echo did not start") from None
+                time.sleep(0.2)
+        pid = server.pid
+    else:
+        saved = os.environ.get("PYTHONPATH")
+        if variant == "other":
+            os.environ["PYTHONPATH"] = str(other)
+        args = ["--listen", endpoint, "--role", "sim", "--max-sessions", str(max(n, 16))]
+        try:  # returns once dhg-serve says it is ready
+            server = ServerProcess(args, echo=False)
+        finally:
+            if saved is None:
+                os.environ.pop("PYTHONPATH", None)
+            else:
+                os.environ["PYTHONPATH"] = saved
+        pid = server.proc.pid
+    try:
+        load = subprocess.Popen(
+            [str(TARGET / "load"), "--connect", endpoint, "--clients", str(n), "--seconds", f"{seconds:g}",
+             "--server-pid", str(pid)],
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+        )  # fmt: skip
+        # The middle of the run: after the clients' 2 s warm-up, before their end.
+        time.sleep(2.0 + 0.2 * seconds)
+        a, t0 = threads(pid), time.monotonic()
+        time.sleep(0.6 * seconds)
+        b, dt = threads(pid), time.monotonic() - t0
+        out = json.loads(load.communicate(timeout=seconds + 60)[0])
+    finally:
+        if variant == "echo":
+            server.terminate()
+            server.wait(timeout=30)
+        else:
+            server.stop()
+    per: dict[str, list[float]] = {}
+    for tid, (name, cpu, sw) in b.items():
+        if tid in a:
+            p = per.setdefault(name, [0.0, 0.0])
+            p[0] += (cpu - a[tid][1]) / dt
+            p[1] += (sw - a[tid][2]) / dt
+    return {
+        "variant": variant,
+        "clients": n,
+        "cpu_cores": out["server_cpu_cores"],
+        "p50_ms": out["pose_to_force_ms"]["p50"],
+        "forces_per_pose": out["forces_per_pose"],
+        "threads": {k: {"cores": round(v[0], 4), "wakeups_per_s": round(v[1])} for k, v in per.items()},
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--clients", default="1,4,16")
+    p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--seconds", type=float, default=12.0, help="load per run (s; threads read over its middle 60 %%)")
+    p.add_argument("--other", metavar="PYTHONPATH", help="a second engine build, run as the variant 'other'")
+    p.add_argument("--out", help="also append the JSON lines to this file")
+    args = p.parse_args()
+    variants = ["dhg", *(["other"] if args.other else []), "echo"]
+    runs: list[dict[str, Any]] = []
+    for _ in range(args.rounds):
+        for n in (int(c) for c in args.clients.split(",")):
+            for v in variants:
+                r = one(v, n, args.seconds, args.other)
+                print(json.dumps(r), flush=True)
+                runs.append(r)
+                if args.out:
+                    with open(args.out, "a") as f:
+                        f.write(json.dumps(r) + "\n")
+    print(f"\n{args.rounds} rounds, medians; cores (wake-ups a second)\n")
+    names = ["rx", "tx-0", "acc-0", "dhg-tick", "dhg-comm"]
+    print("| clients | variant | CPU (cores) | / echo | " + " | ".join(names) + " |")
+    print("|---:|---|---:|---:|" + "---:|" * len(names))
+    for n in sorted({r["clients"] for r in runs}):
+        echo = statistics.median(r["cpu_cores"] for r in runs if r["clients"] == n and r["variant"] == "echo")
+        for v in variants:
+            rs = [r for r in runs if r["clients"] == n and r["variant"] == v]
+            cpu = statistics.median(r["cpu_cores"] for r in rs)
+            cells = []
+            for name in names:
+                picked = [
+                    [t for k, t in r["threads"].items() if k == name or (name == "rx" and k.startswith("rx-"))]
+                    for r in rs
+                ]
+                cores = statistics.median(sum(t["cores"] for t in ts) for ts in picked)
+                wakes = statistics.median(sum(t["wakeups_per_s"] for t in ts) for ts in picked)
+                cells.append(f"{cores:.3f} ({wakes:.0f})" if any(picked) else "—")
+            print(f"| {n} | {v} | {cpu:.3f} | {cpu / echo:.2f} | " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()
