@@ -21,6 +21,7 @@ import statistics
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +52,7 @@ def main() -> None:
     summary["viewer_updates_per_s"] = statistics.median(r["updates_per_s"] for r in runs if r["viewer"])
     summary["server_cpu_per_viewer_cores"] = summary["cpu_cores"]["with"] - summary["cpu_cores"]["without"]
     summary["viewer_cpu_cores"] = statistics.median(r["viewer_cpu_cores"] for r in runs if r["viewer"])
+    summary["viewer_steady_cpu_cores"] = statistics.median(r["viewer_steady_cpu_cores"] for r in runs if r["viewer"])
     print(json.dumps(summary), flush=True)
 
 
@@ -71,11 +73,18 @@ def _one(args: argparse.Namespace, with_viewer: bool) -> dict[str, Any]:
             threading.Thread(target=lambda: out.extend(viewer.stdout), daemon=True).start()
             if args.browser:
                 threading.Thread(target=_browse, args=(f"http://127.0.0.1:{port}", done), daemon=True).start()
-        r = subprocess.run(
-            [args.load, "--connect", endpoint, "--clients", "1", "--seconds", str(args.seconds),
+        load_run = subprocess.Popen(
+            [args.load, "--connect", endpoint, "--clients", "1", "--seconds", f"{args.seconds:g}",
              "--server-pid", str(server.proc.pid)],
-            capture_output=True, text=True, timeout=args.seconds + 120,
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
+        # The viewer's steady cost: over the middle of the load, its start and first meshing over.
+        time.sleep(2.0 + 0.25 * args.seconds)
+        steady0, t0 = (_cpu_s(viewer.pid) if viewer is not None else 0.0), time.monotonic()
+        time.sleep(0.5 * args.seconds)
+        viewer_steady = (_cpu_s(viewer.pid) - steady0) / (time.monotonic() - t0) if viewer is not None else 0.0
+        stdout, stderr = load_run.communicate(timeout=args.seconds + 120)
+        r = subprocess.CompletedProcess(load_run.args, load_run.returncode, stdout, stderr)
         viewer_cpu = _cpu_s(viewer.pid) / args.seconds if viewer is not None else 0.0
     finally:
         done.set()
@@ -94,6 +103,7 @@ def _one(args: argparse.Namespace, with_viewer: bool) -> dict[str, Any]:
         "cpu_cores": load["server_cpu_cores"],
         "updates_per_s": max(rates) if rates else 0.0,
         "viewer_cpu_cores": viewer_cpu,  # its start (meshing the bone) included
+        "viewer_steady_cpu_cores": viewer_steady,  # the middle half of the load
     }
 
 
