@@ -10,6 +10,7 @@ import platform
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -24,7 +25,7 @@ from dhg.live.client import TraineeClient
 from dhg.live.process import free_port
 from dhg.live.runner import scheduling_hint
 from dhg.live.trainee import planned_depth_from_info
-from dhg.live.zenoh_config import zenoh_config_json5
+from dhg.live.zenoh_config import open_zenoh, zenoh_config_json5
 from support import Stylus, wait_until
 
 
@@ -115,6 +116,45 @@ def test_a_pose_ticks_its_session_on_the_thread_that_received_it_unless_told_not
         else:
             assert h["ticks_on_pose_thread"] == 0, "a pose ticked its session although told not to"
     finally:
+        srv.stop()
+
+
+def test_a_screen_hears_the_newest_force_and_pose_a_few_dozen_times_a_second_not_every_tick(coarse_phantom):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    conf = zenoh_config_json5([endpoint], mode="router")
+    srv = start_engine(coarse_phantom.volume, coarse_phantom.path, conf, ServerSettings())
+    screen = open_zenoh(zenoh_config_json5(connect=[endpoint], mode="client"))
+    try:
+        keys = protocol.keys("dhg", "shown")
+        views: dict[str, list[dict]] = {"force": [], "pose": []}
+
+        def heard(name: str) -> Any:
+            return lambda s: views[name].append(protocol.decode(name, s.payload.to_bytes()))
+
+        subs = [screen.declare_subscriber(keys[f"view/{n}"], heard(n)) for n in views]
+        forces: list[dict] = []
+        with TraineeClient(endpoint, "shown", on_force=forces.append) as c:
+            a = np.array(c.create()["entry_m"])
+            hand = Stylus(c, (1.0, 0.0, 0.0, 0.0))  # 1 kHz, hovering 5 mm off A
+            try:
+                hand.move(np.repeat([a - [0.0, 0.0, 5e-3]], 600, axis=0))
+                done = lambda: hand.idle() and len(forces) >= 600 and len(views["pose"]) >= 5  # noqa: E731
+                wait_until(done, 30.0, "600 forces and 5 views")
+            finally:
+                hand.stop()
+        for s in subs:
+            s.undeclare()
+        vf, vp = list(views["force"]), list(views["pose"])
+        # The server's copies of the newest: far fewer than the forces (50-60 a second against
+        # 1,000), each one a force the session made, in order, with the pose that force used.
+        assert len(vf) <= len(forces) / 8, (len(vf), len(forces))
+        seqs = [m["pose_seq"] for m in vf]
+        assert seqs == sorted(seqs) and max(seqs) <= max(m["pose_seq"] for m in forces)
+        assert all(np.isfinite(m["force_n"]).all() and np.isfinite(m["tip_m"]).all() for m in vf)
+        assert {m["seq"] for m in vp} <= {m["pose_seq"] for m in vf} | {0}
+        assert all(np.allclose(m["orientation_wxyz"], (1.0, 0.0, 0.0, 0.0)) for m in vp if m["seq"] > 0)
+    finally:
+        screen.close()
         srv.stop()
 
 

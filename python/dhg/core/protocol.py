@@ -99,7 +99,19 @@ def keys(prefix: str, session_id: str) -> dict[str, str]:
     """The key expressions of one session under ``prefix`` (see ``docs/protocol.md``)."""
     base = f"{prefix}/session/{session_id}"
     return {
-        leaf: f"{base}/{leaf}" for leaf in ("pose", "force", "guidance", "state", "ticks", "control", "metrics", "xray")
+        leaf: f"{base}/{leaf}"
+        for leaf in (
+            "pose",
+            "force",
+            "guidance",
+            "state",
+            "ticks",
+            "control",
+            "metrics",
+            "xray",
+            "view/force",
+            "view/pose",
+        )
     } | {
         "health": f"{prefix}/server/health",
         "predict": f"{prefix}/model/predict",

@@ -72,7 +72,7 @@ __all__ = ["Identity", "Lab", "acl", "load_lab", "make_certs", "write_lab"]
 ROLES = ("station", "instructor", "model_worker")
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,47}")
 SERVER_IDENTITY = "dhg-server"
-_HEARD = ("force", "guidance", "state", "ticks", "guidance/**", "state/**", "ticks/**")
+_HEARD = ("force", "guidance", "state", "ticks", "guidance/**", "state/**", "ticks/**", "view/force", "view/pose")
 """A station's own streams it may subscribe to."""
 """The user name of the server's own services (model, X-rays) when they connect to its engine."""
 

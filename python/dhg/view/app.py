@@ -7,7 +7,6 @@ on the ports after it (started when the session first shows, kept until the view
 
 from __future__ import annotations
 
-import json
 import threading
 from collections.abc import Sequence
 from typing import Any
@@ -15,29 +14,10 @@ from typing import Any
 from dhg.view.feed import VolumeData, fetch_volume
 from dhg.view.pages import InstructorPage, TraineePage
 
-__all__ = ["INGRESS_HZ", "MAX_PAGES", "Viewer"]
+__all__ = ["MAX_PAGES", "Viewer"]
 
 MAX_PAGES = 64
 """Trainee pages one viewer starts at most (a server holds 16 sessions by default)."""
-
-INGRESS_HZ = 100.0
-"""The 1 kHz force and pose streams as the viewer takes them in (Hz): Zenoh drops the rest on the
-way in (its downsampling interceptor), before any Python runs, so a page drawing at 30 Hz costs
-its process a tenth of the callbacks."""
-
-
-def _downsampled(config_json: str, prefix: str, hz: float) -> str:
-    conf = json.loads(config_json)
-    keys = [f"{prefix}/session/*/{leaf}" for leaf in ("force", "pose")]
-    conf["downsampling"] = [
-        {
-            "id": "dhg-view",
-            "flows": ["ingress"],
-            "messages": ["put"],
-            "rules": [{"key_expr": k, "freq": hz} for k in keys],
-        }
-    ]
-    return json.dumps(conf)
 
 
 class Viewer:
@@ -65,7 +45,7 @@ class Viewer:
         endpoints = [connect] if isinstance(connect, str) else list(connect)
         self.host, self.prefix, self.frame_hz = host, prefix, frame_hz
         conf = zenoh_config_json5(connect=endpoints, config_file=zenoh_config_file, mode="client")
-        self._z = open_zenoh(_downsampled(conf, prefix, INGRESS_HZ))
+        self._z = open_zenoh(conf)
         self._lock = threading.Lock()
         self.pages: dict[str, TraineePage] = {}
         self.instructor: InstructorPage | None = None

@@ -104,7 +104,20 @@ struct Outlet {
     window: VecDeque<[f32; FEATURE_COUNT]>,
     window_seq: u32,
     pose_time_ns: u64,
+    /// The screens' streams (`view/force`, `view/pose`): the newest force and pose at most
+    /// [`VIEW_HZ`] times a second.
+    view_force: zenoh::pubsub::Publisher<'static>,
+    view_pose: zenoh::pubsub::Publisher<'static>,
+    /// The newest force and the pose it used, not yet on the view streams.
+    view: Option<(protocol::ForceMsg, Option<Pose>)>,
+    view_sent: Instant,
 }
+
+/// Most messages a second on a session's view streams (`view/force`, `view/pose`): what a screen
+/// draws the drill from, instead of taking in the two 1 kHz streams and dropping most of them (a
+/// viewer's CPU fell fourfold without them, `docs/benchmarks.md`, the live view). The comm thread
+/// wakes at least every [`IDLE_WAKE`] (20 ms), so they leave 50–60 times a second.
+pub(crate) const VIEW_HZ: f64 = 60.0;
 
 /// Samples of each recorded stream (state, guidance) a session's publisher keeps for recorders
 /// to recover: 60 s of the 10 Hz streams.
@@ -147,6 +160,21 @@ impl Outlet {
         self.batch.push(&row);
         if self.batch.len() >= TICKS_PER_BATCH {
             self.publish_ticks();
+        }
+    }
+
+    /// Puts the newest force and pose on the view streams, if they are new and the last went
+    /// out at least 1 / [`VIEW_HZ`] ago.
+    fn publish_view(&mut self, now: Instant) {
+        if now.saturating_duration_since(self.view_sent).as_secs_f64() * VIEW_HZ < 1.0 {
+            return;
+        }
+        let Some((msg, pose)) = self.view.take() else { return };
+        self.view_sent = now;
+        let _ = self.view_force.put(protocol::encode_force(&msg).to_vec()).wait();
+        if let Some(pose) = pose {
+            let m = protocol::PoseMsg { seq: msg.pose_seq, client_time_ns: msg.pose_client_time_ns, pose };
+            let _ = self.view_pose.put(protocol::encode_pose(&m).to_vec()).wait();
         }
     }
 
@@ -214,6 +242,16 @@ impl Comm {
                     .wait()
                     .ok()
             };
+            // The screens' copies: a frame's worth of the newest, dropped rather than queued.
+            let view = |leaf: &str| {
+                self.session
+                    .declare_publisher(key(leaf))
+                    .encoding(encoding(leaf.trim_start_matches("view/")))
+                    .congestion_control(CongestionControl::Drop)
+                    .priority(Priority::DataLow)
+                    .wait()
+                    .ok()
+            };
             self.outlets[i] = Some(Outlet {
                 generation,
                 force,
@@ -225,6 +263,10 @@ impl Comm {
                 window: VecDeque::with_capacity(WINDOW_RECORDS),
                 window_seq: 0,
                 pose_time_ns: 0,
+                view_force: view("view/force")?,
+                view_pose: view("view/pose")?,
+                view: None,
+                view_sent: Instant::now(),
             });
         }
         self.outlets[i].as_mut()
@@ -241,6 +283,7 @@ impl Comm {
                         put_force(&shared, &o.force, slot, &msg, received, order);
                     }
                     o.add_tick(&msg, pose.as_ref());
+                    o.view = Some((msg, pose));
                 } else {
                     // Of a session that ended: let go, so that the slot's next forces may leave
                     // from their poses' threads.
@@ -400,7 +443,11 @@ impl Comm {
                 thread::park_timeout(IDLE_WAKE);
             }
             drain_forces_first(outputs, &mut later, |out| self.handle(out));
-            if Instant::now() >= next_housekeeping {
+            let now = Instant::now();
+            for o in self.outlets.iter_mut().flatten() {
+                o.publish_view(now);
+            }
+            if now >= next_housekeeping {
                 self.housekeeping(&mut io_sessions);
                 next_housekeeping += Duration::from_secs(1);
             }
