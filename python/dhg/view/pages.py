@@ -349,7 +349,7 @@ class TraineePage:
             self._drill.position = tuple(tip)
             if pose is not None:
                 self._drill.wxyz = tuple(pose["orientation_wxyz"])
-            elif self._info is not None:  # no pose heard (a lab station hears only its outputs): along A→B
+            elif self._info is not None:  # no pose heard yet (the session's first forces): along A→B
                 self._drill.wxyz = along(np.array(self._info["target_m"]) - np.array(self._info["entry_m"]))
             self._drill.visible = True
             arrows = np.array(
