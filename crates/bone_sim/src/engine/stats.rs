@@ -111,8 +111,8 @@ pub struct TickStats {
     pub ticks: AtomicU64,
     /// Of them, those run on the thread that received their pose (`engine::PoseTicker`).
     pub pose_thread_ticks: AtomicU64,
-    /// Times the sleeping tick thread woke (its alarm, its bell, or a retry; not counted when it
-    /// spins).
+    /// Times the sleeping tick thread woke (a slot's deadline, a pose or command that woke it, a
+    /// retry; not counted when it spins).
     pub wakes: AtomicU64,
     /// Ticks skipped because the thread woke a whole period or more late.
     pub missed: AtomicU64,
