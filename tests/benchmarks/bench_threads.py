@@ -17,12 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import statistics
 import subprocess
 import time
 from pathlib import Path
 from typing import Any
+
+from bench_server import _wait_for_port  # this folder: the echo's start, as bench_server waits for it
 
 from dhg.live.process import ServerProcess, free_port
 
@@ -48,19 +49,10 @@ def threads(pid: int) -> dict[str, tuple[str, float, int]]:
 
 def one(variant: str, n: int, seconds: float, other: str | None) -> dict[str, Any]:
     """One run: a fresh server of ``variant`` and ``n`` load-tool clients."""
-    port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     if variant == "echo":
-        server: Any = subprocess.Popen([str(TARGET / "echo"), "--listen", endpoint], stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 60
-        while True:  # the echo declares its keys before it listens
-            try:
-                socket.create_connection(("127.0.0.1", port), 0.5).close()
-                break
-            except OSError:
-                if time.monotonic() > deadline or server.poll() is not None:
-                    raise SystemExit("the echo did not start") from None
-                time.sleep(0.2)
+        server: Any = subprocess.Popen([str(TARGET / "echo"), "--listen", endpoint], stderr=subprocess.PIPE, text=True)
+        _wait_for_port(endpoint, server)  # the echo declares its keys before it listens
         pid = server.pid
     else:
         saved = os.environ.get("PYTHONPATH")
