@@ -112,6 +112,35 @@ impl MaterialOverlay {
         }
     }
 
+    /// The material of the 2 × 2 × 2 voxels from (i, j, k) to (i + 1, j + 1, k + 1), as
+    /// `[dk][dj][di]`: a trilinear read's cell, which must lie inside the grid. Equal to eight
+    /// [`material`](Self::material) calls, with one brick lookup where the cell lies in one brick.
+    #[inline]
+    #[must_use]
+    pub fn cell(&self, volume: &Volume, i: usize, j: usize, k: usize) -> [[[u16; 2]; 2]; 2] {
+        let within = (i & BRICK_MASK) != BRICK_MASK && (j & BRICK_MASK) != BRICK_MASK && (k & BRICK_MASK) != BRICK_MASK;
+        if !within {
+            let m = |di: usize, dj: usize, dk: usize| self.material(volume, i + di, j + dj, k + dk);
+            return [
+                [[m(0, 0, 0), m(1, 0, 0)], [m(0, 1, 0), m(1, 1, 0)]],
+                [[m(0, 0, 1), m(1, 0, 1)], [m(0, 1, 1), m(1, 1, 1)]],
+            ];
+        }
+        if let Some(brick) = self.brick(self.brick_id(i, j, k)) {
+            // Steps along i, j and k in a brick (local index (lk·8 + lj)·8 + li).
+            let (si, sj, sk) = (1, BRICK_EDGE, BRICK_EDGE * BRICK_EDGE);
+            let b = &brick[Self::local(i, j, k)..=Self::local(i, j, k) + sk + sj + si];
+            [[[b[0], b[si]], [b[sj], b[sj + si]]], [[b[sk], b[sk + si]], [b[sk + sj], b[sk + sj + si]]]]
+        } else {
+            // The same steps in the volume.
+            let dims = volume.grid().dims();
+            let (sj, sk) = (dims[0], dims[0] * dims[1]);
+            let l = volume.grid().linear(i, j, k);
+            let p = |o: usize| volume.pristine_material(l + o);
+            [[[p(0), p(1)], [p(sj), p(sj + 1)]], [[p(sk), p(sk + 1)], [p(sk + sj), p(sk + sj + 1)]]]
+        }
+    }
+
     /// The session's own copy of a brick, made from the pristine volume on first write.
     /// Allocates only when more bricks are touched than were reserved.
     pub fn brick_mut(&mut self, volume: &Volume, brick_id: usize) -> &mut Brick {
@@ -206,5 +235,39 @@ mod tests {
         assert_eq!(brick[MaterialOverlay::local(19, 19, 19)], FULL_MATERIAL);
         assert_eq!(brick[MaterialOverlay::local(20, 19, 19)], 0);
         assert_eq!(o.brick_origin(id), [16, 16, 16]);
+    }
+
+    #[test]
+    fn a_cell_reads_what_eight_voxel_reads_give_across_brick_edges_and_drilled_bricks() {
+        // 20 voxels a side: cells inside one brick, across brick edges and in the hanging last
+        // brick; margin 3, so pristine air and bone both appear; two bricks drilled with values
+        // that differ voxel by voxel, so a wrong step or a swapped axis shows.
+        let v = uniform_block(20, 1e-3, Layer::Cortical, 1500.0, 3);
+        let mut o = MaterialOverlay::new(v.grid(), 0);
+        for (bi, bj, bk) in [(5, 5, 5), (9, 4, 12)] {
+            let id = o.brick_id(bi, bj, bk);
+            for (n, m) in o.brick_mut(&v, id).iter_mut().enumerate() {
+                *m = (n as u16).wrapping_mul(97);
+            }
+        }
+        for k in 0..19 {
+            for j in 0..19 {
+                for i in 0..19 {
+                    let c = o.cell(&v, i, j, k);
+                    for (dk, plane) in c.iter().enumerate() {
+                        for (dj, row) in plane.iter().enumerate() {
+                            for (di, &m) in row.iter().enumerate() {
+                                let at = (i + di, j + dj, k + dk);
+                                assert_eq!(
+                                    m,
+                                    o.material(&v, at.0, at.1, at.2),
+                                    "cell ({i}, {j}, {k}) + ({di}, {dj}, {dk})"
+                                );
+                            }
+                        }
+                    }
+                }
+            }
+        }
     }
 }
