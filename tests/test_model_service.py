@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -128,8 +129,12 @@ class _ScriptedModel:
         self.entered = threading.Event()
 
     def predict(self, windows, check_output: bool = True):
+        import os
+        import threading
+
         n = len(np.atleast_3d(windows))
         self.batches.append(n)
+        self.nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
         self.entered.set()
         assert self.gate.wait(timeout=30), "the test never opened the gate"
         if self.failing:
@@ -202,4 +207,29 @@ def test_a_model_that_raises_gets_error_replies_and_the_service_answers_again_af
         assert service.stats()["answered"] == 1 and service.stats()["refused"] == 1
     finally:
         service.close()
+        z.close()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
+def test_the_forward_passes_run_at_the_nice_value_asked_for_and_a_bad_one_is_refused():
+    import os
+
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    window = np.zeros((20, 9), dtype=np.float32)
+    try:
+        for nice, expected in ((19, 19), (0, base)):
+            model = _ScriptedModel()
+            service = ModelService(z, model, prefix=f"svc-nice{nice}", nice=nice)
+            try:
+                ok, _ = _query(z, protocol.keys(f"svc-nice{nice}", "x")["predict"], window, 1)
+                assert ok and model.nice == expected, (nice, model.nice)
+            finally:
+                service.close()
+        # The process's own threads keep their priority: only the worker's was lowered.
+        assert os.getpriority(os.PRIO_PROCESS, 0) == base
+        for bad in (-1, 20):
+            with pytest.raises(InvalidInputError, match="nice must be 0 .* to 19"):
+                ModelService(z, _ScriptedModel(), prefix="svc-nice-bad", nice=bad)
+    finally:
         z.close()

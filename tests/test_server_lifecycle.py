@@ -140,6 +140,8 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             pump = threading.Thread(target=hold, daemon=True)
             pump.start()
             _wait(lambda: c.force is not None and c.force["flags"] & protocol.FLAGS["model_available"], 5.0)
+            # The worker's forward passes run at nice 19 (decision 0026); its other threads keep 0.
+            assert _thread_nices(worker.proc.pid) == {0, 19}
             worker.proc.send_signal(signal.SIGKILL)
             assert worker.stop() == -signal.SIGKILL
             _wait(lambda: not c.force["flags"] & protocol.FLAGS["model_available"], 15.0, "model unavailable")
@@ -147,8 +149,9 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             n0 = c.forces_received
             _wait(lambda: c.forces_received - n0 >= 400, 15.0, "400 more forces without the model")
             assert c.force["flags"] & protocol.FLAGS["model_available"] == 0
-            worker, _ = _serve("--role", "model", endpoint=endpoint)
+            worker, _ = _serve("--role", "model", "--model-nice", "7", endpoint=endpoint)
             _wait(lambda: c.force["flags"] & protocol.FLAGS["model_available"], 30.0, "the restarted model answering")
+            assert _thread_nices(worker.proc.pid) == {0, 7}
             stop.set()
             pump.join()
     finally:
@@ -156,6 +159,19 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
         worker.stop()
         code = engine.stop()
     assert code == 0
+
+
+def _thread_nices(pid: int) -> set[int]:
+    """The nice values of process ``pid``'s threads (Linux)."""
+    import os
+
+    nices = set()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            nices.add(os.getpriority(os.PRIO_PROCESS, int(tid)))
+        except OSError:  # the thread ended meanwhile
+            continue
+    return nices
 
 
 def test_ctrl_c_stops_a_busy_server_cleanly_with_a_zenoh_config_file(tmp_path):

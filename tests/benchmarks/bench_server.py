@@ -69,7 +69,8 @@ def main() -> None:
         help="with --against-echo, alternated in this order: dhg (dhg-serve, ticks on the pose's thread), "
         "dhg-thread (dhg-serve --tick-on thread: the tick thread ticks every pose), dhg-sim (dhg-serve --role "
         "sim, the model service in a process of its own, its CPU reported apart), dhg-engine (dhg-serve --role "
-        "sim and no model service), echo (must be included)",
+        "sim and no model service), dhg-nice0 (dhg-serve --model-nice 0: the model's worker thread at the "
+        "engine's priority, as before decision 0026), echo (must be included)",
     )
     args = p.parse_args()
     if args.against_echo:
@@ -153,7 +154,7 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
     process, ``--role model``, whose CPU is reported apart as ``model_cpu_per_session``),
     ``dhg-engine`` (``--role sim`` with no model service: the sessions tick, their model queries go
     unanswered; what the engine costs without the model's forward passes on the same cores),
-    ``echo``."""
+    ``dhg-nice0`` (``dhg-serve --model-nice 0``), ``echo``."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server: Any = None
     model: Any = None
@@ -161,9 +162,10 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
     if target.startswith("dhg"):
         tick_on = "thread" if target == "dhg-thread" else "pose"
         role = "sim" if target in ("dhg-sim", "dhg-engine") else "all"
+        nice = ["--model-nice", "0"] if target == "dhg-nice0" else []
         server = ServerProcess(
             ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30", "--tick-on", tick_on,
-             "--role", role],
+             "--role", role, *nice],
             echo=False,
         )  # fmt: skip
         if target == "dhg-sim":
@@ -203,6 +205,8 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         "cpu_cores": out["server_cpu_cores"],
         "cpu_per_session": out["server_cpu_cores"] / n,
         "forces_per_pose": out["forces_per_pose"],
+        "guidance_p50_ms": out["pose_to_guidance_ms"]["p50"],
+        "guidance_p99_ms": out["pose_to_guidance_ms"]["p99"],
         # Over the whole load run (its 2 s warm-up and the connects included): per pose sent.
         "context_switches_per_pose": switches / (n * (args.seconds + 2.0) * 1000.0),
         # The model service's process (dhg-sim only), over the whole load run.
@@ -237,19 +241,21 @@ def _against_echo(args: argparse.Namespace) -> None:
         for s in servers:
             rows.append(
                 (n, s, *(med(t, k) for k in ("p50_ms", "p99_ms", "cpu_per_session", "context_switches_per_pose")
-                         for t in (s, "echo")), med(s, "forces_per_pose"), med(s, "model_cpu_per_session"))
+                         for t in (s, "echo")), med(s, "forces_per_pose"), med(s, "model_cpu_per_session"),
+                 statistics.median([r["guidance_p99_ms"] or 0.0 for r in runs[s]]))
             )  # fmt: skip
     print(f"\n{args.rounds} rounds of {args.seconds:g} s each, alternating; medians; {os.cpu_count()} CPUs\n")
     print("| clients | server | pose → force p50, server / echo (ms) | ratio | p99, server / echo (ms) | ratio "
           "| server CPU per session, server / echo (cores) | ratio | context switches per pose, server / echo "
-          "| forces per pose | model service's process, CPU per session (cores) |")  # fmt: skip
-    print("|---:|---|---|---:|---|---:|---|---:|---|---:|---:|")
-    for n, s, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp, mcpu in rows:
+          "| forces per pose | model service's process, CPU per session (cores) "
+          "| pose → guidance p99 (ms) |")  # fmt: skip
+    print("|---:|---|---|---:|---|---:|---|---:|---|---:|---:|---:|")
+    for n, s, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp, mcpu, gp99 in rows:
         model = f"{mcpu:.4f}" if s == "dhg-sim" else "(in the server)"
         print(
             f"| {n} | {s} | {p50d:.3f} / {p50e:.3f} | {p50d / p50e:.2f} | {p99d:.3f} / {p99e:.3f} "
             f"| {p99d / p99e:.2f} | {cpud:.4f} / {cpue:.4f} | {cpud / cpue:.2f} | {swd:.2f} / {swe:.2f} | {fpp:.3f} "
-            f"| {model} |"
+            f"| {model} | {f'{gp99:.2f}' if gp99 else '—'} |"
         )
 
 

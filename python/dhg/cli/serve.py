@@ -113,6 +113,8 @@ def _bone_args(p: argparse.ArgumentParser, d: Any) -> None:
 
 def _model_args(p: argparse.ArgumentParser, d: Any) -> None:
     """``dhg-serve``'s options for the model (``d``: the default :class:`ServerSettings`)."""
+    from dhg.live.services import MODEL_NICE
+
     g = p.add_argument_group("the model", "the LSTM that predicts the expert's force, and its workers")
     g.add_argument("--model", metavar="FILE.ts", help="TorchScript model from 'dhg train'; default: the bundled one")
     g.add_argument(
@@ -123,6 +125,14 @@ def _model_args(p: argparse.ArgumentParser, d: Any) -> None:
         type=int,
         metavar="N",
         help="torch CPU threads (default: a quarter of the cores, at least 1, so the 1 kHz engine keeps a core)",
+    )
+    g.add_argument(
+        "--model-nice",
+        type=int,
+        default=MODEL_NICE,
+        metavar="N",
+        help=f"Linux nice value of the model's worker thread, 0 (as the engine) to 19 (default {MODEL_NICE}: a "
+        "forward pass gives way at once to the threads that carry poses and forces, where they share cores)",
     )
     g.add_argument(
         "--model-timeout",
@@ -252,6 +262,7 @@ def _serve_options(args: argparse.Namespace) -> Any:
         settings=settings,
         model_device=args.device,
         worker_id=args.worker_id,
+        model_nice=args.model_nice,
     )
 
 

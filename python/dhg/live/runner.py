@@ -25,7 +25,7 @@ from typing import Any
 
 from dhg.core.errors import InvalidInputError, TransportError
 from dhg.core.server import Server, ServerSettings, start_engine
-from dhg.live.services import BoneService, ModelService, XRayService
+from dhg.live.services import MODEL_NICE, BoneService, ModelService, XRayService
 from dhg.live.zenoh_config import (
     SERVER_MAX_MESSAGE_BYTES,
     open_zenoh,
@@ -111,6 +111,8 @@ class ServeOptions:
     worker_id: str | None = None
     """The model service's name in the engine's worker pool (default: the Zenoh user name of
     ``zenoh_config`` when it has one, else the Zenoh session id)."""
+    model_nice: int = MODEL_NICE
+    """Linux nice value of the model's worker thread (0 to 19; see :class:`ModelService`)."""
 
 
 class RunningServer:
@@ -260,6 +262,7 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
                 options.prefix,
                 max_age_s=options.settings.model_timeout_s,
                 worker_id=options.worker_id or zenoh_user(options.zenoh_config),
+                nice=options.model_nice,
             )
         if engine_role:
             run.xray_service = XRayService(run.zenoh, run.engine, volume, options.prefix)

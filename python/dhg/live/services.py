@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 import queue
 import threading
 import time
@@ -19,7 +20,11 @@ from dhg.core import protocol
 from dhg.core.errors import InvalidInputError
 from dhg.core.protocol import check_session_id
 
-__all__ = ["BoneService", "ModelService", "XRayService", "decode_npz", "encode_npz"]
+__all__ = ["MODEL_NICE", "BoneService", "ModelService", "XRayService", "decode_npz", "encode_npz"]
+
+MODEL_NICE = 19
+"""``dhg-serve``'s nice value for the model worker thread: the lowest priority, so that on shared
+cores a forward pass gives way to the forces' threads at once (decision 0026)."""
 
 MAX_NPZ_BYTES = 12 * 1024 * 1024
 """The largest bone or volume reply (bytes): clients take messages up to 16 MiB."""
@@ -60,6 +65,12 @@ class ModelService:
     most ``max_queue`` queries (more are refused at once, as ``busy``), and a query that waited
     longer than ``max_age_s`` (the engine's 0.25 s query timeout by default: its asker has given up)
     is refused as ``stale`` instead of computed. Why no batching wait: ``docs/decisions/0010-model-service.md``.
+
+    The worker thread runs at the Linux nice value ``nice`` (default :data:`MODEL_NICE`, the
+    lowest priority): where the model shares cores with the 1 kHz engine, the Zenoh threads that
+    carry poses and forces preempt a forward pass as soon as they wake, instead of waiting behind
+    a few milliseconds of LSTM (``docs/decisions/0026-the-model-yields-to-the-forces.md``). 0 leaves
+    it as it is; where nice values do not exist (not Linux) it is ignored.
     """
 
     def __init__(
@@ -73,7 +84,10 @@ class ModelService:
         max_age_s: float = 0.25,
         clock: Callable[[], float] = time.perf_counter,
         worker_id: str | None = None,
+        nice: int = 0,
     ):
+        if not 0 <= nice <= 19:
+            raise InvalidInputError(f"nice must be 0 (as the engine) to 19 (yield to everything), got {nice}")
         if model.window != protocol.WINDOW_RECORDS:
             raise InvalidInputError(
                 f"the model takes windows of {model.window} records, but the engine sends "
@@ -95,6 +109,7 @@ class ModelService:
         """The last 1,000 forward passes' durations (s)."""
         self._queue: queue.Queue[tuple[float, Any]] = queue.Queue(maxsize=max_queue)
         self._stop = threading.Event()
+        self.nice = nice
         # TorchScript's profiling executor optimises on the first calls (100s of ms): do them now,
         # not on a trainee's first windows.
         for batch in (1, 2, 1):
@@ -125,6 +140,10 @@ class ModelService:
             query.drop()
 
     def _run(self) -> None:
+        if self.nice and hasattr(os, "setpriority"):
+            # Linux nice values are per thread: this lowers the worker's alone (torch runs its
+            # forward passes on this thread with one intra-op thread, dhg-serve's default on ≤ 7 cores).
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self.nice)
         while not self._stop.is_set():
             try:
                 first = self._queue.get(timeout=0.1)
