@@ -223,3 +223,14 @@ class Stylus:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
+
+
+def thread_nices(pid: int) -> set[int]:
+    """The nice values of process ``pid``'s threads (Linux)."""
+    nices = set()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            nices.add(os.getpriority(os.PRIO_PROCESS, int(tid)))
+        except OSError:  # the thread ended meanwhile
+            continue
+    return nices

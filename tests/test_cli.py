@@ -68,6 +68,7 @@ def test_demo_drills_and_reports(tmp_path):
         (["frobnicate"], 2, "invalid choice"),
         (["view", "--session", "../etc"], 3, "first a letter or digit"),
         (["view", "--port", "70000"], 3, "port must be within"),
+        (["view", "--nice", "20"], 3, "--nice must be 0 (as the server) to 19"),
         (["view", "--connect", "tcp/127.0.0.1:9", "--session", "a-1"], 5, "cannot open a zenoh session"),
     ],
 )

@@ -15,7 +15,7 @@ import pytest
 from dhg.core import protocol
 from dhg.live.client import TraineeClient
 from dhg.live.process import free_port
-from support import ctrl_c, read_until, readline_within, record_process
+from support import ctrl_c, read_until, readline_within, record_process, thread_nices
 from support import entry as _entry
 from support import serve as _serve
 from support import stream as _stream
@@ -141,7 +141,7 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             pump.start()
             _wait(lambda: c.force is not None and c.force["flags"] & protocol.FLAGS["model_available"], 5.0)
             # The worker's forward passes run at nice 19 (decision 0026); its other threads keep 0.
-            assert _thread_nices(worker.proc.pid) == {0, 19}
+            assert thread_nices(worker.proc.pid) == {0, 19}
             worker.proc.send_signal(signal.SIGKILL)
             assert worker.stop() == -signal.SIGKILL
             _wait(lambda: not c.force["flags"] & protocol.FLAGS["model_available"], 15.0, "model unavailable")
@@ -151,7 +151,7 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             assert c.force["flags"] & protocol.FLAGS["model_available"] == 0
             worker, _ = _serve("--role", "model", "--model-nice", "7", endpoint=endpoint)
             _wait(lambda: c.force["flags"] & protocol.FLAGS["model_available"], 30.0, "the restarted model answering")
-            assert _thread_nices(worker.proc.pid) == {0, 7}
+            assert thread_nices(worker.proc.pid) == {0, 7}
             stop.set()
             pump.join()
     finally:
@@ -159,19 +159,6 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
         worker.stop()
         code = engine.stop()
     assert code == 0
-
-
-def _thread_nices(pid: int) -> set[int]:
-    """The nice values of process ``pid``'s threads (Linux)."""
-    import os
-
-    nices = set()
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            nices.add(os.getpriority(os.PRIO_PROCESS, int(tid)))
-        except OSError:  # the thread ended meanwhile
-            continue
-    return nices
 
 
 def test_ctrl_c_stops_a_busy_server_cleanly_with_a_zenoh_config_file(tmp_path):
@@ -240,3 +227,24 @@ def test_every_networked_command_reads_its_zenoh_config(tmp_path, command):
     )
     assert r.returncode == 3, r.stderr
     assert "zenoh config" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
+def test_a_screen_runs_at_nice_10_in_every_thread_unless_told_otherwise():
+    """``dhg view`` yields the cores to the haptic loop it shares a machine with (decision 0027)."""
+    server, endpoint = _serve()
+    try:
+        for flags, expected in (((), {10}), (("--nice", "3"), {3})):
+            with subprocess.Popen(
+                [sys.executable, "-m", "dhg.cli.main", "view", "--connect", endpoint, "--port", "0", *flags],
+                stdout=subprocess.PIPE, text=True,
+            ) as view:  # fmt: skip
+                try:
+                    line = readline_within(view, 60.0, "the viewer's ready line")
+                    assert "dhg view:" in line, line
+                    assert thread_nices(view.pid) == expected
+                finally:
+                    view.send_signal(signal.SIGINT)
+                    assert view.wait(timeout=30) == 0
+    finally:
+        assert server.stop() == 0

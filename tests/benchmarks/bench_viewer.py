@@ -7,7 +7,9 @@ page sent. The viewer is its own process, as ``dhg-serve --view`` runs it.
     python tests/benchmarks/bench_viewer.py --seconds 20 --rounds 3 [--browser]
 
 ``--browser`` also keeps a headless Chromium on the trainee page (the whole screen a trainee has).
-Prints one JSON line per run, then the medians and the ratios (with / without).
+``--viewer-nice 0`` adds a third variant, the viewer at that nice value instead of ``dhg view``'s
+default (decision 0027). Prints one JSON line per run, then the medians and the ratios (with /
+without).
 """
 
 from __future__ import annotations
@@ -35,28 +37,47 @@ def main() -> None:
     ap.add_argument("--browser", action="store_true")
     target = os.environ.get("CARGO_TARGET_DIR", "target")
     ap.add_argument("--load", default=str(Path(target) / "release" / "examples" / "load"))
+    ap.add_argument("--viewer-nice", type=int, metavar="N", help="also a viewer at nice N (dhg view --nice N)")
+    ap.add_argument("--out", help="also append the JSON lines to this file")
     args = ap.parse_args()
+    # None: no viewer; "with": dhg view as it starts by default; an int: dhg view --nice N.
+    variants: list[Any] = [None, "with"] + ([args.viewer_nice] if args.viewer_nice is not None else [])
     runs = []
     for _ in range(args.rounds):
-        for viewer in (False, True):
-            r = _one(args, viewer)
-            print(json.dumps(r), flush=True)
+        for variant in variants:
+            r = _one(args, variant)
+            _emit(args, r)
             runs.append(r)
 
-    def med(viewer: bool, key: str) -> float:
-        return statistics.median(r[key] for r in runs if r["viewer"] == viewer)
+    def med(variant: Any, key: str) -> float:
+        return statistics.median(r[key] for r in runs if r["viewer"] == _name(variant))
 
-    summary = {k: {"without": med(False, k), "with": med(True, k)} for k in ("p50_ms", "p99_ms", "cpu_cores")}
-    for v in summary.values():
-        v["ratio"] = v["with"] / v["without"]
-    summary["viewer_updates_per_s"] = statistics.median(r["updates_per_s"] for r in runs if r["viewer"])
-    summary["server_cpu_per_viewer_cores"] = summary["cpu_cores"]["with"] - summary["cpu_cores"]["without"]
-    summary["viewer_cpu_cores"] = statistics.median(r["viewer_cpu_cores"] for r in runs if r["viewer"])
-    summary["viewer_steady_cpu_cores"] = statistics.median(r["viewer_steady_cpu_cores"] for r in runs if r["viewer"])
-    print(json.dumps(summary), flush=True)
+    for variant in variants[1:]:
+        summary: dict[str, Any] = {"viewer": _name(variant)}
+        for k in ("p50_ms", "p99_ms", "cpu_cores"):
+            summary[k] = {"without": med(None, k), "with": med(variant, k)}
+            summary[k]["ratio"] = summary[k]["with"] / summary[k]["without"]
+        summary["viewer_updates_per_s"] = med(variant, "updates_per_s")
+        summary["server_cpu_per_viewer_cores"] = summary["cpu_cores"]["with"] - summary["cpu_cores"]["without"]
+        summary["viewer_cpu_cores"] = med(variant, "viewer_cpu_cores")
+        summary["viewer_steady_cpu_cores"] = med(variant, "viewer_steady_cpu_cores")
+        _emit(args, summary)
 
 
-def _one(args: argparse.Namespace, with_viewer: bool) -> dict[str, Any]:
+def _name(variant: Any) -> str:
+    """A variant's name in the JSON lines: ``none``, ``with`` (the default nice) or ``nice-N``."""
+    return "none" if variant is None else "with" if variant == "with" else f"nice-{variant}"
+
+
+def _emit(args: argparse.Namespace, line: dict[str, Any]) -> None:
+    print(json.dumps(line), flush=True)
+    if args.out:
+        with open(args.out, "a") as fh:
+            fh.write(json.dumps(line) + "\n")
+
+
+def _one(args: argparse.Namespace, variant: Any) -> dict[str, Any]:
+    with_viewer = variant is not None
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server = ServerProcess(["--listen", endpoint, "--status-every", "30"], echo=False)
     viewer = None
@@ -67,6 +88,8 @@ def _one(args: argparse.Namespace, with_viewer: bool) -> dict[str, Any]:
         if with_viewer:
             port = free_port()
             cmd = [sys.executable, "-m", "dhg.cli.main", "view", "--connect", endpoint, "--port", str(port)]
+            if variant != "with":
+                cmd += ["--nice", str(variant)]
             viewer = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
             assert viewer.stdout is not None
             out.append(viewer.stdout.readline())  # ready
@@ -97,7 +120,7 @@ def _one(args: argparse.Namespace, with_viewer: bool) -> dict[str, Any]:
     load = json.loads(r.stdout)
     rates = [float(m.group(1)) for line in out if (m := re.search(r"\(([\d.]+)/s\)", line))]
     return {
-        "viewer": with_viewer,
+        "viewer": _name(variant),
         "p50_ms": load["pose_to_force_ms"]["p50"],
         "p99_ms": load["pose_to_force_ms"]["p99"],
         "cpu_cores": load["server_cpu_cores"],

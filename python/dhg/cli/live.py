@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -14,7 +15,12 @@ from typing import Any
 from dhg.cli.common import EXIT_INTERNAL, EXIT_OK, NETWORK_EPILOG, stop_on_signals
 from dhg.core.session import GUIDANCE_MODES
 
-__all__ = ["add_commands"]
+__all__ = ["VIEW_NICE", "add_commands"]
+
+VIEW_NICE = 10
+"""``dhg view``'s nice value (its whole process, every thread): a screen yields the cores to the
+haptic client and the server it shares a machine with, and draws with what is left
+(``docs/decisions/0027-the-screen-yields-to-the-hand.md``)."""
 
 
 # -- dhg trainee ------------------------------------------------------------------------------
@@ -171,6 +177,14 @@ def _add_view(sub: Any, epilog: str) -> None:
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (the lab's instructor or station file)")
+    p.add_argument(
+        "--nice",
+        type=int,
+        default=VIEW_NICE,
+        metavar="N",
+        help=f"this process's nice value, 0 to 19 (default {VIEW_NICE}: on a machine it shares with a haptic "
+        "station or the server, the screen gives way to them and draws with the CPU left over)",
+    )
     p.set_defaults(func=_cmd_view)
 
 
@@ -179,6 +193,9 @@ def _cmd_view(args: argparse.Namespace) -> int:
 
     if args.duration is not None and args.duration <= 0:
         raise ValueError(f"--duration must be positive, got {args.duration}")
+    if not 0 <= args.nice <= 19:
+        raise ValueError(f"--nice must be 0 (as the server) to 19 (yield to everything), got {args.nice}")
+    _yield_cores(args.nice)
     with (
         stop_on_signals() as stop,
         Viewer(
@@ -205,6 +222,22 @@ def _cmd_view(args: argparse.Namespace) -> int:
     for line in lines:
         print(line, flush=True)
     return EXIT_OK
+
+
+def _yield_cores(nice: int) -> None:
+    """Raises every thread of this process to at least ``nice``, before the viewer starts its own
+    (Zenoh's, the web server's: they inherit it). Linux nice values are per thread, and some exist
+    already (numpy's BLAS pool starts at import). Never lowered: that needs privilege."""
+    if not os.path.isdir("/proc/self/task"):  # not Linux: the process's one nice value
+        if hasattr(os, "nice"):
+            os.nice(max(0, nice - os.nice(0)))
+        return
+    for tid in map(int, os.listdir("/proc/self/task")):
+        try:
+            if os.getpriority(os.PRIO_PROCESS, tid) < nice:
+                os.setpriority(os.PRIO_PROCESS, tid, nice)
+        except OSError:  # the thread ended meanwhile
+            continue
 
 
 def _add_live_demo(sub: Any, epilog: str) -> None:
