@@ -5,6 +5,7 @@ own process; the test process adds workers, genuine or not."""
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from collections.abc import Iterator
@@ -195,3 +196,34 @@ def test_a_rogue_peer_cannot_steer_guidance_from_outside_the_pool_or_inside_it(s
     ignored = after["ignored"] - before["ignored"]
     assert ignored >= 0.8 * sent["replies"] > 0, (ignored, sent)
     assert after["replies"] - before["replies"] <= after["queries"] - before["queries"]
+
+
+def test_sessions_started_apart_share_the_models_forward_passes():
+    """The engine puts every session's 10 Hz records on one 100 ms grid (decision 0028), so the
+    sessions' model queries arrive together and the model service answers them in shared batches
+    (at random phases, four sessions' queries seldom meet: about one batch a query)."""
+    proc, endpoint = serve("--idle-timeout", "600")
+    clients: list[TraineeClient] = []
+    batching = re.compile(r"model service answered (\d+) in (\d+) batches")
+
+    def answered_in_batches() -> tuple[int, int]:
+        found = (batching.search(line) for line in reversed(proc.lines))
+        m = next((m for m in found if m), None)
+        return (int(m[1]), int(m[2])) if m else (0, 0)
+
+    try:
+        for k in range(4):
+            clients.append(TraineeClient(endpoint, f"grid-{k}"))
+            clients[-1].create()
+            # The test's input, not a wait for something: the sessions start 37 ms apart, at
+            # phases of the 100 ms grid about 40 ms apart.
+            time.sleep(0.037)
+        wait_until(lambda: answered_in_batches()[0] >= 40, 60.0, "the model answering all four")
+        a0, b0 = answered_in_batches()
+        wait_until(lambda: answered_in_batches()[0] >= a0 + 200, 120.0, "200 more answers")
+        a1, b1 = answered_in_batches()
+        assert (a1 - a0) / (b1 - b0) >= 1.6, f"{a1 - a0} queries in {b1 - b0} forward passes"
+    finally:
+        for c in clients:
+            c.close()
+        assert proc.stop() == 0

@@ -12,6 +12,7 @@ from dhg.core import protocol
 from dhg.core.errors import InvalidInputError
 from dhg.learning.torchscript import load_model
 from dhg.learning.weights import default_model_path
+from dhg.live import services
 from dhg.live.services import ModelService
 from dhg.live.zenoh_config import open_zenoh, zenoh_config_json5
 from support import wait_until
@@ -185,6 +186,62 @@ def test_queries_that_wait_behind_a_forward_pass_are_answered_in_one_batch_and_a
             assert ok and protocol.decode("prediction", body[:32])["window_seq"] == seq
         stats = service.stats()
         assert (stats["answered"], stats["busy"], stats["refused"], stats["batches"]) == (4, 1, 1, 2), stats
+    finally:
+        model.gate.set()
+        service.close()
+        z.close()
+
+
+def test_after_a_batch_of_n_the_worker_gathers_the_next_burst_of_n_and_a_lone_query_waits_for_nothing(monkeypatch):
+    """The engine's sessions record on one 100 ms grid, so their queries come in bursts (decision
+    0028): once a pass answered N, the next N queries to arrive share one pass even when they come
+    one by one. A lone query, after a lone query, is computed at once."""
+    import threading
+
+    model = _ScriptedModel()
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    # A long burst window, and a long memory of the last burst (a busy host may take a while
+    # between the test's steps): the test would stall visibly (past its deadlines) if a lone query
+    # waited for a burst.
+    monkeypatch.setattr(services, "BURST_MEMORY_S", 60.0)
+    service = ModelService(z, model, prefix="svc-burst", burst_wait_s=60.0)
+    key = protocol.keys("svc-burst", "x")["predict"]
+    window = np.zeros((20, 9), dtype=np.float32)
+
+    def ask(seq: int) -> threading.Thread:
+        t = threading.Thread(target=lambda: _query(z, key, window, seq))
+        t.start()
+        return t
+
+    try:
+        warm = len(model.batches)
+        ask(1).join(timeout=20)  # after the warm-up's lone passes: computed at once
+        assert model.batches[warm:] == [1]
+        # Three queries behind a held pass: one batch of three.
+        model.entered.clear()
+        model.gate.clear()
+        held = ask(2)
+        assert model.entered.wait(timeout=20), "the query never reached the model"
+        queued = [ask(s) for s in (3, 4, 5)]
+        wait_until(lambda: service._queue.qsize() >= 3, 10.0, "the three queries reaching the service")
+        model.gate.set()
+        for t in (held, *queued):
+            t.join(timeout=20)
+        assert model.batches[warm:] == [1, 1, 3]
+        # The next three, one at a time: the worker holds the first until the other two are in.
+        arrived = service._queue.unfinished_tasks  # counts every put; get leaves it as it is
+        burst = [ask(6)]
+        wait_until(
+            lambda: service._queue.unfinished_tasks == arrived + 1 and service._queue.qsize() == 0,
+            10.0,
+            "the worker taking the burst's first query",
+        )
+        burst += [ask(7), ask(8)]
+        for t in burst:
+            t.join(timeout=20)
+        assert not any(t.is_alive() for t in burst), "a query of the burst was not answered"
+        assert model.batches[warm:] == [1, 1, 3, 3], "the burst was not one forward pass"
+        assert service.stats()["answered"] == 8
     finally:
         model.gate.set()
         service.close()

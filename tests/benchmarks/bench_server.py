@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import socket
 import statistics
 import subprocess
@@ -70,7 +71,14 @@ def main() -> None:
         "dhg-thread (dhg-serve --tick-on thread: the tick thread ticks every pose), dhg-sim (dhg-serve --role "
         "sim, the model service in a process of its own, its CPU reported apart), dhg-engine (dhg-serve --role "
         "sim and no model service), dhg-nice0 (dhg-serve --model-nice 0: the model's worker thread at the "
-        "engine's priority, as before decision 0026), echo (must be included)",
+        "engine's priority, as before decision 0026), other (dhg-serve from the build --other names), "
+        "echo (must be included)",
+    )
+    p.add_argument(
+        "--other",
+        metavar="PYTHONPATH",
+        help="with --against-echo: a second build (a checkout's python/ folder with its extension built), run as "
+        "the variant 'other' (dhg-serve as the variant dhg runs it)",
     )
     args = p.parse_args()
     if args.against_echo:
@@ -154,20 +162,32 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
     process, ``--role model``, whose CPU is reported apart as ``model_cpu_per_session``),
     ``dhg-engine`` (``--role sim`` with no model service: the sessions tick, their model queries go
     unanswered; what the engine costs without the model's forward passes on the same cores),
-    ``dhg-nice0`` (``dhg-serve --model-nice 0``), ``echo``."""
+    ``dhg-nice0`` (``dhg-serve --model-nice 0``), ``other`` (``dhg-serve`` from the build
+    ``--other`` names), ``echo``."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server: Any = None
     model: Any = None
     echo: subprocess.Popen[str] | None = None
-    if target.startswith("dhg"):
+    if target.startswith("dhg") or target == "other":
         tick_on = "thread" if target == "dhg-thread" else "pose"
         role = "sim" if target in ("dhg-sim", "dhg-engine") else "all"
         nice = ["--model-nice", "0"] if target == "dhg-nice0" else []
-        server = ServerProcess(
-            ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "30", "--tick-on", tick_on,
-             "--role", role, *nice],
-            echo=False,
-        )  # fmt: skip
+        saved = os.environ.get("PYTHONPATH")
+        if target == "other":
+            if not args.other:
+                raise SystemExit("the variant 'other' needs --other PYTHONPATH")
+            os.environ["PYTHONPATH"] = args.other
+        try:  # returns once dhg-serve says it is ready
+            server = ServerProcess(
+                ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "5", "--tick-on",
+                 tick_on, "--role", role, *nice],
+                echo=False,
+            )  # fmt: skip
+        finally:
+            if saved is None:
+                os.environ.pop("PYTHONPATH", None)
+            else:
+                os.environ["PYTHONPATH"] = saved
         if target == "dhg-sim":
             model = ServerProcess(["--role", "model", "--connect", endpoint, "--status-every", "30"], echo=False)
         pid = server.proc.pid
@@ -185,6 +205,9 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
             capture_output=True, text=True, timeout=args.seconds + 120,
         )  # fmt: skip
         switches = _context_switches(pid) - switches0
+        # The model service's queries per forward pass, from dhg-serve's newest status line.
+        said = [m for line in (server.lines if server is not None else []) if (m := _BATCHES.search(line))]
+        per_pass = int(said[-1][1]) / max(int(said[-1][2]), 1) if said else None
         model_cores = (_cpu_s(model.proc.pid) - model_cpu0) / (time.perf_counter() - t0) if model is not None else 0.0
     finally:
         if model is not None:
@@ -211,7 +234,11 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         "context_switches_per_pose": switches / (n * (args.seconds + 2.0) * 1000.0),
         # The model service's process (dhg-sim only), over the whole load run.
         "model_cpu_per_session": model_cores / n,
+        "model_queries_per_pass": per_pass,
     }
+
+
+_BATCHES = re.compile(r"model service answered (\d+) in (\d+) batches")
 
 
 def _cpu_s(pid: int) -> float:
@@ -242,20 +269,21 @@ def _against_echo(args: argparse.Namespace) -> None:
             rows.append(
                 (n, s, *(med(t, k) for k in ("p50_ms", "p99_ms", "cpu_per_session", "context_switches_per_pose")
                          for t in (s, "echo")), med(s, "forces_per_pose"), med(s, "model_cpu_per_session"),
-                 statistics.median([r["guidance_p99_ms"] or 0.0 for r in runs[s]]))
+                 statistics.median([r["guidance_p99_ms"] or 0.0 for r in runs[s]]),
+                 statistics.median([r["model_queries_per_pass"] or 0.0 for r in runs[s]]))
             )  # fmt: skip
     print(f"\n{args.rounds} rounds of {args.seconds:g} s each, alternating; medians; {os.cpu_count()} CPUs\n")
     print("| clients | server | pose → force p50, server / echo (ms) | ratio | p99, server / echo (ms) | ratio "
           "| server CPU per session, server / echo (cores) | ratio | context switches per pose, server / echo "
           "| forces per pose | model service's process, CPU per session (cores) "
-          "| pose → guidance p99 (ms) |")  # fmt: skip
-    print("|---:|---|---|---:|---|---:|---|---:|---|---:|---:|---:|")
-    for n, s, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp, mcpu, gp99 in rows:
+          "| pose → guidance p99 (ms) | model queries per forward pass |")  # fmt: skip
+    print("|---:|---|---|---:|---|---:|---|---:|---|---:|---:|---:|---:|")
+    for n, s, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp, mcpu, gp99, qpp in rows:
         model = f"{mcpu:.4f}" if s == "dhg-sim" else "(in the server)"
         print(
             f"| {n} | {s} | {p50d:.3f} / {p50e:.3f} | {p50d / p50e:.2f} | {p99d:.3f} / {p99e:.3f} "
             f"| {p99d / p99e:.2f} | {cpud:.4f} / {cpue:.4f} | {cpud / cpue:.2f} | {swd:.2f} / {swe:.2f} | {fpp:.3f} "
-            f"| {model} | {f'{gp99:.2f}' if gp99 else '—'} |"
+            f"| {model} | {f'{gp99:.2f}' if gp99 else '—'} | {f'{qpp:.2f}' if qpp else '—'} |"
         )
 
 

@@ -4,7 +4,7 @@
 mod common;
 
 use bone_sim::engine::handoff::{Output, PoseSample};
-use bone_sim::engine::{EngineLink, PoseTick, TickCore, CLAIM_RETRY, GRACE_PERIODS};
+use bone_sim::engine::{off_grid_ms, ticks_to_grid, EngineLink, PoseTick, TickCore, CLAIM_RETRY, GRACE_PERIODS};
 use common::engine::*;
 use std::sync::atomic::Ordering;
 
@@ -512,4 +512,81 @@ fn a_slot_held_by_another_thread_is_passed_over_and_its_commands_wait() {
     let out = drain(&mut link);
     assert!(matches!(out.first(), Some(Output::Guidance { msg, .. }) if msg.window_seq == 1), "{out:?}");
     assert_eq!(forces(&out).last().unwrap().pose_seq, 1);
+}
+
+#[test]
+fn the_grid_puts_a_sessions_next_record_at_the_next_100_ms_mark() {
+    let grid = Instant::now();
+    for (into_us, ticks) in
+        [(0, 1), (499, 1), (500, 1), (501, 100), (1_000, 100), (1_600, 99), (37_300, 64), (99_600, 1), (100_000, 1)]
+    {
+        assert_eq!(ticks_to_grid(grid, grid + us(into_us)), ticks, "{into_us} µs into the grid");
+        assert_eq!(ticks_to_grid(grid, grid + us(into_us) + 7 * 100 * MS), ticks, "7 periods later");
+    }
+    // Before the grid (not in the engine, whose grid is its start): as at the grid.
+    assert_eq!(ticks_to_grid(grid + MS, grid), 1);
+    for (into_us, off) in [(0, 0.0), (1_500, 1.5), (49_000, 49.0), (51_000, -49.0), (99_600, -0.4), (100_000, 0.0)] {
+        assert!((off_grid_ms(grid, grid + us(into_us)) - off).abs() < 1e-9, "{into_us} µs into the grid");
+    }
+}
+
+#[test]
+fn sessions_started_apart_record_on_the_same_100_ms_grid() {
+    let (mut core, mut link, _) = engine(2);
+    let t0 = Instant::now();
+    activate(&mut link, 0, 1, 1.0);
+    let mut records: [Vec<Duration>; 2] = [Vec::new(), Vec::new()];
+    let mut t = t0;
+    while t < t0 + 450 * MS {
+        if t == t0 + us(37_300) {
+            activate(&mut link, 1, 1, 1.0);
+        }
+        core.tick_due(t);
+        for o in drain(&mut link) {
+            if let Output::State { slot, .. } = o {
+                records[usize::from(slot)].push(t - t0);
+            }
+        }
+        t += us(100);
+    }
+    // Without poses each ticks once a period from its activation; slot 1 started 37.3 ms after
+    // slot 0 but records within a period of it, every 100 ms.
+    assert!(records[0].len() >= 4 && records[1].len() >= 4, "{records:?}");
+    for r1 in &records[1] {
+        assert!(records[0].iter().any(|r0| r0.abs_diff(*r1) <= MS), "{records:?}");
+    }
+}
+
+#[test]
+fn a_session_a_stall_put_off_the_grid_returns_to_it_within_a_few_records_each_90_to_110_ticks_apart() {
+    let (mut core, mut link, _) = engine(1);
+    let t0 = Instant::now();
+    activate(&mut link, 0, 1, 1.0);
+    // (wall time since t0, session time) of each record.
+    let mut records: Vec<(Duration, f64)> = Vec::new();
+    let mut t = t0;
+    while t < t0 + 1500 * MS {
+        // The thread stalls 42 ms once: the schedule skips the missed ticks (counted).
+        if t == t0 + 250 * MS {
+            t += 42 * MS;
+        }
+        core.tick_due(t);
+        for o in drain(&mut link) {
+            if let Output::State { msg, .. } = o {
+                records.push((t - t0, msg.time_s));
+            }
+        }
+        t += us(100);
+    }
+    assert!(link.stats.missed.load(Ordering::Relaxed) >= 40, "the stall skipped no ticks");
+    let off = |d: Duration| (d.as_secs_f64() * 1e3 - records[0].0.as_secs_f64() * 1e3 + 50.0).rem_euclid(100.0) - 50.0;
+    // Before the stall each record is on the grid the first one set; after it, 42 ms off at first,
+    // and back within a tick after at most five records.
+    let stalled = records.iter().position(|r| r.0 > 250 * MS).unwrap();
+    assert!(records[..stalled].iter().all(|r| off(r.0).abs() < 1.0), "{records:?}");
+    assert!(off(records[stalled].0).abs() > 30.0, "{records:?}");
+    assert!(records[stalled + 5..].iter().all(|r| off(r.0).abs() <= 1.5), "{records:?}");
+    assert!(records.len() > stalled + 6, "{records:?}");
+    // In session time every interval stays within 90–110 ticks.
+    assert!(records.windows(2).all(|w| (0.089..0.111).contains(&(w[1].1 - w[0].1))), "{records:?}");
 }

@@ -546,3 +546,29 @@ fn the_thinnest_cortex_of_the_phantom_still_breaks_through() {
     let (_, s) = drill_until(s, surface, 1.5, 1250.0, surface + 3e-3, 20.0);
     assert_eq!(s.state().breakthroughs, 1);
 }
+
+#[test]
+fn records_come_every_100_ticks_from_the_tick_asked_for_and_from_tick_100_again_after_a_reset() {
+    let (mut s, surface, _) = session(&[(Layer::Cortical, 1500.0, 3e-3)]);
+    let p = pose(surface - 1e-3, false, 0.0);
+    let record_ticks = |s: &mut DrillingSession, n: u64| -> Vec<u64> {
+        (0..n).filter_map(|_| s.tick(Some(&p)).record.map(|r| (r.time_s * 1e3).round() as u64)).collect()
+    };
+    assert_eq!(record_ticks(&mut s, 250), [100, 200]);
+    // Mid-attempt (tick 250): the next record 37 ticks from now, then every 100.
+    s.set_next_record_in(37).unwrap();
+    assert_eq!(record_ticks(&mut s, 250), [287, 387, 487]);
+    s.set_next_record_in(100).unwrap();
+    assert_eq!(record_ticks(&mut s, 101), [600]);
+    s.set_next_record_in(1).unwrap();
+    assert_eq!(record_ticks(&mut s, 1), [602]);
+    for bad in [0, 201] {
+        assert!(s.set_next_record_in(bad).is_err(), "{bad}");
+    }
+    assert_eq!(record_ticks(&mut s, 100), [702]);
+    // Later than a period: the record after it comes a period later.
+    s.set_next_record_in(150).unwrap();
+    assert_eq!(record_ticks(&mut s, 250), [852, 952]);
+    s.reset();
+    assert_eq!(record_ticks(&mut s, 200), [100, 200]);
+}

@@ -20,11 +20,21 @@ from dhg.core import protocol
 from dhg.core.errors import InvalidInputError
 from dhg.core.protocol import check_session_id
 
-__all__ = ["MODEL_NICE", "BoneService", "ModelService", "XRayService", "decode_npz", "encode_npz"]
+__all__ = ["BURST_WAIT_S", "MODEL_NICE", "BoneService", "ModelService", "XRayService", "decode_npz", "encode_npz"]
 
 MODEL_NICE = 19
 """``dhg-serve``'s nice value for the model worker thread: the lowest priority, so that on shared
 cores a forward pass gives way to the forces' threads at once (decision 0026)."""
+
+BURST_WAIT_S = 0.002
+"""How long (s) the model worker waits, after a batch of N > 1 queries, for the next burst's N: the
+engine's sessions record on one 100 ms grid, and their queries arrive within a tick or two of the
+mark (the tick phase of each client's poses, the comm thread's wake-up), so 2 ms gathers a burst
+that a forward pass would otherwise split in two (decision 0028)."""
+
+BURST_MEMORY_S = 0.15
+"""How long (s) the model worker remembers a batch's size as the size of the bursts to come: one
+100 ms record period and a half."""
 
 MAX_NPZ_BYTES = 12 * 1024 * 1024
 """The largest bone or volume reply (bytes): clients take messages up to 16 MiB."""
@@ -61,7 +71,12 @@ class ModelService:
     within ``max_wait_s`` of the first query (up to ``max_batch`` windows), runs one forward pass,
     and replies to each query. With the default ``max_wait_s = 0`` it waits for nothing: queries
     that arrive during a forward pass form the next batch, so batches grow with the load and a
-    lone query pays no waiting. Bad queries get an error reply and are counted. The queue holds at
+    lone query pays no waiting. One exception: the engine puts every session's records on one
+    100 ms grid, so its queries come in bursts, one a session. Within :data:`BURST_MEMORY_S` of a
+    batch of N > 1 queries the worker waits up to ``burst_wait_s`` (default
+    :data:`BURST_WAIT_S`) for N, so that one pass answers the whole burst, not its first query
+    alone; where the batches were lone queries it waits for nothing
+    (``docs/decisions/0028-records-on-one-grid.md``). Bad queries get an error reply and are counted. The queue holds at
     most ``max_queue`` queries (more are refused at once, as ``busy``), and a query that waited
     longer than ``max_age_s`` (the engine's 0.25 s query timeout by default: its asker has given up)
     is refused as ``stale`` instead of computed. Why no batching wait: ``docs/decisions/0010-model-service.md``.
@@ -80,6 +95,7 @@ class ModelService:
         prefix: str = "dhg",
         max_batch: int = 64,
         max_wait_s: float = 0.0,
+        burst_wait_s: float | None = None,
         max_queue: int = 256,
         max_age_s: float = 0.25,
         clock: Callable[[], float] = time.perf_counter,
@@ -98,6 +114,7 @@ class ModelService:
         self.key = f"{prefix}/model/predict"
         self.max_batch = max_batch
         self.max_wait_s = max_wait_s
+        self.burst_wait_s = BURST_WAIT_S if burst_wait_s is None else burst_wait_s
         self.max_age_s = max_age_s
         self._clock = clock  # what a query's age is measured with (s)
         self.answered = 0
@@ -144,19 +161,26 @@ class ModelService:
             # Linux nice values are per thread: this lowers the worker's alone (torch runs its
             # forward passes on this thread with one intra-op thread, dhg-serve's default on ≤ 7 cores).
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self.nice)
+        # The largest batch of the last grid period and a half: the queries of the burst now
+        # arriving (a session a stall put off the grid for a few records then waits 2 ms alone,
+        # instead of splitting the bursts of the others).
+        recent: deque[tuple[float, int]] = deque(maxlen=64)
         while not self._stop.is_set():
             try:
                 first = self._queue.get(timeout=0.1)
             except queue.Empty:
                 continue
             batch = [first]
-            deadline = time.perf_counter() + self.max_wait_s
+            t0 = time.perf_counter()
+            expect = max((n for t, n in recent if t0 - t < BURST_MEMORY_S), default=1)
             while len(batch) < self.max_batch:
-                left = deadline - time.perf_counter()
+                wait = max(self.burst_wait_s if len(batch) < expect else 0.0, self.max_wait_s)
+                left = t0 + wait - time.perf_counter()
                 try:
                     batch.append(self._queue.get(timeout=left) if left > 0 else self._queue.get_nowait())
                 except queue.Empty:
                     break
+            recent.append((t0, len(batch)))
             now = self._clock()
             fresh = []
             for arrived, q in batch:

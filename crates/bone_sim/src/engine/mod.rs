@@ -52,6 +52,7 @@ use std::time::{Duration, Instant};
 use crate::error::{SimError, SimResult};
 use crate::guidance::{check_gain, GuidanceMode, GuidanceParams};
 use crate::path::PlannedPath;
+use crate::record::RECORD_PERIOD_TICKS;
 use crate::session::{DrillingSession, SessionConfig};
 use crate::volume::drilled::DrilledVolume;
 use crate::volume::Volume;
@@ -143,6 +144,32 @@ fn due_periods(streaming: bool) -> f64 {
 /// Periods from now until a slot ticks without a fresh pose (see [`due_periods`]).
 fn timer_until(streaming: bool, tokens: f64, elapsed: f64) -> f64 {
     due_periods(streaming) - (tokens + elapsed)
+}
+
+/// Ticks from `now` to a session's first record, so that it falls on the engine's 100 ms record
+/// grid (which starts at `grid`): 1 to [`RECORD_PERIOD_TICKS`]. A session activated or reset at
+/// `now` ticks its first tick about then and one a period after, so every session's records, and
+/// with them its model queries, come within a tick or two of the others', and the model service
+/// answers them in one batched forward pass instead of one pass each. Why:
+/// `docs/decisions/0028-records-on-one-grid.md`.
+#[must_use]
+pub fn ticks_to_grid(grid: Instant, now: Instant) -> u64 {
+    let period_ns = TICK_PERIOD.as_nanos() * u128::from(RECORD_PERIOD_TICKS);
+    let into = now.saturating_duration_since(grid).as_nanos() % period_ns;
+    // The first tick is about now, tick k k - 1 periods later: the one nearest the next mark.
+    let tick_ns = TICK_PERIOD.as_nanos();
+    let periods_left = ((period_ns - into + tick_ns / 2) / tick_ns) as u64 % RECORD_PERIOD_TICKS;
+    periods_left + 1
+}
+
+/// How far `now` is past the nearest mark of the record grid that starts at `grid` (ms, −50 to 50;
+/// negative: before it).
+#[must_use]
+pub fn off_grid_ms(grid: Instant, now: Instant) -> f64 {
+    let period_ns = TICK_PERIOD.as_nanos() * u128::from(RECORD_PERIOD_TICKS);
+    let into = (now.saturating_duration_since(grid).as_nanos() % period_ns) as f64;
+    let past = if into * 2.0 < period_ns as f64 { into } else { into - period_ns as f64 };
+    past * 1e-6
 }
 
 /// `seconds` rounded up to whole microseconds (waking a hair early would find nothing due).
@@ -243,7 +270,7 @@ impl SlotState {
         if behind >= 1.0 {
             stats.missed.fetch_add(behind as u64, Ordering::Relaxed);
         }
-        if let Some(t) = s.tick(idx, emit) {
+        if let Some(t) = s.tick(idx, Some(now), emit) {
             stats.pose_to_tick.record(now.saturating_duration_since(t).as_nanos() as u64);
         }
         let bank = due_periods(sched.streaming) + WAKE_SLACK_PERIODS;
@@ -590,7 +617,7 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
         let (tx, rx) = triple_buffer::triple_buffer(&PoseSample::default());
         let mut session = DrillingSession::new(volume.clone(), config.default_path.clone(), config.session.clone())?;
         session.reserve_bricks(config.reserve_bricks);
-        let slot = Slot::new(session, config.guidance.clone(), rx)?;
+        let slot = Slot::new(session, config.guidance.clone(), rx, now)?;
         slots.push(Mutex::new(SlotState { slot, schedule: Schedule::new(now) }));
         poses.push(tx);
     }
@@ -650,16 +677,17 @@ impl TickCore {
         }
     }
 
-    /// Applies `cmd` to its slot, which the caller has claimed (`st`).
-    fn apply(&mut self, st: &mut SlotState, cmd: Command) {
+    /// Applies `cmd` to its slot, which the caller has claimed (`st`), at `now` (`None`: stepped
+    /// offline, off any clock).
+    fn apply(&mut self, st: &mut SlotState, cmd: Command, now: Option<Instant>) {
         let s = &mut st.slot;
         match cmd {
             Command::Activate { generation, path, mode, gain, .. } => {
-                s.activate(generation, path.unwrap_or_else(|| self.default_path.clone()), mode, gain);
+                s.activate(generation, path.unwrap_or_else(|| self.default_path.clone()), mode, gain, now);
                 st.schedule = Schedule::new(Instant::now());
             }
             Command::Release { .. } => s.active = false,
-            Command::Reset { .. } => s.reset(),
+            Command::Reset { .. } => s.reset(now),
             Command::SetPath { path, .. } => s.session.set_path(path),
             // Checked by the sender; a bad value would leave the session as it was.
             Command::SetBurr { radius_m, .. } => {
@@ -686,7 +714,7 @@ impl TickCore {
 
     /// Applies waiting commands in order, each under its slot's claim. Returns false if it
     /// stopped at a command whose slot another thread held (it stays first in the ring).
-    fn apply_commands(&mut self, wait: bool) -> bool {
+    fn apply_commands(&mut self, wait: bool, now: Option<Instant>) -> bool {
         self.applied = 0;
         let cells = self.cells.clone();
         for _ in 0..COMMANDS_PER_TICK {
@@ -697,7 +725,7 @@ impl TickCore {
                         return false;
                     };
                     if let Ok(cmd) = self.commands.pop() {
-                        self.apply(&mut st, cmd);
+                        self.apply(&mut st, cmd, now);
                     }
                 }
                 None => {
@@ -728,7 +756,7 @@ impl TickCore {
     /// becomes due (at most [`IDLE_WAKE`] away: commands wake the thread).
     pub fn tick_due(&mut self, now: Instant) -> (u32, Instant) {
         let mut next = now + IDLE_WAKE;
-        if !self.apply_commands(false) {
+        if !self.apply_commands(false, Some(now)) {
             next = next.min(now + CLAIM_RETRY);
         }
         let mut ticked = 0;
@@ -759,16 +787,17 @@ impl TickCore {
 
     /// One tick of every active slot, due or not: commands first, then the sessions (tests and
     /// offline stepping; waits for each slot's claim; the tick thread uses
-    /// [`tick_due`](Self::tick_due)).
+    /// [`tick_due`](Self::tick_due)). Off any clock, so off the record grid: its sessions record
+    /// at ticks 100, 200, ….
     pub fn tick(&mut self) {
-        self.apply_commands(true);
+        self.apply_commands(true, None);
         let mut active = 0;
         let (outputs, stats) = (&*self.outputs, &*self.stats);
         for (i, cell) in self.cells.iter().enumerate() {
             let mut st = claim_waiting(cell);
             if st.slot.active {
                 active += 1;
-                st.slot.tick(i as u16, |out| Self::emit(outputs, stats, out));
+                st.slot.tick(i as u16, None, |out| Self::emit(outputs, stats, out));
             }
         }
         self.stats.sessions.store(active, Ordering::Relaxed);

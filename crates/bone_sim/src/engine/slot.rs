@@ -1,6 +1,8 @@
 //! One session slot as the tick thread sees it: the drilling session (which renders its own
 //! guidance and passes bone force + guidance through its device limits) and its pose input.
 
+use std::time::Instant;
+
 use nalgebra::Vector3;
 
 use super::handoff::{Output, PoseSample};
@@ -8,6 +10,7 @@ use crate::error::SimResult;
 use crate::guidance::{GuidanceMode, GuidanceParams};
 use crate::path::PlannedPath;
 use crate::protocol::{flags, ForceMsg, GuidanceMsg, StateMsg};
+use crate::record::RECORD_PERIOD_TICKS;
 use crate::session::{DrillingSession, SessionState};
 
 /// A tick-side session slot.
@@ -27,7 +30,17 @@ pub(crate) struct Slot {
     voxel_m3: f64,
     /// The burr a fresh session starts with (m).
     default_burr_m: f64,
+    /// Where the engine's 100 ms record grid starts (see [`super::ticks_to_grid`]).
+    record_grid: Instant,
 }
+
+/// How far off the record grid (ms) a record may come before the next is moved towards it: a
+/// session on the grid records within half a tick of its marks, one a stall put off it further.
+const GRID_TOLERANCE_MS: f64 = 1.5;
+/// The most (ticks) one record interval is shortened or lengthened to bring a session back to
+/// the grid: a stall that skipped 40 ticks is made up within four records, while each window the
+/// model reads keeps its records 90–110 ms apart. Why: `docs/decisions/0028-records-on-one-grid.md`.
+const GRID_SLEW_TICKS: f64 = 10.0;
 
 fn flags_of(s: &SessionState) -> u16 {
     let mut f = 0;
@@ -54,6 +67,7 @@ impl Slot {
         session: DrillingSession,
         guidance: GuidanceParams,
         poses: triple_buffer::Output<PoseSample>,
+        record_grid: Instant,
     ) -> SimResult<Self> {
         let mut session = session;
         session.set_guidance_params(guidance)?;
@@ -71,6 +85,7 @@ impl Slot {
             order: 0,
             voxel_m3,
             default_burr_m,
+            record_grid,
         })
     }
 
@@ -93,8 +108,17 @@ impl Slot {
         self.fresh
     }
 
-    /// Starts a fresh session: undrilled bone, new state, no guidance.
-    pub(crate) fn activate(&mut self, generation: u32, path: PlannedPath, mode: GuidanceMode, gain: f64) {
+    /// Starts a fresh session at `now`: undrilled bone, new state, no guidance, its first record
+    /// on the engine's record grid (`None`: stepped offline, off any clock; it records at ticks
+    /// 100, 200, …).
+    pub(crate) fn activate(
+        &mut self,
+        generation: u32,
+        path: PlannedPath,
+        mode: GuidanceMode,
+        gain: f64,
+        now: Option<Instant>,
+    ) {
         self.session.set_path(path);
         // Valid: it is the radius the session was built with.
         let _ = self.session.set_burr_radius(self.default_burr_m);
@@ -103,11 +127,32 @@ impl Slot {
         self.generation = generation;
         self.active = true;
         (self.pose_seq, self.pose_time_ns, self.record_seq) = (0, 0, 0);
+        self.first_record_on_grid(now);
     }
 
-    pub(crate) fn reset(&mut self) {
+    /// A new attempt at `now` (see [`activate`](Self::activate)).
+    pub(crate) fn reset(&mut self, now: Option<Instant>) {
         self.session.reset();
         self.record_seq = 0;
+        self.first_record_on_grid(now);
+    }
+
+    fn first_record_on_grid(&mut self, now: Option<Instant>) {
+        if let Some(now) = now {
+            // In range by construction (1 to 100), so this cannot fail.
+            let _ = self.session.set_next_record_in(super::ticks_to_grid(self.record_grid, now));
+        }
+    }
+
+    /// After a record made at `now`: if it came off the grid (a stall skipped ticks), the next
+    /// comes up to [`GRID_SLEW_TICKS`] sooner or later, towards the grid.
+    fn keep_records_on_grid(&mut self, now: Instant) {
+        let off_ms = super::off_grid_ms(self.record_grid, now);
+        if off_ms.abs() > GRID_TOLERANCE_MS {
+            let next = RECORD_PERIOD_TICKS as f64 - off_ms.round().clamp(-GRID_SLEW_TICKS, GRID_SLEW_TICKS);
+            // 90 to 110 ticks, within the allowed range.
+            let _ = self.session.set_next_record_in(next as u64);
+        }
     }
 
     pub(crate) fn set_guidance(&mut self, mode: GuidanceMode, gain: f64) {
@@ -146,9 +191,9 @@ impl Slot {
         }
     }
 
-    /// One 1 ms tick: newest pose in, force (and every 100th tick the state) out. Returns when
-    /// the server received the fresh pose it used, if it had one.
-    pub(crate) fn tick(&mut self, idx: u16, mut emit: impl FnMut(Output)) -> Option<std::time::Instant> {
+    /// One 1 ms tick at `now` (`None`: stepped offline): newest pose in, force (and every 100th
+    /// tick the state) out. Returns when the server received the fresh pose it used, if it had one.
+    pub(crate) fn tick(&mut self, idx: u16, now: Option<Instant>, mut emit: impl FnMut(Output)) -> Option<Instant> {
         let mut fresh = None;
         let mut received = None;
         self.poll_pose();
@@ -221,6 +266,9 @@ impl Slot {
                     guidance_gain: self.session.guide().gain(),
                 },
             });
+            if let Some(now) = now {
+                self.keep_records_on_grid(now);
+            }
         }
         received
     }

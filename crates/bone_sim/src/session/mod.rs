@@ -47,7 +47,7 @@ pub use state::{Pose, SessionState, TickOutput};
 
 use crate::contact::BurrProbe;
 use crate::device::ForceLimiter;
-use crate::error::SimResult;
+use crate::error::{SimError, SimResult};
 use crate::guidance::{Fading, FadingParams, GuidanceMode, GuidanceParams, Guide, GuideInput};
 use crate::path::PlannedPath;
 use crate::record::{Record, RECORD_PERIOD_TICKS, TICK_S};
@@ -146,6 +146,9 @@ pub struct DrillingSession {
     /// This attempt's largest plunge and lateral deviation inside the bone (m), for fading.
     attempt_worst_m: (f64, f64),
     breakthrough: Breakthrough,
+    /// The tick that makes the next 10 Hz record: 100, 200, … unless the engine moved it to keep
+    /// a server's sessions on one 100 ms grid ([`set_next_record_in`](Self::set_next_record_in)).
+    next_record_tick: u64,
     state: SessionState,
 }
 
@@ -182,6 +185,7 @@ impl DrillingSession {
             fading: None,
             attempt_worst_m: (0.0, 0.0),
             breakthrough: Breakthrough::default(),
+            next_record_tick: RECORD_PERIOD_TICKS,
             state,
         }
         .with_planned_breakthrough())
@@ -376,7 +380,29 @@ impl DrillingSession {
         self.giving = false;
         self.guide.reset();
         self.breakthrough = Breakthrough::default();
+        self.next_record_tick = RECORD_PERIOD_TICKS;
         self.state = Self::initial_state(&self.path, &self.thermal);
+    }
+
+    /// Makes the `ticks`-th tick from now (1 to 2 × [`RECORD_PERIOD_TICKS`]) the next to make a
+    /// 10 Hz record, and every [`RECORD_PERIOD_TICKS`]-th after it; a fresh or reset session
+    /// records at ticks 100, 200, …. The records themselves are unchanged, only which ticks
+    /// make them: the engine puts every session's records on one 100 ms grid, so that their
+    /// model queries reach the model together and share its forward passes
+    /// (`docs/decisions/0028-records-on-one-grid.md`).
+    ///
+    /// # Errors
+    /// `ticks` outside 1 to 2 × [`RECORD_PERIOD_TICKS`] (nothing changes then).
+    pub fn set_next_record_in(&mut self, ticks: u64) -> SimResult<()> {
+        if !(1..=2 * RECORD_PERIOD_TICKS).contains(&ticks) {
+            return Err(SimError::InvalidParameter {
+                name: "ticks to the next record",
+                value: ticks as f64,
+                reason: "must be 1 to twice RECORD_PERIOD_TICKS (200)",
+            });
+        }
+        self.next_record_tick = self.state.ticks + ticks;
+        Ok(())
     }
 
     /// [`reset`](Self::reset), and the device at rest too (zero force, cold motors): for a
@@ -448,7 +474,11 @@ impl DrillingSession {
             worst.1 = worst.1.max(s.deviation_m);
         }
         let feedback_n = s.feedback_n;
-        let record = (s.ticks % RECORD_PERIOD_TICKS == 0).then(|| Record {
+        let due = s.ticks == self.next_record_tick;
+        if due {
+            self.next_record_tick += RECORD_PERIOD_TICKS;
+        }
+        let record = due.then(|| Record {
             time_s: s.time_s,
             features: [
                 feedback_n.x,
