@@ -8,8 +8,8 @@ page sent. The viewer is its own process, as ``dhg-serve --view`` runs it.
 
 ``--browser`` also keeps a headless Chromium on the trainee page (the whole screen a trainee has).
 ``--viewer-nice 0`` adds a third variant, the viewer at that nice value instead of ``dhg view``'s
-default (decision 0027). Prints one JSON line per run, then the medians and the ratios (with /
-without).
+default (decision 0027). ``--clients N`` runs N load-tool trainees (the viewer serves every
+session's page). Prints one JSON line per run, then the medians and the ratios (with / without).
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--clients", type=int, default=1, help="load-tool trainees (default 1); the viewer shows the first")
     ap.add_argument("--browser", action="store_true")
     target = os.environ.get("CARGO_TARGET_DIR", "target")
     ap.add_argument("--load", default=str(Path(target) / "release" / "examples" / "load"))
@@ -79,7 +80,9 @@ def _emit(args: argparse.Namespace, line: dict[str, Any]) -> None:
 def _one(args: argparse.Namespace, variant: Any) -> dict[str, Any]:
     with_viewer = variant is not None
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    server = ServerProcess(["--listen", endpoint, "--status-every", "30"], echo=False)
+    server = ServerProcess(
+        ["--listen", endpoint, "--status-every", "30", "--max-sessions", str(max(args.clients, 16))], echo=False
+    )
     viewer = None
     out: list[str] = []
     done = threading.Event()
@@ -97,7 +100,7 @@ def _one(args: argparse.Namespace, variant: Any) -> dict[str, Any]:
             if args.browser:
                 threading.Thread(target=_browse, args=(f"http://127.0.0.1:{port}", done), daemon=True).start()
         load_run = subprocess.Popen(
-            [args.load, "--connect", endpoint, "--clients", "1", "--seconds", f"{args.seconds:g}",
+            [args.load, "--connect", endpoint, "--clients", str(args.clients), "--seconds", f"{args.seconds:g}",
              "--server-pid", str(server.proc.pid)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
