@@ -7,7 +7,7 @@ import json
 import math
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from dhg.core import protocol
@@ -83,15 +83,19 @@ def test_decoders_refuse_garbage_with_a_clear_error(payload, name):
 
 @settings(max_examples=200, deadline=None)
 @given(st.integers(0, 64), st.integers(0, 64), st.binary(max_size=64))
+@example(rows=3, cols=60, tail=b"")  # 180 floats: what the fixed layout's 20 x 9 window holds already
+@example(rows=1, cols=1, tail=b"")
 def test_the_predict_decoder_refuses_a_window_its_payload_does_not_hold(rows, cols, tail):
-    head = protocol.encode("predict", window_seq=1, rows=rows, cols=cols)
+    head = protocol.encode("predict", window_seq=1, rows=rows, cols=cols)  # its window: 20 x 9 zeros
     payload = head + tail
+    start = next(f[2] for f in protocol.LAYOUTS["predict"].fields if f[0] == "window")  # the window's offset
     try:
         seq, window = protocol.decode_predict(payload)
     except InvalidInputError as exc:
         assert "predict payload" in str(exc)
+        assert len(payload) != start + 4 * rows * cols
     else:
-        assert seq == 1 and window.shape == (rows, cols) and len(tail) == 4 * rows * cols
+        assert seq == 1 and window.shape == (rows, cols) and len(payload) == start + 4 * rows * cols
 
 
 class _Sample:
