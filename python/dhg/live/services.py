@@ -20,7 +20,16 @@ from dhg.core import protocol
 from dhg.core.errors import InvalidInputError
 from dhg.core.protocol import check_session_id
 
-__all__ = ["BURST_WAIT_S", "MODEL_NICE", "BoneService", "ModelService", "XRayService", "decode_npz", "encode_npz"]
+__all__ = [
+    "BURST_MEMORY_S",
+    "BURST_WAIT_S",
+    "MODEL_NICE",
+    "BoneService",
+    "ModelService",
+    "XRayService",
+    "decode_npz",
+    "encode_npz",
+]
 
 MODEL_NICE = 19
 """``dhg-serve``'s nice value for the model worker thread: the lowest priority, so that on shared
