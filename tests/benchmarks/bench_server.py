@@ -128,6 +128,21 @@ def main() -> None:
     conf_dir.cleanup()
 
 
+def serve_from(pythonpath: str | None, args: list[str]) -> ServerProcess:
+    """``dhg-serve ARGS`` (returns once it says it is ready), from the build whose ``python/``
+    folder ``pythonpath`` names, or from this one."""
+    saved = os.environ.get("PYTHONPATH")
+    if pythonpath is not None:
+        os.environ["PYTHONPATH"] = pythonpath
+    try:
+        return ServerProcess(args, echo=False)
+    finally:
+        if saved is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = saved
+
+
 def _wait_for_port(endpoint: str, proc: subprocess.Popen[Any], deadline_s: float = 60.0) -> None:
     host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
     end = time.monotonic() + deadline_s
@@ -172,22 +187,13 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         tick_on = "thread" if target == "dhg-thread" else "pose"
         role = "sim" if target in ("dhg-sim", "dhg-engine") else "all"
         nice = ["--model-nice", "0"] if target == "dhg-nice0" else []
-        saved = os.environ.get("PYTHONPATH")
-        if target == "other":
-            if not args.other:
-                raise SystemExit("the variant 'other' needs --other PYTHONPATH")
-            os.environ["PYTHONPATH"] = args.other
-        try:  # returns once dhg-serve says it is ready
-            server = ServerProcess(
-                ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "5", "--tick-on",
-                 tick_on, "--role", role, *nice],
-                echo=False,
-            )  # fmt: skip
-        finally:
-            if saved is None:
-                os.environ.pop("PYTHONPATH", None)
-            else:
-                os.environ["PYTHONPATH"] = saved
+        if target == "other" and not args.other:
+            raise SystemExit("the variant 'other' needs --other PYTHONPATH")
+        server = serve_from(
+            args.other if target == "other" else None,
+            ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "5", "--tick-on", tick_on,
+             "--role", role, *nice],
+        )  # fmt: skip
         if target == "dhg-sim":
             model = ServerProcess(["--role", "model", "--connect", endpoint, "--status-every", "30"], echo=False)
         pid = server.proc.pid

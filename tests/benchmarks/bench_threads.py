@@ -23,9 +23,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench_server import _wait_for_port  # this folder: the echo's start, as bench_server waits for it
+from bench_server import _wait_for_port, serve_from  # this folder: the echo's start; a server of either build
 
-from dhg.live.process import ServerProcess, free_port
+from dhg.live.process import free_port
 
 TARGET = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/dhg/target")) / "release/examples"
 
@@ -55,17 +55,8 @@ def one(variant: str, n: int, seconds: float, other: str | None) -> dict[str, An
         _wait_for_port(endpoint, server)  # the echo declares its keys before it listens
         pid = server.pid
     else:
-        saved = os.environ.get("PYTHONPATH")
-        if variant == "other":
-            os.environ["PYTHONPATH"] = str(other)
         args = ["--listen", endpoint, "--role", "sim", "--max-sessions", str(max(n, 16))]
-        try:  # returns once dhg-serve says it is ready
-            server = ServerProcess(args, echo=False)
-        finally:
-            if saved is None:
-                os.environ.pop("PYTHONPATH", None)
-            else:
-                os.environ["PYTHONPATH"] = saved
+        server = serve_from(str(other) if variant == "other" else None, args)
         pid = server.proc.pid
     try:
         load = subprocess.Popen(

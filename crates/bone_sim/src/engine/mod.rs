@@ -146,6 +146,9 @@ fn timer_until(streaming: bool, tokens: f64, elapsed: f64) -> f64 {
     due_periods(streaming) - (tokens + elapsed)
 }
 
+/// The record grid's period (ns): one record period of ticks.
+const RECORD_GRID_NS: u128 = TICK_PERIOD.as_nanos() * RECORD_PERIOD_TICKS as u128;
+
 /// Ticks from `now` to a session's first record, so that it falls on the engine's 100 ms record
 /// grid (which starts at `grid`): 1 to [`RECORD_PERIOD_TICKS`]. A session activated or reset at
 /// `now` ticks its first tick about then and one a period after, so every session's records, and
@@ -154,11 +157,10 @@ fn timer_until(streaming: bool, tokens: f64, elapsed: f64) -> f64 {
 /// `docs/decisions/0028-records-on-one-grid.md`.
 #[must_use]
 pub fn ticks_to_grid(grid: Instant, now: Instant) -> u64 {
-    let period_ns = TICK_PERIOD.as_nanos() * u128::from(RECORD_PERIOD_TICKS);
-    let into = now.saturating_duration_since(grid).as_nanos() % period_ns;
+    let into = now.saturating_duration_since(grid).as_nanos() % RECORD_GRID_NS;
     // The first tick is about now, tick k k - 1 periods later: the one nearest the next mark.
     let tick_ns = TICK_PERIOD.as_nanos();
-    let periods_left = ((period_ns - into + tick_ns / 2) / tick_ns) as u64 % RECORD_PERIOD_TICKS;
+    let periods_left = ((RECORD_GRID_NS - into + tick_ns / 2) / tick_ns) as u64 % RECORD_PERIOD_TICKS;
     periods_left + 1
 }
 
@@ -166,9 +168,9 @@ pub fn ticks_to_grid(grid: Instant, now: Instant) -> u64 {
 /// negative: before it).
 #[must_use]
 pub fn off_grid_ms(grid: Instant, now: Instant) -> f64 {
-    let period_ns = TICK_PERIOD.as_nanos() * u128::from(RECORD_PERIOD_TICKS);
-    let into = (now.saturating_duration_since(grid).as_nanos() % period_ns) as f64;
-    let past = if into * 2.0 < period_ns as f64 { into } else { into - period_ns as f64 };
+    let into = (now.saturating_duration_since(grid).as_nanos() % RECORD_GRID_NS) as f64;
+    let period = RECORD_GRID_NS as f64;
+    let past = if into * 2.0 < period { into } else { into - period };
     past * 1e-6
 }
 
