@@ -251,6 +251,7 @@ def test_the_viewer_works_in_lab_mode_with_a_station_or_an_instructor_identity(l
     (The X-ray and bone queryables live in the server's own Python client, which must not apply
     the router's access-control list to itself: it did, and dropped every query.)"""
     from dhg.view import Viewer
+    from dhg.view.browser import PageWatcher
     from dhg.view.feed import SessionFeed
 
     root, endpoint, listen = lab
@@ -267,9 +268,11 @@ def test_the_viewer_works_in_lab_mode_with_a_station_or_an_instructor_identity(l
             teacher_view = Viewer(endpoint, port=free_port(), zenoh_config_file=conf["teacher"])
             drilling = threading.Thread(target=_stream, args=(s1, 8.0), daemon=True)
             drilling.start()  # the session lives while its stylus streams
+            watchers: list[PageWatcher] = []  # a page draws only while watched
             try:
                 page = station_view.pages["station-1"]
-                # It hears its own forces and states, asks its bone and draws its drill.
+                # Watched, it hears its own forces and states, asks its bone and draws its drill.
+                watchers.append(PageWatcher(page.url))
                 _wait(
                     lambda: page.feed.forces > 0 and page.feed.states > 0 and page.bone_updates > 0 and page.frames > 0,
                     30,
@@ -285,8 +288,11 @@ def test_the_viewer_works_in_lab_mode_with_a_station_or_an_instructor_identity(l
                 instructor = teacher_view.instructor
                 assert instructor is not None
                 _wait(lambda: {"station-1", "station-2"} <= set(instructor.sessions), 30, "both stations listed")
+                watchers.append(PageWatcher(teacher_view.page_url("station-1")))
                 _wait(lambda: teacher_view.pages["station-1"].bone_updates > 0, 30, "the teacher's page of station-1")
             finally:
+                for w in watchers:
+                    w.close()
                 drilling.join()  # before the clients close under it
                 station_view.close()
                 teacher_view.close()

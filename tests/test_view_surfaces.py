@@ -101,3 +101,40 @@ def test_bad_volumes_and_bricks_are_refused_with_the_reason():
     surf = LayerSurfaces(np.ones((4, 4, 4), np.uint8), (1e-3,) * 3, (0.0,) * 3)
     with pytest.raises(ValueError, match="2 brick origins for 1 bricks"):
         surf.update(np.zeros((2, 3)), np.zeros((1, 8, 8, 8)))
+
+
+def test_a_page_sends_only_the_pieces_a_cut_changed(femur_2mm):
+    """A cut re-marches every surface of the chunks it touched; the page sends a piece again only
+    when it changed (a new mesh handle), keeps the rest as shown and removes a piece that is gone."""
+    from dhg.view.scene import add_bone_piece, add_whole_bone, stop_quietly, viser_server
+
+    v = femur_2mm.volume
+    surf = LayerSurfaces(v.labels(), v.spacing_m, v.origin_m, v.direction)
+    server = viser_server("127.0.0.1", 0, "test")
+    try:
+        meshes: dict = {}
+        add_whole_bone(server, surf, meshes)
+        before = dict(meshes)
+        bone = v.drill()
+        labels = v.labels()  # a cut into the cortex alone: the cancellous piece of its chunk stays
+        k, j, i = np.argwhere(labels == Layer.CORTICAL)[len(np.argwhere(labels == Layer.CORTICAL)) // 2]
+        bone.remove(tuple(v.index_to_world(np.array([[i, j, k]], dtype=float))[0]), 2e-3, 1250.0, 0.05)
+        changed = surf.update(*bone.bricks())
+        pieces = [p for c in sorted(changed) for p in surf.mesh(c)]
+        for p in pieces:
+            add_bone_piece(server, surf, meshes, p)
+        resent = {n for n in meshes if meshes[n] is not before.get(n)}
+        kept = {n for n in before if meshes.get(n) is before[n]}
+        assert resent and kept  # the hole's pieces went again, the rest of the bone stayed
+        shown = {f"/bone/{p.name}": p for p in pieces if len(p.faces)}
+        for name in resent:
+            np.testing.assert_array_equal(meshes[name].faces, shown[name].faces)
+        untouched = [p for p in pieces if f"/bone/{p.name}" in kept]
+        assert untouched  # pieces of re-marched chunks that did not change were not sent again
+        # The same pieces again send nothing.
+        now = dict(meshes)
+        for p in pieces:
+            add_bone_piece(server, surf, meshes, p)
+        assert all(meshes[n] is now[n] for n in now) and meshes.keys() == now.keys()
+    finally:
+        stop_quietly(server)

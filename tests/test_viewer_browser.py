@@ -17,7 +17,7 @@ import pytest
 from dhg.live.client import TraineeClient
 from dhg.live.process import free_port
 from dhg.view import Viewer
-from dhg.view.browser import canvas_pixels, chromium, drawn_canvas, wait_for
+from dhg.view.browser import PageWatcher, canvas_pixels, chromium, drawn_canvas, wait_for
 from support import Stylus, entry, stops_cleanly
 
 SHOTS = Path(os.environ.get("DHG_SCREENSHOTS", Path(__file__).resolve().parents[1] / "out" / "test-screenshots"))
@@ -190,6 +190,42 @@ def test_the_instructor_page_lists_the_class_and_opens_a_trainee(server, browser
         finally:
             for h in hands:
                 h.stop()
+            viewer.close()
+
+
+def test_a_page_draws_only_while_someone_watches_it(server):
+    """An instructor's viewer starts a page for every session; unwatched, a page hears its streams
+    but draws, re-meshes and plots nothing. A watcher (a WebSocket client that reads the page as a
+    browser tab does, without drawing it) makes it draw what changed meanwhile; when the watcher
+    leaves, the page stops drawing again."""
+    _, endpoint = server
+    with TraineeClient(endpoint, "watch-1") as c:
+        a, d, q = entry(c)
+        hand = Stylus(c, q)
+        viewer = Viewer(endpoint, port=free_port(), session_id="watch-1")
+        try:
+            page = viewer.pages["watch-1"]
+            hand.move(a + d * np.linspace(-3e-3, 4e-3, 1500)[:, None])
+            # 2 s of states: the page's 30 Hz loop has run some 60 times meanwhile.
+            wait_for(lambda: page.feed.states >= 20 and hand.idle(), 60, "the session's states heard")
+            assert not page.watched
+            assert page.frames == 0 and page.bone_updates == 0 and page.remeshed_chunks == 0
+            with PageWatcher(page.url) as watcher:
+                wait_for(lambda: page.watched, 30, "the watcher connected")
+                # What was drilled unwatched is drawn now: the drill, the bone as cut.
+                wait_for(lambda: page.frames > 0 and page.remeshed_chunks > 0, 60, "the drill and the cut drawn")
+                drawn = page.frames
+                hand.move(a + d * np.linspace(4e-3, 8e-3, 800)[:, None])
+                wait_for(lambda: page.frames > drawn, 60, "the drill followed")
+                wait_for(lambda: watcher.messages > 0 and watcher.bytes > 0, 30, "the page's messages")
+            wait_for(lambda: not page.watched, 30, "the watcher gone")
+            wait_for(hand.idle, 60, "the poses sent")
+            frames, bone, states = page.frames, page.bone_updates, page.feed.states
+            hand.move(a + d * np.linspace(8e-3, 11e-3, 600)[:, None])
+            wait_for(lambda: page.feed.states >= states + 10 and hand.idle(), 60, "the states of the new cut")
+            assert (page.frames, page.bone_updates) == (frames, bone)
+        finally:
+            hand.stop()
             viewer.close()
 
 

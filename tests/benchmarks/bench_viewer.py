@@ -6,10 +6,15 @@ page sent. The viewer is its own process, as ``dhg-serve --view`` runs it.
     cargo build --release -p bone_sim --example load
     python tests/benchmarks/bench_viewer.py --seconds 20 --rounds 3 [--browser]
 
-``--browser`` also keeps a headless Chromium on the trainee page (the whole screen a trainee has).
-``--viewer-nice 0`` adds a third variant, the viewer at that nice value instead of ``dhg view``'s
-default (decision 0027). ``--clients N`` runs N load-tool trainees (the viewer serves every
-session's page). Prints one JSON line per run, then the medians and the ratios (with / without).
+A page draws only while someone watches it, so each run holds the instructor's page and the first
+trainee page open with a :class:`dhg.view.browser.PageWatcher` (a WebSocket client that reads what
+a browser tab would, without drawing it); ``--unwatched`` leaves every page closed. ``--browser``
+keeps a headless Chromium on the trainee page instead (the whole screen a trainee has).
+``--viewer-nice 0`` adds a variant, the viewer at that nice value instead of ``dhg view``'s default
+(decision 0027); ``--other PYTHONPATH`` one more, ``dhg view`` from another build (a checkout's
+``python/`` folder with its extension built), the server staying this build's. ``--clients N`` runs
+N load-tool trainees (the viewer serves every session's page). Prints one JSON line per run, then
+the medians and the ratios (with / without).
 """
 
 from __future__ import annotations
@@ -39,10 +44,14 @@ def main() -> None:
     target = os.environ.get("CARGO_TARGET_DIR", "target")
     ap.add_argument("--load", default=str(Path(target) / "release" / "examples" / "load"))
     ap.add_argument("--viewer-nice", type=int, metavar="N", help="also a viewer at nice N (dhg view --nice N)")
+    ap.add_argument("--other", metavar="PYTHONPATH", help="also dhg view from the build this python/ folder holds")
+    ap.add_argument("--unwatched", action="store_true", help="no watcher on the pages (nobody looks at them)")
     ap.add_argument("--out", help="also append the JSON lines to this file")
     args = ap.parse_args()
-    # None: no viewer; "with": dhg view as it starts by default; an int: dhg view --nice N.
+    # None: no viewer; "with": dhg view as it starts by default; an int: dhg view --nice N;
+    # "other": dhg view from the build --other names.
     variants: list[Any] = [None, "with"] + ([args.viewer_nice] if args.viewer_nice is not None else [])
+    variants += ["other"] if args.other else []
     runs = []
     for _ in range(args.rounds):
         for variant in variants:
@@ -67,7 +76,7 @@ def main() -> None:
 
 def _name(variant: Any) -> str:
     """A variant's name in the JSON lines: ``none``, ``with`` (the default nice) or ``nice-N``."""
-    return "none" if variant is None else "with" if variant == "with" else f"nice-{variant}"
+    return "none" if variant is None else variant if variant in ("with", "other") else f"nice-{variant}"
 
 
 def _emit(args: argparse.Namespace, line: dict[str, Any]) -> None:
@@ -91,14 +100,19 @@ def _one(args: argparse.Namespace, variant: Any) -> dict[str, Any]:
         if with_viewer:
             port = free_port()
             cmd = [sys.executable, "-m", "dhg.cli.main", "view", "--connect", endpoint, "--port", str(port)]
-            if variant != "with":
+            env = dict(os.environ)
+            if isinstance(variant, int):
                 cmd += ["--nice", str(variant)]
-            viewer = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+            elif variant == "other":
+                env["PYTHONPATH"] = args.other
+            viewer = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env)
             assert viewer.stdout is not None
             out.append(viewer.stdout.readline())  # ready
             threading.Thread(target=lambda: out.extend(viewer.stdout), daemon=True).start()
             if args.browser:
                 threading.Thread(target=_browse, args=(f"http://127.0.0.1:{port}", done), daemon=True).start()
+            elif not args.unwatched:
+                threading.Thread(target=_watch, args=(port, done), daemon=True).start()
         load_run = subprocess.Popen(
             [args.load, "--connect", endpoint, "--clients", str(args.clients), "--seconds", f"{args.seconds:g}",
              "--server-pid", str(server.proc.pid)],
@@ -137,6 +151,26 @@ def _cpu_s(pid: int) -> float:
     """User + system CPU seconds of a process so far (Linux ``/proc``)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _watch(port: int, done: threading.Event) -> None:
+    """Watchers on the instructor's page (``port``) and the first trainee page (the next port, once
+    the instructor's page has started it) until the run is ``done``."""
+    from dhg.view.browser import PageWatcher
+
+    watchers = []
+    try:
+        for url in (f"http://127.0.0.1:{port}", f"http://127.0.0.1:{port + 1}"):
+            while not done.is_set():
+                try:
+                    watchers.append(PageWatcher(url, timeout_s=2.0))
+                    break
+                except OSError:  # the page is not up yet
+                    done.wait(0.2)
+        done.wait()
+    finally:
+        for w in watchers:
+            w.close()
 
 
 def _browse(instructor_url: str, done: threading.Event) -> None:

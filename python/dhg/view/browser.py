@@ -6,6 +6,7 @@ since recent Chrome no longer falls back to it by itself and our machines have n
 from __future__ import annotations
 
 import shutil
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -16,6 +17,7 @@ import numpy as np
 
 __all__ = [
     "BrowserMissingError",
+    "PageWatcher",
     "canvas_pixels",
     "chromium",
     "drawn_canvas",
@@ -66,6 +68,73 @@ def chromium(width: int = 1100, height: int = 720) -> Iterator[Any]:
         yield driver
     finally:
         driver.quit()
+
+
+class PageWatcher:
+    """A page held open without drawing it: a WebSocket client that speaks viser's protocol
+    version, as a browser tab does, and reads (and drops) everything the page sends. A page draws
+    only while someone watches it; benchmarks and tests that need a watched page but not a
+    browser's pixels use this (``with PageWatcher(url) as w: ...``). :attr:`messages` and
+    :attr:`bytes` count what arrived."""
+
+    def __init__(self, url: str, timeout_s: float = 10.0) -> None:
+        import viser
+        from websockets.sync.client import connect
+
+        ws_url = url.replace("http://", "ws://", 1).replace("https://", "wss://", 1)
+        self.messages = 0
+        self.bytes = 0
+        import msgspec
+        from viser._messages import ViewerCameraMessage
+
+        self._ws = connect(
+            ws_url,
+            subprotocols=[f"viser-v{viser.__version__}"],
+            max_size=None,
+            open_timeout=timeout_s,  # type: ignore[list-item]
+        )
+        # viser counts a client as connected once it has sent its camera, as a browser does first.
+        camera = ViewerCameraMessage(
+            wxyz=(1.0, 0.0, 0.0, 0.0),
+            position=(0.0, 0.0, 300.0),
+            fov=1.0,
+            near=0.01,
+            far=1000.0,
+            image_height=720,
+            image_width=1100,
+            look_at=(0.0, 0.0, 0.0),
+            up_direction=(0.0, 0.0, 1.0),
+        )
+        self._ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, name="page-watcher", daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            try:
+                m = self._ws.recv(timeout=0.2)
+            except TimeoutError:
+                continue
+            except Exception:  # the page closed
+                return
+            self.messages += 1
+            self.bytes += len(m)
+
+    def close(self) -> None:
+        """Closes the connection (idempotent)."""
+        self._stop.set()
+        try:
+            self._ws.close()
+        except Exception:
+            pass
+        self._thread.join(timeout=5.0)
+
+    def __enter__(self) -> PageWatcher:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
 
 
 def wait_for(cond: Callable[[], Any], timeout_s: float, what: str) -> Any:

@@ -132,6 +132,17 @@ class TraineePage:
             position=(0.0, 0.0, -(1.25 + SHAFT_LENGTH_M * SCENE_MM_PER_M / 2)),
         )
         self._drill.visible = False
+        # One handle whose points each redraw moves (a new add_arrows per frame made a new handle,
+        # whose first property write has viser resolve its type hints: most of a redraw's CPU).
+        self._arrows = sc.add_arrows(
+            "/forces",
+            np.zeros((2, 2, 3), np.float32),
+            colors=np.array([[31, 78, 121], [230, 126, 34]], np.uint8),
+            shaft_radius=0.3,
+            head_radius=0.8,
+            head_length=1.5,
+            visible=False,
+        )
 
     def _show(self, piece: ChunkMesh) -> None:
         add_bone_piece(self.server, self.surfaces, self._meshes, piece)
@@ -302,6 +313,14 @@ class TraineePage:
         return "\n".join(lines)
 
     # -- the loops -------------------------------------------------------------------------
+    @property
+    def watched(self) -> bool:
+        """Whether a browser has the page open. An instructor's viewer starts a page for every
+        session on the server, most of them unwatched at any time: those hear their streams (so
+        the timeline and the attempt's states are there when someone opens them) but draw
+        nothing, re-mesh nothing and plot nothing."""
+        return bool(self.server.get_clients())
+
     def _frame_loop(self) -> None:
         period = 1.0 / self.frame_hz
         next_t = time.monotonic()
@@ -318,7 +337,10 @@ class TraineePage:
     def _frame(self, k: int) -> None:
         """One frame: the drill and arrows when the tip, pose or forces changed by what a person
         can see (:data:`REDRAW_TIP_M`, :data:`REDRAW_FORCE_N`; a still stylus costs no redraw),
-        the numbers at 10 Hz and the plots at 2 Hz when they changed."""
+        the numbers at 10 Hz and the plots at 2 Hz when they changed. Nothing while no browser
+        watches the page (what changed meanwhile is drawn when one connects)."""
+        if not self.watched:
+            return
         snap = self.feed.snapshot()
         f, pose = snap["force"], snap["pose"]
         if f is not None:
@@ -352,20 +374,14 @@ class TraineePage:
             elif self._info is not None:  # no pose heard yet (the session's first forces): along A→B
                 self._drill.wxyz = along(np.array(self._info["target_m"]) - np.array(self._info["entry_m"]))
             self._drill.visible = True
-            arrows = np.array(
+            self._arrows.points = np.array(
                 [
                     [tip, tip + np.asarray(f["force_n"]) * ARROW_MM_PER_N],
                     [tip, tip + np.asarray(f["guidance_n"]) * ARROW_MM_PER_N],
-                ]
+                ],
+                np.float32,
             )
-            self.server.scene.add_arrows(
-                "/forces",
-                arrows,
-                colors=np.array([[31, 78, 121], [230, 126, 34]]),
-                shaft_radius=0.3,
-                head_radius=0.8,
-                head_length=1.5,
-            )
+            self._arrows.visible = True
 
     def _bone_loop(self) -> None:
         period = 1.0 / self.bone_hz
@@ -378,14 +394,15 @@ class TraineePage:
                     self._title.content = (
                         f"**Session `{html.escape(self.session_id)}`**: {self._info['guidance_mode']} guidance"
                     )
-                self._update_bone()
+                if self.watched:
+                    self._update_bone()
                 if time.monotonic() - last_metrics >= 1.0:
                     last_metrics = time.monotonic()
                     m = self.feed.metrics()
                     if self._metrics is not None and m["time_s"] < self._metrics["time_s"]:
                         self._last_metrics = self._metrics  # the attempt that just ended
                     self._metrics = m
-                if self.feed.attempts_finished > self._shown_attempts:
+                if self.feed.attempts_finished > self._shown_attempts and self.watched:
                     self._shown_attempts = self.feed.attempts_finished
                     self._summarize(finished=True)
             except Exception as exc:  # no such session yet, a server restarting: try again

@@ -63,17 +63,22 @@ def stop_quietly(server: Any) -> None:
 
 
 def add_bone_piece(server: Any, surfaces: LayerSurfaces, meshes: dict[str, Any], piece: ChunkMesh) -> None:
-    """Shows (or replaces, or removes when empty) one chunk's piece of a surface."""
+    """Shows (or replaces, or removes when empty) one chunk's piece of a surface; a piece as it is
+    shown already is left alone (a cut re-marches every surface of its chunks, and most of those
+    pieces do not change: sending them again cost the page most of its re-meshing CPU)."""
     name = f"/bone/{piece.name}"
+    old = meshes.get(name)
     if len(piece.faces) == 0:
-        old = meshes.pop(name, None)
         if old is not None:
-            old.remove()
+            meshes.pop(name).remove()
+        return
+    vertices = piece.vertices_m * np.float32(SCENE_MM_PER_M)
+    if old is not None and np.array_equal(old.faces, piece.faces) and np.array_equal(old.vertices, vertices):
         return
     s = next(s for s in surfaces.surfaces if s.name == piece.surface)
     meshes[name] = server.scene.add_mesh_simple(
         name,
-        piece.vertices_m * SCENE_MM_PER_M,
+        vertices,
         piece.faces,
         color=s.color,
         opacity=None if s.opacity >= 1.0 else s.opacity,
