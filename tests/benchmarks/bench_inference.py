@@ -4,12 +4,14 @@ every 100 ms, and between calls other processes evict the model's weights from t
 (3.2 MB for fusion-2x256). Prints one JSON line per case (ms).
 
     python tests/benchmarks/bench_inference.py [--model PATH] [--dataset DIR] [--threads 1]
-        [--batches 1,16,64] [--gaps-ms 0,100] [--calls 200] [--flush-denormal] [--int8]
+        [--batches 1,16,64] [--gaps-ms 0,100] [--calls 200] [--flush-denormal] [--int8] [--onnx]
 
 Windows come from a dataset's records (``--dataset``, real value ranges) or else uniformly from
 the model's own scaling range. ``--flush-denormal`` flushes denormals to zero on the calling
 thread. ``--int8`` times an int8 dynamically quantised copy (LSTM and head) instead and prints how
-far its predictions move from the exported model's (N).
+far its predictions move from the exported model's (N). ``--onnx`` times the same model exported to
+ONNX and run by ONNX Runtime (one intra-op thread) instead, with how far its predictions move;
+it needs ``onnx`` and ``onnxruntime``, which DHG does not install (``pip install onnx onnxruntime``).
 """
 
 from __future__ import annotations
@@ -59,6 +61,29 @@ def int8_copy(model):
     return torch.ao.quantization.quantize_dynamic(eager, {torch.nn.LSTM, torch.nn.Linear}, dtype=torch.qint8)
 
 
+def onnx_predict(model):
+    """The exported model through ONNX Runtime (fp32, one thread): windows (B, T, 9) -> (B, 3) N."""
+    import io
+
+    import onnxruntime as ort
+
+    buf = io.BytesIO()
+    torch.onnx.export(
+        model.module,
+        (torch.zeros(2, model.window, 9),),
+        buf,
+        dynamo=False,  # TorchScript in, so the TorchScript-based exporter
+        input_names=["windows"],
+        output_names=["force"],
+        dynamic_axes={"windows": {0: "batch"}, "force": {0: "batch"}},
+        opset_version=17,
+    )
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+    sess = ort.InferenceSession(buf.getvalue(), opts, providers=["CPUExecutionProvider"])
+    return lambda x: sess.run(None, {"windows": np.ascontiguousarray(x, np.float32)})[0].astype(np.float64)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", default=str(default_model_path()))
@@ -70,6 +95,7 @@ def main() -> None:
     p.add_argument("--device", default="cpu")
     p.add_argument("--flush-denormal", action="store_true", help="flush denormals to zero (this thread)")
     p.add_argument("--int8", action="store_true", help="time an int8 dynamically quantised copy instead")
+    p.add_argument("--onnx", action="store_true", help="time the model run by ONNX Runtime instead")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     torch.set_flush_denormal(args.flush_denormal)
@@ -86,6 +112,17 @@ def main() -> None:
 
         d = np.abs(predict(pool) - model.predict(pool))
         print(json.dumps({"int8_vs_fp32_rms_n": float(np.sqrt((d**2).mean())), "int8_vs_fp32_max_n": float(d.max())}))
+    if args.onnx:
+        predict = onnx_predict(model)
+        d = np.abs(predict(pool) - model.predict(pool))
+        print(
+            json.dumps(
+                {
+                    "onnx_vs_torchscript_rms_n": float(np.sqrt((d**2).mean())),
+                    "onnx_vs_torchscript_max_n": float(d.max()),
+                }
+            )
+        )
     for _ in range(3):  # TorchScript's profiling executor optimises on the first calls
         predict(pool[:1])
     for gap_ms in (float(g) for g in args.gaps_ms.split(",")):
@@ -105,6 +142,7 @@ def main() -> None:
                 "threads": args.threads,
                 "windows": "dataset" if args.dataset else "uniform",
                 "int8": args.int8,
+                "onnx": args.onnx,
                 "flush_denormal": args.flush_denormal,
                 "batch": batch,
                 "gap_ms": gap_ms,
