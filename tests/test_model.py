@@ -145,6 +145,57 @@ def test_eager_and_torchscript_agree(tmp_path):
         np.testing.assert_allclose(got, ref, atol=1e-5)
 
 
+def test_onnx_runtime_predicts_what_torchscript_does(run):
+    """The model service's default executor on CPU: the same model.ts exported to ONNX when
+    loaded, checked against TorchScript, predicting the same forces (float32 rounding) for lone
+    windows and batches, and refusing the same bad windows."""
+    from dhg.learning.weights import default_model_path
+
+    for path in (run[0] / "model.ts", default_model_path()):
+        ts = load_model(path)
+        ort = load_model(path, executor="onnxruntime")
+        assert (ts.executor, ort.executor) == ("torchscript", "onnxruntime")
+        assert ort.runner.max_difference_n < 1e-4 and ort.runner.threads == torch.get_num_threads()
+        rng = np.random.default_rng(2)
+        for batch in (1, 2, 7, 33):
+            windows = rng.normal(size=(batch, ts.window, 9)).astype(np.float32) * [
+                1,
+                1,
+                1,
+                0.05,
+                0.05,
+                0.05,
+                1,
+                0.04,
+                30,
+            ]
+            got, want = ort.predict(windows), ts.predict(windows)
+            assert got.shape == (batch, 3) and got.dtype == np.float64
+            np.testing.assert_allclose(got, want, atol=1e-4, rtol=0)
+        bad = np.zeros((2, ts.window, 9))
+        bad[1, 5, 8] = np.inf
+        with pytest.raises(InvalidInputError, match="NaN or infinite"):
+            ort.predict(bad)
+        with pytest.raises(ShapeError):
+            ort.predict(np.zeros((1, ts.window + 1, 9)))
+    # auto: ONNX Runtime on CPU (installed with DHG's pinned dependencies).
+    assert load_model(run[0] / "model.ts", executor="auto").executor == "onnxruntime"
+    with pytest.raises(InvalidInputError, match="executor must be one of"):
+        load_model(run[0] / "model.ts", executor="tensorrt")
+
+
+def test_onnx_runtime_refuses_a_graph_that_predicts_otherwise(run, monkeypatch):
+    """The check against TorchScript is real: a graph whose answers differ is refused when asked
+    for by name, and 'auto' falls back to TorchScript."""
+    from dhg.learning import onnx_runner
+
+    real_call = onnx_runner.OnnxRunner.__call__
+    monkeypatch.setattr(onnx_runner.OnnxRunner, "__call__", lambda self, w: real_call(self, w) + 0.01)
+    with pytest.raises(ModelFileError, match=r"differ from TorchScript's by up to 0\.01 N"):
+        load_model(run[0] / "model.ts", executor="onnxruntime")
+    assert load_model(run[0] / "model.ts", executor="auto").executor == "torchscript"
+
+
 def test_loader_refuses_bad_windows_and_files(run, tmp_path):
     model = load_model(run[0] / "model.ts")
     assert model.predict(np.zeros((20, 9))).shape == (1, 3)

@@ -140,6 +140,8 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             pump = threading.Thread(target=hold, daemon=True)
             pump.start()
             _wait(lambda: c.force is not None and c.force["flags"] & protocol.FLAGS["model_available"], 5.0)
+            # ONNX Runtime runs the passes on CPU by default, TorchScript when asked (below).
+            assert any("(onnxruntime)" in line for line in worker.lines), worker.lines
             # The worker's forward passes run at nice 19 (decision 0026); its other threads keep 0.
             assert thread_nices(worker.proc.pid) == {0, 19}
             worker.proc.send_signal(signal.SIGKILL)
@@ -149,9 +151,10 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             n0 = c.forces_received
             _wait(lambda: c.forces_received - n0 >= 400, 15.0, "400 more forces without the model")
             assert c.force["flags"] & protocol.FLAGS["model_available"] == 0
-            worker, _ = _serve("--role", "model", "--model-nice", "7", endpoint=endpoint)
+            worker, _ = _serve("--role", "model", "--model-nice", "7", "--executor", "torchscript", endpoint=endpoint)
             _wait(lambda: c.force["flags"] & protocol.FLAGS["model_available"], 30.0, "the restarted model answering")
             assert thread_nices(worker.proc.pid) == {0, 7}
+            assert any("(torchscript)" in line for line in worker.lines), worker.lines
             stop.set()
             pump.join()
     finally:

@@ -71,7 +71,8 @@ def main() -> None:
         "dhg-thread (dhg-serve --tick-on thread: the tick thread ticks every pose), dhg-sim (dhg-serve --role "
         "sim, the model service in a process of its own, its CPU reported apart), dhg-engine (dhg-serve --role "
         "sim and no model service), dhg-nice0 (dhg-serve --model-nice 0: the model's worker thread at the "
-        "engine's priority, as before decision 0026), other (dhg-serve from the build --other names), "
+        "engine's priority, as before decision 0026), dhg-ts (dhg-serve --executor torchscript: the passes by "
+        "TorchScript, as before decision 0030), other (dhg-serve from the build --other names), "
         "echo (must be included)",
     )
     p.add_argument(
@@ -177,7 +178,8 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
     process, ``--role model``, whose CPU is reported apart as ``model_cpu_per_session``),
     ``dhg-engine`` (``--role sim`` with no model service: the sessions tick, their model queries go
     unanswered; what the engine costs without the model's forward passes on the same cores),
-    ``dhg-nice0`` (``dhg-serve --model-nice 0``), ``other`` (``dhg-serve`` from the build
+    ``dhg-nice0`` (``dhg-serve --model-nice 0``), ``dhg-ts`` (``dhg-serve --executor torchscript``:
+    the forward passes by TorchScript, as before decision 0030), ``other`` (``dhg-serve`` from the build
     ``--other`` names), ``echo``."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server: Any = None
@@ -187,6 +189,7 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         tick_on = "thread" if target == "dhg-thread" else "pose"
         role = "sim" if target in ("dhg-sim", "dhg-engine") else "all"
         nice = ["--model-nice", "0"] if target == "dhg-nice0" else []
+        nice += ["--executor", "torchscript"] if target == "dhg-ts" else []
         if target == "other" and not args.other:
             raise SystemExit("the variant 'other' needs --other PYTHONPATH")
         server = serve_from(

@@ -121,6 +121,14 @@ def _model_args(p: argparse.ArgumentParser, d: Any) -> None:
         "--device", choices=("auto", "cpu", "cuda"), default="auto", help="where the model runs (default: auto)"
     )
     g.add_argument(
+        "--executor",
+        choices=("auto", "onnxruntime", "torchscript"),
+        default="auto",
+        help="what runs the forward passes: onnxruntime (CPU; the same model exported to ONNX at start and "
+        "checked against TorchScript, about a third of the CPU a lone pass), torchscript, or auto: ONNX "
+        "Runtime on CPU, TorchScript on CUDA (default: auto)",
+    )
+    g.add_argument(
         "--model-threads",
         type=int,
         metavar="N",
@@ -279,8 +287,8 @@ def _load_model(args: argparse.Namespace, options: Any, described: list[str]) ->
     model_file = args.model or default_model_path()
     if not os.path.isfile(model_file):
         raise ModelFileError(f"{model_file}: no such model file (train one with 'dhg train', or omit --model)")
-    model = load_model(model_file, device=args.device)
-    described.append(f"model {model.meta.get('preset', '?')} from {model_file} on {model.device}")
+    model = load_model(model_file, device=args.device, executor=args.executor)
+    described.append(f"model {model.meta.get('preset', '?')} from {model_file} on {model.device} ({model.executor})")
     profiles = model.profiles
     if profiles is not None and args.role == "all":
         # The corridor follows the experts' spread along the path (dhg.learning.profiles).
