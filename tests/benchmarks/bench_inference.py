@@ -10,8 +10,8 @@ Windows come from a dataset's records (``--dataset``, real value ranges) or else
 the model's own scaling range. ``--flush-denormal`` flushes denormals to zero on the calling
 thread. ``--int8`` times an int8 dynamically quantised copy (LSTM and head) instead and prints how
 far its predictions move from the exported model's (N). ``--onnx`` times the same model exported to
-ONNX and run by ONNX Runtime (one intra-op thread) instead, with how far its predictions move;
-it needs ``onnx`` and ``onnxruntime``, which DHG does not install (``pip install onnx onnxruntime``).
+ONNX and run by ONNX Runtime (one intra-op thread) instead, with how far its predictions move
+(what ``dhg-serve`` runs on CPU since decision 0030).
 """
 
 from __future__ import annotations
