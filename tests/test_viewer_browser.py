@@ -210,6 +210,7 @@ def test_a_page_draws_only_while_someone_watches_it(server):
             wait_for(lambda: page.feed.states >= 20 and hand.idle(), 60, "the session's states heard")
             assert not page.watched
             assert page.frames == 0 and page.bone_updates == 0 and page.remeshed_chunks == 0
+            assert page.watched_s == 0.0
             with PageWatcher(page.url) as watcher:
                 wait_for(lambda: page.watched, 30, "the watcher connected")
                 # What was drilled unwatched is drawn now: the drill, the bone as cut.
@@ -220,10 +221,11 @@ def test_a_page_draws_only_while_someone_watches_it(server):
                 wait_for(lambda: watcher.messages > 0 and watcher.bytes > 0, 30, "the page's messages")
             wait_for(lambda: not page.watched, 30, "the watcher gone")
             wait_for(hand.idle, 60, "the poses sent")
-            frames, bone, states = page.frames, page.bone_updates, page.feed.states
+            frames, bone, states, watched_s = page.frames, page.bone_updates, page.feed.states, page.watched_s
+            assert watched_s > 0
             hand.move(a + d * np.linspace(8e-3, 11e-3, 600)[:, None])
             wait_for(lambda: page.feed.states >= states + 10 and hand.idle(), 60, "the states of the new cut")
-            assert (page.frames, page.bone_updates) == (frames, bone)
+            assert (page.frames, page.bone_updates, page.watched_s) == (frames, bone, watched_s)
         finally:
             hand.stop()
             viewer.close()

@@ -135,7 +135,7 @@ def _one(args: argparse.Namespace, variant: Any) -> dict[str, Any]:
     if r.returncode != 0:
         raise SystemExit(f"load tool failed ({r.returncode}): {r.stderr}")
     load = json.loads(r.stdout)
-    rates = [float(m.group(1)) for line in out if (m := re.search(r"\(([\d.]+)/s\)", line))]
+    rates = [float(m.group(1)) for line in out if (m := re.search(r"\(([\d.]+)/s", line))]
     return {
         "viewer": _name(variant),
         "p50_ms": load["pose_to_force_ms"]["p50"],

@@ -213,8 +213,10 @@ def _cmd_view(args: argparse.Namespace) -> int:
         t0 = time.monotonic()
         stop.wait(args.duration)
         elapsed = time.monotonic() - t0
+        # A page draws only while a browser watches it (decision 0029): its rate is per watched second.
         lines = [
-            f"  {sid}: {p.frames} drill updates ({p.frames / elapsed:.1f}/s), {p.bone_updates} bone queries, "
+            f"  {sid}: watched {p.watched_s:.0f} s, {p.frames} drill updates"
+            f" ({p.frames / p.watched_s if p.watched_s else 0.0:.1f}/s watched), {p.bone_updates} bone queries, "
             f"{p.remeshed_chunks} chunks re-meshed"
             for sid, p in viewer.pages.items()
         ]

@@ -90,6 +90,8 @@ class TraineePage:
         self.frame_hz, self.bone_hz = frame_hz, bone_hz
         self.frames = 0
         """Drill updates sent."""
+        self.watched_s = 0.0
+        """How long a browser had the page open (s, counted in frames)."""
         self.bone_updates = 0
         """Bone queries answered."""
         self.remeshed_chunks = 0
@@ -341,6 +343,7 @@ class TraineePage:
         watches the page (what changed meanwhile is drawn when one connects)."""
         if not self.watched:
             return
+        self.watched_s += 1.0 / self.frame_hz
         snap = self.feed.snapshot()
         f, pose = snap["force"], snap["pose"]
         if f is not None:
