@@ -178,6 +178,13 @@ def test_onnx_runtime_predicts_what_torchscript_does(run):
             ort.predict(bad)
         with pytest.raises(ShapeError):
             ort.predict(np.zeros((1, ts.window + 1, 9)))
+        # A window whose scaled values overflow float32: TorchScript answers NaN (and the service
+        # refuses it); ONNX Runtime's LSTM would saturate to a finite force, so it answers NaN too.
+        huge = np.zeros((3, ts.window, 9), dtype=np.float32)
+        huge[1] = 3e38
+        for m in (ts, ort):
+            with pytest.raises(InvalidInputError, match=r"window\(s\) \[1\] is not finite"):
+                m.predict(huge)
     # auto: ONNX Runtime on CPU (installed with DHG's pinned dependencies).
     assert load_model(run[0] / "model.ts", executor="auto").executor == "onnxruntime"
     with pytest.raises(InvalidInputError, match="executor must be one of"):
@@ -194,6 +201,10 @@ def test_onnx_runtime_refuses_a_graph_that_predicts_otherwise(run, monkeypatch):
     with pytest.raises(ModelFileError, match=r"differ from TorchScript's by up to 0\.01 N"):
         load_model(run[0] / "model.ts", executor="onnxruntime")
     assert load_model(run[0] / "model.ts", executor="auto").executor == "torchscript"
+    # A graph answering NaN is refused too (a NaN difference must not pass for none).
+    monkeypatch.setattr(onnx_runner.OnnxRunner, "__call__", lambda self, w: real_call(self, w) * np.nan)
+    with pytest.raises(ModelFileError, match="NaN or infinite forces"):
+        load_model(run[0] / "model.ts", executor="onnxruntime")
 
 
 def test_loader_refuses_bad_windows_and_files(run, tmp_path):

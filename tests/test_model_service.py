@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -33,8 +34,11 @@ def _query(z, key: str, window: np.ndarray, seq: int) -> tuple[bool, bytes]:
     return (True, r.ok.payload.to_bytes()) if r.ok is not None else (False, r.err.payload.to_bytes())
 
 
-def test_a_window_the_model_overflows_on_is_refused_not_answered_with_nan(model):
-    """Issue 21, item 10: a window of 3e38 values (finite in float32) made the model answer NaN."""
+@pytest.mark.parametrize("executor", ["torchscript", "onnxruntime"])
+def test_a_window_the_model_overflows_on_is_refused_not_answered_with_nan(executor):
+    """Issue 21, item 10: a window of 3e38 values (finite in float32) made the model answer NaN.
+    Either executor refuses it (decision 0030)."""
+    model = load_model(default_model_path(), executor=executor)
     huge = np.full((model.window, 9), 3e38, dtype=np.float32)
     with pytest.raises(InvalidInputError, match="not finite"):
         model.predict(huge)
@@ -49,6 +53,34 @@ def test_a_window_the_model_overflows_on_is_refused_not_answered_with_nan(model)
         assert not ok and "not finite" in json.loads(body)["error"]
         stats = service.stats()
         assert (stats["answered"], stats["refused"]) == (1, 1)
+    finally:
+        service.close()
+        z.close()
+
+
+def test_onnx_runtimes_pool_threads_run_at_the_services_nice_value():
+    """With more than one thread ONNX Runtime does part of each pass on a pool it starts when the
+    model is loaded; the service lowers those threads with its own (decision 0026)."""
+    import os
+
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        model = load_model(default_model_path(), executor="onnxruntime")
+    finally:
+        torch.set_num_threads(threads)
+    pool = model.runner.pool_threads
+    assert model.runner.threads == 2 and len(pool) >= 1
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    service = ModelService(z, model, prefix="svc-pool", nice=19)
+    try:
+        wait_until(lambda: all(os.getpriority(os.PRIO_PROCESS, t) == 19 for t in pool), 10.0, "the pool at nice 19")
+        key = protocol.keys("svc-pool", "x")["predict"]
+        ok, _ = _query(z, key, np.zeros((model.window, 9), dtype=np.float32), 1)
+        assert ok
+        assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == 0  # the caller's unchanged
     finally:
         service.close()
         z.close()

@@ -105,7 +105,7 @@ def test_bad_volumes_and_bricks_are_refused_with_the_reason():
 
 def test_a_page_sends_only_the_pieces_a_cut_changed(femur_2mm):
     """A cut re-marches every surface of the chunks it touched; the page sends a piece again only
-    when it changed (a new mesh handle), keeps the rest as shown and removes a piece that is gone."""
+    when it changed (a new mesh handle) and keeps the rest as shown."""
     from dhg.view.scene import add_bone_piece, add_whole_bone, stop_quietly, viser_server
 
     v = femur_2mm.volume

@@ -220,7 +220,9 @@ def test_a_page_draws_only_while_someone_watches_it(server):
                 wait_for(lambda: page.frames > drawn, 60, "the drill followed")
                 wait_for(lambda: watcher.messages > 0 and watcher.bytes > 0, 30, "the page's messages")
             wait_for(lambda: not page.watched, 30, "the watcher gone")
-            wait_for(hand.idle, 60, "the poses sent")
+            # Three more states (0.3 s): a bone pass (every 0.25 s) begun while watched has ended.
+            seen = page.feed.states
+            wait_for(lambda: hand.idle() and page.feed.states >= seen + 3, 60, "the poses sent")
             frames, bone, states, watched_s = page.frames, page.bone_updates, page.feed.states, page.watched_s
             assert watched_s > 0
             hand.move(a + d * np.linspace(8e-3, 11e-3, 600)[:, None])

@@ -165,7 +165,7 @@ def _watch(port: int, done: threading.Event) -> None:
                 try:
                     watchers.append(PageWatcher(url, timeout_s=2.0))
                     break
-                except OSError:  # the page is not up yet
+                except Exception:  # the page is not up yet (refused, or a handshake it could not answer)
                     done.wait(0.2)
         done.wait()
     finally:

@@ -132,7 +132,8 @@ def _model_args(p: argparse.ArgumentParser, d: Any) -> None:
         "--model-threads",
         type=int,
         metavar="N",
-        help="torch CPU threads (default: a quarter of the cores, at least 1, so the 1 kHz engine keeps a core)",
+        help="CPU threads of a forward pass, TorchScript's or ONNX Runtime's (default: a quarter of the cores, at "
+        "least 1, so the 1 kHz engine keeps a core)",
     )
     g.add_argument(
         "--model-nice",

@@ -14,8 +14,8 @@ model's input ranges; a graph that differs by more than :data:`MAX_DIFFERENCE_N`
 from __future__ import annotations
 
 import io
+import os
 import warnings
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -31,6 +31,25 @@ CHECK_BATCHES = (1, 3, 16)
 """Batch sizes the check runs (a lone query, a small burst, a class)."""
 
 
+def _thread_ids() -> set[int]:
+    """Native ids of this process's unnamed threads (Linux ``/proc``; empty elsewhere): those
+    that carry the process's own name, as ONNX Runtime's pool threads do. Threads that name
+    themselves, such as Zenoh's, are left out, so one started meanwhile is not taken for the pool's."""
+    try:
+        own = _comm("/proc/self/comm")
+        return {int(t) for t in os.listdir("/proc/self/task") if _comm(f"/proc/self/task/{t}/comm") == own}
+    except OSError:
+        return set()
+
+
+def _comm(path: str) -> str | None:
+    try:
+        with open(path) as fh:
+            return fh.read().strip()
+    except OSError:  # a thread that ended meanwhile
+        return None
+
+
 def onnx_available() -> bool:
     """Whether ``onnx`` and ``onnxruntime`` can be imported."""
     try:
@@ -44,7 +63,7 @@ def onnx_available() -> bool:
 class OnnxRunner:
     """A TorchScript model (``module``, windows (B, window, 9) → forces (B, 3) N) exported to ONNX
     and run by ONNX Runtime on CPU with ``threads`` intra-op threads (the calling thread alone
-    when 1, so the model service's nice value applies to the pass). Raises :class:`ValueError`
+    when 1; more start a pool, :attr:`pool_threads`). Raises :class:`ValueError`
     when the graph's predictions differ from the module's (``check_windows``) by more than
     :data:`MAX_DIFFERENCE_N`."""
 
@@ -72,7 +91,18 @@ class OnnxRunner:
         opts.log_severity_level = 3  # errors only: its notes would print at every start
         # Idle pool threads would spin for the next pass: CPU a shared 2-core host needs elsewhere.
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        before = _thread_ids()
         self._session = ort.InferenceSession(buf.getvalue(), opts, providers=["CPUExecutionProvider"])
+        self.pool_threads = sorted(_thread_ids() - before)
+        buffers = dict(module.named_buffers())
+        self._scaling = (
+            (buffers["in_idx"].numpy(), buffers["in_lo"].numpy(), buffers["in_span"].numpy())
+            if {"in_idx", "in_lo", "in_span"} <= buffers.keys()
+            else None
+        )
+        """Native ids of the intra-op threads ONNX Runtime started for this session (none with one
+        thread: the pass runs on the caller's). They do part of every pass, so whoever lowers the
+        passes' priority lowers theirs too (:class:`dhg.live.services.ModelService`)."""
         self.graph_bytes = len(buf.getvalue())
         self.threads = opts.intra_op_num_threads
         self.max_difference_n = self._check(module, np.asarray(check_windows, dtype=np.float32))
@@ -86,6 +116,8 @@ class OnnxRunner:
             got = self(x)
             if got.shape != want.shape:
                 raise ValueError(f"the ONNX graph answered shape {got.shape} for a batch of {b}, expected {want.shape}")
+            if not np.all(np.isfinite(got)):  # (max() would drop a NaN difference)
+                raise ValueError(f"the ONNX graph answered NaN or infinite forces for a batch of {b}")
             worst = max(worst, float(np.max(np.abs(got - want))))
         if not worst <= MAX_DIFFERENCE_N:
             raise ValueError(
@@ -96,5 +128,14 @@ class OnnxRunner:
 
     def __call__(self, windows: npt.NDArray[np.float32]) -> npt.NDArray[np.float64]:
         """Forces (B, 3) in N for windows (B, window, 9) float32, checked by the caller."""
-        out: Any = self._session.run(None, {"windows": np.ascontiguousarray(windows, dtype=np.float32)})[0]
-        return np.asarray(out, dtype=np.float64)
+        w = np.ascontiguousarray(windows, dtype=np.float32)
+        out = np.asarray(self._session.run(None, {"windows": w})[0], dtype=np.float64)
+        if self._scaling is not None:
+            # A window whose scaled values overflow float32 makes TorchScript answer NaN, which the
+            # model service refuses; ONNX Runtime's LSTM saturates to a finite force instead. The
+            # same rows answer NaN here, so both executors refuse the same windows.
+            idx, lo, span = self._scaling
+            with np.errstate(over="ignore", invalid="ignore"):
+                overflow = ~np.isfinite((w[:, :, idx] - lo) / span).all(axis=(1, 2))
+            out[overflow] = np.nan
+        return out

@@ -222,8 +222,9 @@ def load_model(path: str | os.PathLike[str], device: str = "cpu", executor: str 
 
 
 def _onnx_runner(model: GuidanceModel, required: bool) -> Any:
-    """The model's :class:`~dhg.learning.onnx_runner.OnnxRunner`; without ``required``, None (with
-    a warning in the log) where ONNX Runtime is missing or the graph fails its check."""
+    """The model's :class:`~dhg.learning.onnx_runner.OnnxRunner`; without ``required``, None where
+    ONNX Runtime is not installed, and None with a warning in the log where the graph fails its
+    check."""
     import logging
 
     from dhg.learning.onnx_runner import OnnxRunner, onnx_available

@@ -167,9 +167,14 @@ class ModelService:
 
     def _run(self) -> None:
         if self.nice and hasattr(os, "setpriority"):
-            # Linux nice values are per thread: this lowers the worker's alone (torch runs its
-            # forward passes on this thread with one intra-op thread, dhg-serve's default on ≤ 7 cores).
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self.nice)
+            # Linux nice values are per thread: this lowers the worker's (torch runs its forward
+            # passes on this thread with one intra-op thread, dhg-serve's default on ≤ 7 cores) and
+            # those of ONNX Runtime's intra-op pool when it has one (more threads).
+            for tid in (threading.get_native_id(), *getattr(getattr(self.model, "runner", None), "pool_threads", ())):
+                try:
+                    os.setpriority(os.PRIO_PROCESS, tid, self.nice)
+                except OSError:  # a pool thread that has ended
+                    pass
         # The largest batch of the last grid period and a half: the queries of the burst now
         # arriving (a session a stall put off the grid for a few records then waits 2 ms alone,
         # instead of splitting the bursts of the others).

@@ -105,7 +105,11 @@ class PageWatcher:
             look_at=(0.0, 0.0, 0.0),
             up_direction=(0.0, 0.0, 1.0),
         )
-        self._ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+        try:
+            self._ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+        except BaseException:
+            self._ws.close()
+            raise
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._read, name="page-watcher", daemon=True)
         self._thread.start()
