@@ -21,11 +21,15 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
+from dhg.core.features import FEATURE_NAMES
+
 __all__ = ["MAX_DIFFERENCE_N", "OnnxRunner", "onnx_available"]
 
 MAX_DIFFERENCE_N = 1e-4
 """Largest difference (N) allowed between the ONNX graph's prediction and TorchScript's for any
 check window (measured: 4.8e-7 N, float32 rounding)."""
+
+_FEATURES = len(FEATURE_NAMES)
 
 CHECK_BATCHES = (1, 3, 16)
 """Batch sizes the check runs (a lone query, a small burst, a class)."""
@@ -63,11 +67,11 @@ def onnx_available() -> bool:
 class OnnxRunner:
     """A TorchScript model (``module``, windows (B, window, 9) → forces (B, 3) N) exported to ONNX
     and run by ONNX Runtime on CPU with ``threads`` intra-op threads (the calling thread alone
-    when 1; more start a pool, :attr:`pool_threads`). Raises :class:`ValueError`
-    when the graph's predictions differ from the module's (``check_windows``) by more than
-    :data:`MAX_DIFFERENCE_N`."""
+    when 1; more start a pool, :attr:`pool_threads`). Raises :class:`ValueError` when the graph's
+    predictions differ from the module's by more than :data:`MAX_DIFFERENCE_N` on windows spread
+    over the ranges the model was trained on (its input scaling; fixed seed)."""
 
-    def __init__(self, module: torch.jit.ScriptModule, window: int, check_windows: np.ndarray, threads: int = 1):
+    def __init__(self, module: torch.jit.ScriptModule, window: int, threads: int = 1):
         import onnxruntime as ort
 
         buf = io.BytesIO()
@@ -77,7 +81,7 @@ class OnnxRunner:
             warnings.simplefilter("ignore")
             torch.onnx.export(
                 module,
-                (torch.zeros(2, window, 9),),
+                (torch.zeros(2, window, _FEATURES),),
                 buf,
                 dynamo=False,
                 input_names=["windows"],
@@ -94,18 +98,26 @@ class OnnxRunner:
         before = _thread_ids()
         self._session = ort.InferenceSession(buf.getvalue(), opts, providers=["CPUExecutionProvider"])
         self.pool_threads = sorted(_thread_ids() - before)
+        """Native ids of the intra-op threads ONNX Runtime started for this session (none with one
+        thread: the pass runs on the caller's). They do part of every pass, so whoever lowers the
+        passes' priority lowers theirs too (:class:`dhg.live.services.ModelService`)."""
+        self.threads = opts.intra_op_num_threads
         buffers = dict(module.named_buffers())
         self._scaling = (
             (buffers["in_idx"].numpy(), buffers["in_lo"].numpy(), buffers["in_span"].numpy())
             if {"in_idx", "in_lo", "in_span"} <= buffers.keys()
             else None
         )
-        """Native ids of the intra-op threads ONNX Runtime started for this session (none with one
-        thread: the pass runs on the caller's). They do part of every pass, so whoever lowers the
-        passes' priority lowers theirs too (:class:`dhg.live.services.ModelService`)."""
-        self.graph_bytes = len(buf.getvalue())
-        self.threads = opts.intra_op_num_threads
-        self.max_difference_n = self._check(module, np.asarray(check_windows, dtype=np.float32))
+        self.max_difference_n = self._check(module, self._check_windows(window))
+
+    def _check_windows(self, window: int) -> np.ndarray:
+        """16 windows spread uniformly over the model's input ranges ([0, 1] without a scaling)."""
+        lo, span = np.zeros(_FEATURES, np.float32), np.ones(_FEATURES, np.float32)
+        if self._scaling is not None:
+            idx, in_lo, in_span = self._scaling
+            lo[idx], span[idx] = in_lo, in_span
+        rng = np.random.default_rng(0)
+        return (lo + span * rng.random((max(CHECK_BATCHES), window, _FEATURES))).astype(np.float32)
 
     def _check(self, module: torch.jit.ScriptModule, windows: np.ndarray) -> float:
         worst = 0.0

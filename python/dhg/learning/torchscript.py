@@ -235,16 +235,8 @@ def _onnx_runner(model: GuidanceModel, required: bool) -> Any:
         if required:
             raise InvalidInputError("the onnxruntime executor needs the onnx and onnxruntime packages")
         return None
-    # Check windows spread over the ranges the model was trained on (its scaling), fixed seed.
-    buffers = dict(model.module.named_buffers())
-    lo, span = np.zeros(len(FEATURE_NAMES), np.float32), np.ones(len(FEATURE_NAMES), np.float32)
-    if {"in_idx", "in_lo", "in_span"} <= buffers.keys():
-        idx = buffers["in_idx"].numpy()
-        lo[idx], span[idx] = buffers["in_lo"].numpy(), buffers["in_span"].numpy()
-    rng = np.random.default_rng(0)
-    windows = (lo + span * rng.random((16, model.window, len(FEATURE_NAMES)))).astype(np.float32)
     try:
-        return OnnxRunner(model.module, model.window, windows, threads=torch.get_num_threads())
+        return OnnxRunner(model.module, model.window, threads=torch.get_num_threads())
     except Exception as exc:  # the exporter or the runtime refusing this graph
         if required:
             raise ModelFileError(f"{model.path}: cannot run under ONNX Runtime: {exc}") from None

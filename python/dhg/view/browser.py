@@ -78,20 +78,19 @@ class PageWatcher:
     :attr:`bytes` count what arrived."""
 
     def __init__(self, url: str, timeout_s: float = 10.0) -> None:
+        import msgspec
         import viser
+        from viser._messages import ViewerCameraMessage
         from websockets.sync.client import connect
 
         ws_url = url.replace("http://", "ws://", 1).replace("https://", "wss://", 1)
         self.messages = 0
         self.bytes = 0
-        import msgspec
-        from viser._messages import ViewerCameraMessage
-
         self._ws = connect(
             ws_url,
-            subprotocols=[f"viser-v{viser.__version__}"],
+            subprotocols=[f"viser-v{viser.__version__}"],  # type: ignore[list-item]
             max_size=None,
-            open_timeout=timeout_s,  # type: ignore[list-item]
+            open_timeout=timeout_s,
         )
         # viser counts a client as connected once it has sent its camera, as a browser does first.
         camera = ViewerCameraMessage(
