@@ -73,7 +73,8 @@ def main() -> None:
         "sim and no model service), dhg-nice0 (dhg-serve --model-nice 0: the model's worker thread at the "
         "engine's priority, as before decision 0026), dhg-ts (dhg-serve --executor torchscript: the passes by "
         "TorchScript, as before decision 0030), other (dhg-serve from the build --other names), "
-        "echo (must be included)",
+        "echo (must be included). A variant may end in +rx1 (Zenoh's receive runtime on one worker thread, "
+        "ZENOH_RUNTIME); a server variant with a tag is set against echo+TAG where the run has it",
     )
     p.add_argument(
         "--other",
@@ -185,6 +186,12 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
     server: Any = None
     model: Any = None
     echo: subprocess.Popen[str] | None = None
+    target, _, tag = target.partition("+")
+    if tag and tag not in RUNTIMES:
+        raise SystemExit(f"variant {target}+{tag}: unknown tag; one of {', '.join(RUNTIMES)}")
+    saved = os.environ.get("ZENOH_RUNTIME")
+    if tag:
+        os.environ["ZENOH_RUNTIME"] = RUNTIMES[tag]
     if target.startswith("dhg") or target == "other":
         tick_on = "thread" if target == "dhg-thread" else "pose"
         role = "sim" if target in ("dhg-sim", "dhg-engine") else "all"
@@ -204,6 +211,10 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         echo = subprocess.Popen([args.echo, "--listen", endpoint], stderr=subprocess.PIPE, text=True)
         _wait_for_port(endpoint, echo)
         pid = echo.pid
+    if saved is None:
+        os.environ.pop("ZENOH_RUNTIME", None)
+    else:
+        os.environ["ZENOH_RUNTIME"] = saved
     try:
         switches0 = _context_switches(pid)
         model_cpu0 = _cpu_s(model.proc.pid) if model is not None else 0.0
@@ -230,7 +241,7 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         raise SystemExit(f"load tool against {target} failed ({r.returncode}): {r.stderr}")
     out = json.loads(r.stdout)
     return {
-        "target": target,
+        "target": f"{target}+{tag}" if tag else target,
         "clients": n,
         "p50_ms": out["pose_to_force_ms"]["p50"],
         "p99_ms": out["pose_to_force_ms"]["p99"],
@@ -247,6 +258,10 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
     }
 
 
+# Zenoh runtime settings a variant can name after a "+" (dhg-engine+rx1, echo+rx1): ZENOH_RUNTIME for
+# the server's process (and the model service's in it). rx1: one receive worker thread instead of two.
+RUNTIMES = {"rx1": "(rx: (worker_threads: 1))"}
+
 _BATCHES = re.compile(r"model service answered (\d+) in (\d+) batches")
 
 
@@ -259,7 +274,7 @@ def _cpu_s(pid: int) -> float:
 def _against_echo(args: argparse.Namespace) -> None:
     rows = []
     variants = args.variants.split(",")
-    servers = [v for v in variants if v != "echo"]
+    servers = [v for v in variants if not v.startswith("echo")]
     for n in (int(c) for c in args.clients.split(",")):
         runs: dict[str, list[dict[str, Any]]] = {v: [] for v in variants}
         for _ in range(args.rounds):
@@ -275,22 +290,25 @@ def _against_echo(args: argparse.Namespace) -> None:
             return statistics.median(r[key] for r in runs[target])
 
         for s in servers:
+            # Each server against the echo with the same runtime tag where the run has one.
+            e = f"echo+{s.partition('+')[2]}" if f"echo+{s.partition('+')[2]}" in runs else "echo"
             rows.append(
-                (n, s, *(med(t, k) for k in ("p50_ms", "p99_ms", "cpu_per_session", "context_switches_per_pose")
-                         for t in (s, "echo")), med(s, "forces_per_pose"), med(s, "model_cpu_per_session"),
+                (n, s, e, *(med(t, k) for k in ("p50_ms", "p99_ms", "cpu_per_session", "context_switches_per_pose")
+                         for t in (s, e)), med(s, "forces_per_pose"), med(s, "model_cpu_per_session"),
                  statistics.median([r["guidance_p99_ms"] or 0.0 for r in runs[s]]),
                  statistics.median([r["model_queries_per_pass"] or 0.0 for r in runs[s]]))
             )  # fmt: skip
     print(f"\n{args.rounds} rounds of {args.seconds:g} s each, alternating; medians; {os.cpu_count()} CPUs\n")
-    print("| clients | server | pose → force p50, server / echo (ms) | ratio | p99, server / echo (ms) | ratio "
+    print("| clients | server | against | pose → force p50, server / echo (ms) | ratio "
+          "| p99, server / echo (ms) | ratio "
           "| server CPU per session, server / echo (cores) | ratio | context switches per pose, server / echo "
           "| forces per pose | model service's process, CPU per session (cores) "
           "| pose → guidance p99 (ms) | model queries per forward pass |")  # fmt: skip
-    print("|---:|---|---|---:|---|---:|---|---:|---|---:|---:|---:|---:|")
-    for n, s, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp, mcpu, gp99, qpp in rows:
+    print("|---:|---|---|---|---:|---|---:|---|---:|---|---:|---:|---:|---:|")
+    for n, s, e, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp, mcpu, gp99, qpp in rows:
         model = f"{mcpu:.4f}" if s == "dhg-sim" else "(in the server)"
         print(
-            f"| {n} | {s} | {p50d:.3f} / {p50e:.3f} | {p50d / p50e:.2f} | {p99d:.3f} / {p99e:.3f} "
+            f"| {n} | {s} | {e} | {p50d:.3f} / {p50e:.3f} | {p50d / p50e:.2f} | {p99d:.3f} / {p99e:.3f} "
             f"| {p99d / p99e:.2f} | {cpud:.4f} / {cpue:.4f} | {cpud / cpue:.2f} | {swd:.2f} / {swe:.2f} | {fpp:.3f} "
             f"| {model} | {f'{gp99:.2f}' if gp99 else '—'} | {f'{qpp:.2f}' if qpp else '—'} |"
         )

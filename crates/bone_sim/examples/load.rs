@@ -34,6 +34,8 @@ struct Args {
     server_pid: Option<u32>,
     /// Zenoh's low-latency transport (priorities off): each put is written by the calling thread.
     lowlatency: bool,
+    /// Zenoh's `transport` section as JSON5 (for example shared memory on), instead of the default.
+    transport: Option<String>,
     /// Give this tool's sending thread and Zenoh's I/O threads the 0.1 ms slice, as the server does.
     short_slices: bool,
 }
@@ -46,6 +48,7 @@ fn parse_args() -> Result<Args, String> {
         prefix: "dhg".into(),
         server_pid: None,
         lowlatency: false,
+        transport: None,
         short_slices: false,
     };
     let mut it = std::env::args().skip(1);
@@ -58,10 +61,11 @@ fn parse_args() -> Result<Args, String> {
             "--prefix" => a.prefix = value()?,
             "--server-pid" => a.server_pid = Some(value()?.parse().map_err(|e| format!("--server-pid: {e}"))?),
             "--lowlatency" => a.lowlatency = true,
+            "--transport" => a.transport = Some(value()?),
             "--short-slices" => a.short_slices = true,
             "--help" | "-h" => {
                 return Err(
-                    "usage: load [--connect ENDPOINT] [--clients N] [--seconds S] [--prefix P] [--server-pid PID] [--lowlatency] [--short-slices]"
+                    "usage: load [--connect ENDPOINT] [--clients N] [--seconds S] [--prefix P] [--server-pid PID] [--lowlatency | --transport JSON5] [--short-slices]"
                         .into(),
                 )
             }
@@ -227,7 +231,11 @@ fn run(args: &Args) -> Result<(), String> {
 /// Client `c`: its own Zenoh session, its session on the server, its pose publisher and its
 /// force and guidance subscribers.
 fn connect(args: &Args, c: usize, shared: &Arc<Shared>) -> Result<Client, String> {
-    let transport = if args.lowlatency { LOWLATENCY } else { "{}" };
+    let transport = match (&args.transport, args.lowlatency) {
+        (Some(t), _) => t.as_str(),
+        (None, true) => LOWLATENCY,
+        (None, false) => "{}",
+    };
     let conf = format!(
         r#"{{ mode: "client", connect: {{ endpoints: ["{}"] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {transport} }}"#,
         args.connect
