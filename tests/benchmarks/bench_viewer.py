@@ -12,7 +12,8 @@ a browser tab would, without drawing it); ``--unwatched`` leaves every page clos
 keeps a headless Chromium on the trainee page instead (the whole screen a trainee has).
 ``--viewer-nice 0`` adds a variant, the viewer at that nice value instead of ``dhg view``'s default
 (decision 0027); ``--other PYTHONPATH`` one more, ``dhg view`` from another build (a checkout's
-``python/`` folder with its extension built), the server staying this build's. ``--clients N`` runs
+``python/`` folder with its extension built), the server staying this build's; ``--viewer-runtime
+RON`` one more, ``dhg view`` with that ``ZENOH_RUNTIME`` (Zenoh's runtime threads, decision 0031). ``--clients N`` runs
 N load-tool trainees (the viewer serves every session's page). Prints one JSON line per run, then
 the medians and the ratios (with / without).
 """
@@ -45,6 +46,11 @@ def main() -> None:
     ap.add_argument("--load", default=str(Path(target) / "release" / "examples" / "load"))
     ap.add_argument("--viewer-nice", type=int, metavar="N", help="also a viewer at nice N (dhg view --nice N)")
     ap.add_argument("--other", metavar="PYTHONPATH", help="also dhg view from the build this python/ folder holds")
+    ap.add_argument(
+        "--viewer-runtime",
+        metavar="RON",
+        help="also dhg view with this ZENOH_RUNTIME (e.g. '(rx: (worker_threads: 1))'), as the variant 'runtime'",
+    )
     ap.add_argument("--unwatched", action="store_true", help="no watcher on the pages (nobody looks at them)")
     ap.add_argument("--out", help="also append the JSON lines to this file")
     args = ap.parse_args()
@@ -52,6 +58,7 @@ def main() -> None:
     # "other": dhg view from the build --other names.
     variants: list[Any] = [None, "with"] + ([args.viewer_nice] if args.viewer_nice is not None else [])
     variants += ["other"] if args.other else []
+    variants += ["runtime"] if args.viewer_runtime else []
     runs = []
     for _ in range(args.rounds):
         for variant in variants:
@@ -76,7 +83,7 @@ def main() -> None:
 
 def _name(variant: Any) -> str:
     """A variant's name in the JSON lines: ``none``, ``with`` (the default nice) or ``nice-N``."""
-    return "none" if variant is None else variant if variant in ("with", "other") else f"nice-{variant}"
+    return "none" if variant is None else variant if variant in ("with", "other", "runtime") else f"nice-{variant}"
 
 
 def _emit(args: argparse.Namespace, line: dict[str, Any]) -> None:
@@ -105,6 +112,8 @@ def _one(args: argparse.Namespace, variant: Any) -> dict[str, Any]:
                 cmd += ["--nice", str(variant)]
             elif variant == "other":
                 env["PYTHONPATH"] = args.other
+            elif variant == "runtime":
+                env["ZENOH_RUNTIME"] = args.viewer_runtime
             viewer = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env)
             assert viewer.stdout is not None
             out.append(viewer.stdout.readline())  # ready
