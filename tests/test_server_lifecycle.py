@@ -3,6 +3,7 @@ and configuration files, no server to talk to. Each test starts (or fails to sta
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -202,6 +203,33 @@ def test_a_bad_zenoh_config_file_is_a_clear_error(tmp_path):
     )
     assert r.returncode == 3, r.stderr
     assert "zenoh config" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize(
+    "command",
+    [["dhg.cli.serve"], ["dhg.cli.main", "trainee", "--duration", "1"], ["dhg.cli.main", "view", "--duration", "1"]],
+    ids=["dhg-serve", "trainee", "view"],
+)
+def test_an_unreadable_zenoh_runtime_is_bad_input_not_a_panic(command):
+    """Zenoh reads ``ZENOH_RUNTIME`` (its runtime threads, decision 0031) at a process's first
+    session and panics on what it cannot parse: the engine (dhg-serve) and every Python client say
+    what is wrong instead, exit 3. A readable value starts a server as usual."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    flag = "--listen" if command == ["dhg.cli.serve"] else "--connect"
+    env = dict(os.environ, ZENOH_RUNTIME='(rx: (worker_threads: "two"))')
+    r = subprocess.run(
+        [sys.executable, "-m", *command, flag, endpoint], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert r.returncode == 3, r.stderr
+    assert "invalid ZENOH_RUNTIME" in r.stderr and "two" in r.stderr and "ExpectedInteger" in r.stderr, r.stderr
+    assert "panicked" not in r.stderr and "Traceback" not in r.stderr, r.stderr
+    if command == ["dhg.cli.serve"]:
+        os.environ["ZENOH_RUNTIME"] = "(rx: (worker_threads: 1))"
+        try:
+            server, _ = _serve()
+        finally:
+            del os.environ["ZENOH_RUNTIME"]
+        assert server.stop() == 0
 
 
 @pytest.mark.parametrize(

@@ -74,13 +74,25 @@ def zenoh_config_json5(
 
 
 def open_zenoh(config_json5: str) -> Any:
-    """Opens a Python Zenoh session from :func:`zenoh_config_json5` text."""
+    """Opens a Python Zenoh session from :func:`zenoh_config_json5` text.
+
+    Raises :class:`InvalidInputError` when Zenoh cannot read the ``ZENOH_RUNTIME`` environment
+    variable (its runtime threads, which it reads at a process's first session and panics on;
+    the engine's check, ``transport::check_zenoh_runtime``), and :class:`TransportError` when the
+    session does not open."""
     import zenoh
 
+    from dhg import _bone_sim
+
+    _bone_sim.check_zenoh_runtime()
     try:
         return zenoh.open(zenoh.Config.from_json5(config_json5))
     except Exception as exc:  # zenoh.ZError
         raise TransportError(f"cannot open a zenoh session: {exc}") from None
+    except BaseException as exc:  # pyo3's PanicException derives from BaseException
+        if type(exc).__name__ != "PanicException":
+            raise
+        raise TransportError(f"cannot open a zenoh session: Zenoh panicked: {exc}") from None
 
 
 def zenoh_user(config: str | Path | None) -> str | None:

@@ -127,6 +127,13 @@ pub(crate) fn check_session_id(session_id: &str) -> PyResult<String> {
     crate::transport::registry::check_id(session_id).map(str::to_owned).py()
 }
 
+/// Raises `InvalidInputError` when Zenoh cannot read the `ZENOH_RUNTIME` environment variable
+/// (it would panic at the process's first session); nothing when it is unset or readable.
+#[pyfunction]
+pub(crate) fn check_zenoh_runtime() -> PyResult<()> {
+    crate::transport::check_zenoh_runtime().py()
+}
+
 /// The payload layouts: {name: {"kind", "size", "fields": [(name, type, offset, count, unit)]}}.
 #[pyfunction]
 pub(crate) fn protocol_layouts(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {

@@ -270,6 +270,34 @@ pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
+/// Checks Zenoh's runtime setting, the environment variable `ZENOH_RUNTIME` (its threads, for
+/// example `(rx: (worker_threads: 1))`; decision 0031), before a session opens. Zenoh parses it once,
+/// at its first use, and panics on a value it cannot parse; here that is an error naming the
+/// variable. Zenoh's panic message is kept from stderr while it is caught.
+///
+/// # Errors
+/// [`SimError::InvalidConfig`] when the variable is set and Zenoh cannot read it.
+pub fn check_zenoh_runtime() -> SimResult<()> {
+    let Ok(value) = std::env::var(zenoh_runtime::ZENOH_RUNTIME_ENV) else { return Ok(()) };
+    let hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(|_| {}));
+    let parsed = std::panic::catch_unwind(|| {
+        let _ = &*zenoh_runtime::ZRUNTIME_PARAM;
+    });
+    std::panic::set_hook(hook);
+    parsed.map_err(|panic| {
+        let reason = panic
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| panic.downcast_ref::<&str>().copied())
+            .map_or("Zenoh cannot read it", |m| m.trim_start_matches("called `Result::unwrap()` on an `Err` value: "));
+        SimError::InvalidConfig {
+            what: "ZENOH_RUNTIME (the environment variable of Zenoh's runtime threads)",
+            reason: format!("{value:?}: {reason}; unset it, or write it as Zenoh does: (rx: (worker_threads: 1))"),
+        }
+    })
+}
+
 fn zerr(what: &str) -> impl FnOnce(zenoh::Error) -> SimError + '_ {
     move |e| SimError::Transport(format!("{what}: {e}"))
 }
@@ -296,6 +324,7 @@ impl Server {
     pub fn start(volume: &Arc<Volume>, engine_config: &EngineConfig, config: ServerConfig) -> SimResult<Self> {
         config.validate()?;
         let zconfig = zenoh::Config::from_json5(&config.zenoh_json5).map_err(zerr("bad zenoh configuration"))?;
+        check_zenoh_runtime()?;
         let (core, link) = engine::build(volume, engine_config)?;
         let session = zenoh::open(zconfig).wait().map_err(zerr("cannot open the zenoh session"))?;
         let registry = Registry::new(
