@@ -20,7 +20,7 @@ pub mod registry;
 pub mod replies;
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -271,30 +271,36 @@ pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 /// Checks Zenoh's runtime setting, the environment variable `ZENOH_RUNTIME` (its threads, for
-/// example `(rx: (worker_threads: 1))`; decision 0031), before a session opens. Zenoh parses it once,
-/// at its first use, and panics on a value it cannot parse; here that is an error naming the
-/// variable. Zenoh's panic message is kept from stderr while it is caught.
+/// example `(rx: (worker_threads: 1))`; decision 0031), before a session opens. Zenoh parses it once
+/// per process, at its first use, and panics on a value it cannot parse; here that is an error
+/// naming the variable. The parse runs once (later calls return its outcome), with Zenoh's panic
+/// message kept from stderr while it is caught.
 ///
 /// # Errors
 /// [`SimError::InvalidConfig`] when the variable is set and Zenoh cannot read it.
 pub fn check_zenoh_runtime() -> SimResult<()> {
+    static OUTCOME: OnceLock<Result<(), String>> = OnceLock::new();
     let Ok(value) = std::env::var(zenoh_runtime::ZENOH_RUNTIME_ENV) else { return Ok(()) };
-    let hook = std::panic::take_hook();
-    std::panic::set_hook(Box::new(|_| {}));
-    let parsed = std::panic::catch_unwind(|| {
-        let _ = &*zenoh_runtime::ZRUNTIME_PARAM;
+    let outcome = OUTCOME.get_or_init(|| {
+        // Other threads wait in get_or_init meanwhile, so the hook is swapped and put back once.
+        let hook = std::panic::take_hook();
+        std::panic::set_hook(Box::new(|_| {}));
+        let parsed = std::panic::catch_unwind(|| {
+            let _ = &*zenoh_runtime::ZRUNTIME_PARAM;
+        });
+        std::panic::set_hook(hook);
+        parsed.map_err(|panic| {
+            let reason = panic
+                .downcast_ref::<String>()
+                .map(String::as_str)
+                .or_else(|| panic.downcast_ref::<&str>().copied())
+                .unwrap_or("Zenoh cannot read it");
+            reason.trim_start_matches("called `Result::unwrap()` on an `Err` value: ").to_owned()
+        })
     });
-    std::panic::set_hook(hook);
-    parsed.map_err(|panic| {
-        let reason = panic
-            .downcast_ref::<String>()
-            .map(String::as_str)
-            .or_else(|| panic.downcast_ref::<&str>().copied())
-            .map_or("Zenoh cannot read it", |m| m.trim_start_matches("called `Result::unwrap()` on an `Err` value: "));
-        SimError::InvalidConfig {
-            what: "ZENOH_RUNTIME (the environment variable of Zenoh's runtime threads)",
-            reason: format!("{value:?}: {reason}; unset it, or write it as Zenoh does: (rx: (worker_threads: 1))"),
-        }
+    outcome.clone().map_err(|reason| SimError::InvalidConfig {
+        what: "ZENOH_RUNTIME (the environment variable of Zenoh's runtime threads)",
+        reason: format!("{value:?}: {reason}; unset it, or write it as Zenoh does: (rx: (worker_threads: 1))"),
     })
 }
 
