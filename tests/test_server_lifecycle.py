@@ -210,25 +210,32 @@ def test_a_bad_zenoh_config_file_is_a_clear_error(tmp_path):
     [["dhg.cli.serve"], ["dhg.cli.main", "trainee", "--duration", "1"], ["dhg.cli.main", "view", "--duration", "1"]],
     ids=["dhg-serve", "trainee", "view"],
 )
-def test_an_unreadable_zenoh_runtime_is_bad_input_not_a_panic(command):
+def test_an_unreadable_zenoh_runtime_is_bad_input_not_a_panic(command, monkeypatch):
     """Zenoh reads ``ZENOH_RUNTIME`` (its runtime threads, decision 0031) at a process's first
-    session and panics on what it cannot parse: the engine (dhg-serve) and every Python client say
-    what is wrong instead, exit 3. A readable value starts a server as usual."""
+    session and panics on what it cannot parse (tokio on zero threads): the engine (dhg-serve) and
+    every Python client say what is wrong instead, exit 3. A readable value starts them as usual."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     flag = "--listen" if command == ["dhg.cli.serve"] else "--connect"
-    env = dict(os.environ, ZENOH_RUNTIME='(rx: (worker_threads: "two"))')
-    r = subprocess.run(
-        [sys.executable, "-m", *command, flag, endpoint], env=env, capture_output=True, text=True, timeout=120
-    )
-    assert r.returncode == 3, r.stderr
-    assert "invalid ZENOH_RUNTIME" in r.stderr and "two" in r.stderr and "ExpectedInteger" in r.stderr, r.stderr
-    assert "panicked" not in r.stderr and "Traceback" not in r.stderr, r.stderr
-    if command == ["dhg.cli.serve"]:
-        os.environ["ZENOH_RUNTIME"] = "(rx: (worker_threads: 1))"
-        try:
-            server, _ = _serve()
-        finally:
-            del os.environ["ZENOH_RUNTIME"]
+    for bad, reason in (('(rx: (worker_threads: "two"))', "ExpectedInteger"), ("(app: (worker_threads: 0))", "app")):
+        r = subprocess.run(
+            [sys.executable, "-m", *command, flag, endpoint],
+            env=dict(os.environ, ZENOH_RUNTIME=bad),
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert r.returncode == 3, r.stderr
+        assert "invalid ZENOH_RUNTIME" in r.stderr and reason in r.stderr, r.stderr
+        assert "panicked" not in r.stderr and "Traceback" not in r.stderr, r.stderr
+    monkeypatch.setenv("ZENOH_RUNTIME", "(rx: (worker_threads: 1))")
+    server, endpoint = _serve()
+    try:
+        if command != ["dhg.cli.serve"]:
+            r = subprocess.run(
+                [sys.executable, "-m", *command, "--connect", endpoint], capture_output=True, text=True, timeout=120
+            )
+            assert r.returncode == 0, r.stderr
+    finally:
         assert server.stop() == 0
 
 

@@ -316,10 +316,12 @@ def _load_bone(args: argparse.Namespace) -> tuple[Any, Any]:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
+    from dhg.core.server import check_zenoh_runtime
     from dhg.live import runner
 
     if args.status_every <= 0:
         raise ValueError("--status-every must be positive")
+    check_zenoh_runtime()  # before the model and the bone load: Zenoh would refuse it only after
     options = _serve_options(args)
     # Python hands the GIL over every 5 ms by default: a model reply could wait that long behind a
     # Zenoh callback. 0.5 ms keeps the guidance path's tail short at negligible cost.

@@ -10,7 +10,7 @@ import numpy as np
 
 from dhg import _bone_sim
 
-__all__ = ["Server", "ServerSettings", "reply_schemas", "start_engine"]
+__all__ = ["Server", "ServerSettings", "check_zenoh_runtime", "reply_schemas", "start_engine"]
 
 
 _SERVER: dict[str, Any] = _bone_sim.defaults()["server"]
@@ -126,6 +126,15 @@ def start_engine(
             session=session_config.to_native() if session_config is not None else None,
         )
     )
+
+
+def check_zenoh_runtime() -> None:
+    """Raises :class:`dhg.core.errors.InvalidInputError` when the ``ZENOH_RUNTIME`` environment
+    variable (Zenoh's runtime threads, e.g. ``(rx: (worker_threads: 1))``) is one Zenoh cannot
+    read or asks for zero threads (Zenoh would panic at this process's first session), or has
+    changed since Zenoh read it; nothing when it is unset or readable. The engine's own check,
+    called before any Zenoh session opens, Python's included."""
+    _bone_sim.check_zenoh_runtime()
 
 
 def reply_schemas() -> dict[str, dict[str, Any]]:

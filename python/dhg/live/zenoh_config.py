@@ -76,15 +76,14 @@ def zenoh_config_json5(
 def open_zenoh(config_json5: str) -> Any:
     """Opens a Python Zenoh session from :func:`zenoh_config_json5` text.
 
-    Raises :class:`InvalidInputError` when Zenoh cannot read the ``ZENOH_RUNTIME`` environment
-    variable (its runtime threads, which it reads at a process's first session and panics on;
-    the engine's check, ``transport::check_zenoh_runtime``), and :class:`TransportError` when the
+    Raises :class:`InvalidInputError` when Zenoh cannot use the ``ZENOH_RUNTIME`` environment
+    variable (:func:`dhg.core.server.check_zenoh_runtime`), and :class:`TransportError` when the
     session does not open."""
     import zenoh
 
-    from dhg import _bone_sim
+    from dhg.core.server import check_zenoh_runtime
 
-    _bone_sim.check_zenoh_runtime()
+    check_zenoh_runtime()
     try:
         return zenoh.open(zenoh.Config.from_json5(config_json5))
     except Exception as exc:  # zenoh.ZError

@@ -271,37 +271,77 @@ pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 /// Checks Zenoh's runtime setting, the environment variable `ZENOH_RUNTIME` (its threads, for
-/// example `(rx: (worker_threads: 1))`; decision 0031), before a session opens. Zenoh parses it once
-/// per process, at its first use, and panics on a value it cannot parse; here that is an error
-/// naming the variable. The parse runs once (later calls return its outcome), with Zenoh's panic
-/// message kept from stderr while it is caught.
+/// example `(rx: (worker_threads: 1))`; decision 0031), before a session opens. Zenoh reads it once
+/// per process, at its first use, and panics on a value it cannot parse, and tokio on a runtime of
+/// zero threads; here either is an error naming the variable. The parse runs once (later calls
+/// compare the variable with what was parsed). While it runs, the process's panic hook is a silent
+/// one, so that Zenoh's message does not reach stderr: a panic elsewhere in that instant, before
+/// any session is open, would go unprinted (still raised).
 ///
 /// # Errors
-/// [`SimError::InvalidConfig`] when the variable is set and Zenoh cannot read it.
+/// [`SimError::InvalidConfig`] when the variable is set and Zenoh cannot read it, asks for zero
+/// threads, or has changed since it was read.
 pub fn check_zenoh_runtime() -> SimResult<()> {
-    static OUTCOME: OnceLock<Result<(), String>> = OnceLock::new();
-    let Ok(value) = std::env::var(zenoh_runtime::ZENOH_RUNTIME_ENV) else { return Ok(()) };
-    let outcome = OUTCOME.get_or_init(|| {
-        // Other threads wait in get_or_init meanwhile, so the hook is swapped and put back once.
-        let hook = std::panic::take_hook();
-        std::panic::set_hook(Box::new(|_| {}));
-        let parsed = std::panic::catch_unwind(|| {
-            let _ = &*zenoh_runtime::ZRUNTIME_PARAM;
-        });
-        std::panic::set_hook(hook);
-        parsed.map_err(|panic| {
-            let reason = panic
-                .downcast_ref::<String>()
-                .map(String::as_str)
-                .or_else(|| panic.downcast_ref::<&str>().copied())
-                .unwrap_or("Zenoh cannot read it");
-            reason.trim_start_matches("called `Result::unwrap()` on an `Err` value: ").to_owned()
-        })
-    });
-    outcome.clone().map_err(|reason| SimError::InvalidConfig {
+    static PARSED: OnceLock<(Option<String>, Result<(), String>)> = OnceLock::new();
+    let value = std::env::var(zenoh_runtime::ZENOH_RUNTIME_ENV).ok();
+    let (parsed_value, outcome) = PARSED.get_or_init(|| (value.clone(), parse_zenoh_runtime()));
+    let refuse = |reason: String| SimError::InvalidConfig {
         what: "ZENOH_RUNTIME (the environment variable of Zenoh's runtime threads)",
-        reason: format!("{value:?}: {reason}; unset it, or write it as Zenoh does: (rx: (worker_threads: 1))"),
-    })
+        reason: format!("{}: {reason}", value.as_deref().map_or("unset".into(), |v| format!("{v:?}"))),
+    };
+    if *parsed_value != value {
+        let was = parsed_value.as_deref().map_or("unset".into(), |v| format!("{v:?}"));
+        return Err(refuse(format!("it was {was} when Zenoh read it, once for this process: restart the process")));
+    }
+    outcome
+        .clone()
+        .map_err(|reason| refuse(format!("{reason}; unset it, or write it as Zenoh does: (rx: (worker_threads: 1))")))
+}
+
+/// Zenoh's own parse of `ZENOH_RUNTIME` (its lazy static), its panic caught; then every runtime's
+/// thread counts, which tokio asserts are at least 1 when Zenoh builds the runtime.
+fn parse_zenoh_runtime() -> Result<(), String> {
+    use std::borrow::Borrow;
+    use zenoh_runtime::{RuntimeParam, ZRuntime};
+    // Other threads wait in OnceLock::get_or_init meanwhile: the hook is swapped and put back once.
+    let hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(|_| {}));
+    let parsed = std::panic::catch_unwind(|| {
+        let _ = &*zenoh_runtime::ZRUNTIME_PARAM;
+    });
+    std::panic::set_hook(hook);
+    if let Err(panic) = parsed {
+        let text = panic
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| panic.downcast_ref::<&str>().copied())
+            .unwrap_or("");
+        return Err(ron_reason(text));
+    }
+    for zrt in ZRuntime::iter() {
+        let p: &RuntimeParam = zrt.borrow();
+        if p.worker_threads == 0 || p.max_blocking_threads == 0 {
+            return Err(format!("the {zrt} runtime needs at least one thread of each kind"));
+        }
+    }
+    Ok(())
+}
+
+/// What Zenoh's panic says of its RON parse (`SpannedError { code: ExpectedInteger, span: Span {
+/// start: Position { line: 1, col: 22 }, ...`), as "ExpectedInteger at line 1, column 22".
+fn ron_reason(panic: &str) -> String {
+    let between = |after: &str, until: &str| -> Option<&str> {
+        let rest = &panic[panic.find(after)? + after.len()..];
+        Some(rest[..rest.find(until)?].trim())
+    };
+    match (between("code: ", ", span: "), between("line: ", ","), between("col: ", " ")) {
+        (Some(code), Some(line), Some(col)) => format!("Zenoh cannot read it: {code} at line {line}, column {col}"),
+        _ if panic.is_empty() => "Zenoh cannot read it".into(),
+        _ => format!(
+            "Zenoh cannot read it: {}",
+            panic.trim_start_matches("called `Result::unwrap()` on an `Err` value: ")
+        ),
+    }
 }
 
 fn zerr(what: &str) -> impl FnOnce(zenoh::Error) -> SimError + '_ {
