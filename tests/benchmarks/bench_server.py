@@ -24,6 +24,7 @@ to run; the ratios far less.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
@@ -32,6 +33,7 @@ import statistics
 import subprocess
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -187,43 +189,44 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
     model: Any = None
     echo: subprocess.Popen[str] | None = None
     target, _, tag = target.partition("+")
-    if tag and tag not in RUNTIMES:
-        raise SystemExit(f"variant {target}+{tag}: unknown tag; one of {', '.join(RUNTIMES)}")
-    saved = os.environ.get("ZENOH_RUNTIME")
-    if tag:
-        os.environ["ZENOH_RUNTIME"] = RUNTIMES[tag]
-    if target.startswith("dhg") or target == "other":
-        tick_on = "thread" if target == "dhg-thread" else "pose"
-        role = "sim" if target in ("dhg-sim", "dhg-engine") else "all"
-        nice = ["--model-nice", "0"] if target == "dhg-nice0" else []
-        nice += ["--executor", "torchscript"] if target == "dhg-ts" else []
-        if target == "other" and not args.other:
-            raise SystemExit("the variant 'other' needs --other PYTHONPATH")
-        server = serve_from(
-            args.other if target == "other" else None,
-            ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "5", "--tick-on", tick_on,
-             "--role", role, *nice],
-        )  # fmt: skip
-        if target == "dhg-sim":
-            model = ServerProcess(["--role", "model", "--connect", endpoint, "--status-every", "30"], echo=False)
-        pid = server.proc.pid
-    else:
-        echo = subprocess.Popen([args.echo, "--listen", endpoint], stderr=subprocess.PIPE, text=True)
-        _wait_for_port(endpoint, echo)
-        pid = echo.pid
-    if saved is None:
-        os.environ.pop("ZENOH_RUNTIME", None)
-    else:
-        os.environ["ZENOH_RUNTIME"] = saved
+    with _zenoh_runtime(tag):
+        if target.startswith("dhg") or target == "other":
+            tick_on = "thread" if target == "dhg-thread" else "pose"
+            role = "sim" if target in ("dhg-sim", "dhg-engine") else "all"
+            nice = ["--model-nice", "0"] if target == "dhg-nice0" else []
+            nice += ["--executor", "torchscript"] if target == "dhg-ts" else []
+            server = serve_from(
+                args.other if target == "other" else None,
+                ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "5", "--tick-on", tick_on,
+                 "--role", role, *nice],
+            )  # fmt: skip
+            if target == "dhg-sim":
+                try:
+                    model = ServerProcess(
+                        ["--role", "model", "--connect", endpoint, "--status-every", "30"], echo=False
+                    )
+                except BaseException:
+                    server.stop()
+                    raise
+            pid = server.proc.pid
+        else:
+            echo = subprocess.Popen([args.echo, "--listen", endpoint], stderr=subprocess.PIPE, text=True)
+            try:
+                _wait_for_port(endpoint, echo)
+            except BaseException:
+                echo.kill()
+                raise
+            pid = echo.pid
     try:
         switches0 = _context_switches(pid)
         model_cpu0 = _cpu_s(model.proc.pid) if model is not None else 0.0
         t0 = time.perf_counter()
-        r = subprocess.run(
-            [args.load, "--connect", endpoint, "--clients", str(n), "--seconds", str(args.seconds),
-             "--server-pid", str(pid)],
-            capture_output=True, text=True, timeout=args.seconds + 120,
-        )  # fmt: skip
+        with _zenoh_runtime(""):  # the load tool on Zenoh's defaults, whatever the variant
+            r = subprocess.run(
+                [args.load, "--connect", endpoint, "--clients", str(n), "--seconds", str(args.seconds),
+                 "--server-pid", str(pid)],
+                capture_output=True, text=True, timeout=args.seconds + 120,
+            )  # fmt: skip
         switches = _context_switches(pid) - switches0
         # The model service's queries per forward pass, from dhg-serve's newest status line.
         said = [m for line in (server.lines if server is not None else []) if (m := _BATCHES.search(line))]
@@ -262,6 +265,39 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
 # the server's process (and the model service's in it). rx1: one receive worker thread instead of two.
 RUNTIMES = {"rx1": "(rx: (worker_threads: 1))"}
 
+
+@contextlib.contextmanager
+def _zenoh_runtime(tag: str) -> Iterator[None]:
+    """``ZENOH_RUNTIME`` for the processes started inside: ``RUNTIMES[tag]``, or unset without a
+    tag (Zenoh's defaults, whatever this shell has); put back as it was on every path."""
+    saved = os.environ.pop("ZENOH_RUNTIME", None)
+    if tag:
+        os.environ["ZENOH_RUNTIME"] = RUNTIMES[tag]
+    try:
+        yield
+    finally:
+        os.environ.pop("ZENOH_RUNTIME", None)
+        if saved is not None:
+            os.environ["ZENOH_RUNTIME"] = saved
+
+
+SERVERS = ("dhg", "dhg-thread", "dhg-sim", "dhg-engine", "dhg-nice0", "dhg-ts", "other")
+
+
+def _check_variants(args: argparse.Namespace, variants: list[str]) -> None:
+    """Refuses, before the first round, a variant this script does not know."""
+    for v in variants:
+        base, _, tag = v.partition("+")
+        if base not in (*SERVERS, "echo") or (tag and tag not in RUNTIMES):
+            raise SystemExit(
+                f"--variants: unknown {v!r}; {', '.join(SERVERS)}, echo, each optionally +{'|+'.join(RUNTIMES)}"
+            )
+        if base == "other" and not args.other:
+            raise SystemExit("the variant 'other' needs --other PYTHONPATH")
+    if "echo" not in variants:
+        raise SystemExit("--variants must include echo (the ratios' denominator)")
+
+
 _BATCHES = re.compile(r"model service answered (\d+) in (\d+) batches")
 
 
@@ -274,6 +310,7 @@ def _cpu_s(pid: int) -> float:
 def _against_echo(args: argparse.Namespace) -> None:
     rows = []
     variants = args.variants.split(",")
+    _check_variants(args, variants)
     servers = [v for v in variants if not v.startswith("echo")]
     for n in (int(c) for c in args.clients.split(",")):
         runs: dict[str, list[dict[str, Any]]] = {v: [] for v in variants}
@@ -306,7 +343,7 @@ def _against_echo(args: argparse.Namespace) -> None:
           "| pose → guidance p99 (ms) | model queries per forward pass |")  # fmt: skip
     print("|---:|---|---|---|---:|---|---:|---|---:|---|---:|---:|---:|---:|")
     for n, s, e, p50d, p50e, p99d, p99e, cpud, cpue, swd, swe, fpp, mcpu, gp99, qpp in rows:
-        model = f"{mcpu:.4f}" if s == "dhg-sim" else "(in the server)"
+        model = f"{mcpu:.4f}" if s.partition("+")[0] == "dhg-sim" else "(in the server)"
         print(
             f"| {n} | {s} | {e} | {p50d:.3f} / {p50e:.3f} | {p50d / p50e:.2f} | {p99d:.3f} / {p99e:.3f} "
             f"| {p99d / p99e:.2f} | {cpud:.4f} / {cpue:.4f} | {cpud / cpue:.2f} | {swd:.2f} / {swe:.2f} | {fpp:.3f} "

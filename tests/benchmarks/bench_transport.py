@@ -12,7 +12,8 @@ Variants (``--variants``, in this order each round):
 - ``lowlatency``: Zenoh's low-latency transport on both sides (QoS off; decision 0011);
 - ``rx1``: the echo's receive runtime on one worker thread instead of two (``ZENOH_RUNTIME``).
 
-Also counts the files each variant left in ``/dev/shm`` once its echo and load tool had stopped.
+Also counts the files each variant left in ``/dev/shm`` once its echo and load tool had stopped
+(new files only; another program's made meanwhile would count too), and removes them.
 
     cargo build --release -p bone_sim --example load --example echo
     CARGO_TARGET_DIR=~/.cache/dhg/shm-target \
@@ -71,9 +72,10 @@ def main() -> None:
     rows = []
     for n in (int(c) for c in args.clients.split(",")):
         runs: dict[str, list[dict[str, Any]]] = {v: [] for v in variants}
-        for _ in range(args.rounds):
+        for round_ in range(args.rounds):
             for v in variants:
-                run = {"variant": v, "clients": n, "seconds": args.seconds, "cpus": os.cpu_count(), **_one(args, v, n)}
+                run = {"variant": v, "round": round_, "clients": n, "seconds": args.seconds, "cpus": os.cpu_count(),
+                       **_one(args, v, n)}  # fmt: skip
                 runs[v].append(run)
                 print(json.dumps(run), flush=True)
                 if args.out:
@@ -112,7 +114,8 @@ def _one(args: argparse.Namespace, variant: str, n: int) -> dict[str, Any]:
             raise SystemExit(f"no {build / tool}: build it first (see --help)")
     before = _shm_files()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    env = dict(os.environ, **({"ZENOH_RUNTIME": runtime} if runtime else {}))
+    defaults = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}  # the load tool's, always
+    env = {**defaults, **({"ZENOH_RUNTIME": runtime} if runtime else {})}  # the echo's
     section = json.dumps(transport)
     echo = subprocess.Popen(
         [str(build / "echo"), "--listen", endpoint, "--transport", section], stderr=subprocess.PIPE, text=True, env=env
@@ -123,7 +126,7 @@ def _one(args: argparse.Namespace, variant: str, n: int) -> dict[str, Any]:
         r = subprocess.run(
             [str(build / "load"), "--connect", endpoint, "--clients", str(n), "--seconds", str(args.seconds),
              "--server-pid", str(echo.pid), "--transport", section],
-            capture_output=True, text=True, timeout=args.seconds + 120,
+            capture_output=True, text=True, timeout=args.seconds + 120, env=defaults,
         )  # fmt: skip
         switches = _context_switches(echo.pid) - switches0
     finally:
@@ -132,13 +135,16 @@ def _one(args: argparse.Namespace, variant: str, n: int) -> dict[str, Any]:
     if r.returncode != 0:
         raise SystemExit(f"load tool against the echo ({variant}) failed ({r.returncode}): {r.stderr}")
     out = json.loads(r.stdout)
+    left = _shm_files() - before
+    for name in left:  # counted, then cleared so that the next rounds start from the same /dev/shm
+        Path("/dev/shm", name).unlink(missing_ok=True)
     return {
         "p50_ms": out["pose_to_force_ms"]["p50"],
         "p99_ms": out["pose_to_force_ms"]["p99"],
         "cpu_per_session": out["server_cpu_cores"] / n,
         "forces_per_pose": out["forces_per_pose"],
         "context_switches_per_pose": switches / (n * (args.seconds + 2.0) * 1000.0),
-        "shm_files_left": len(_shm_files() - before),
+        "shm_files_left": len(left),
     }
 
 

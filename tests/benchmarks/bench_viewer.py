@@ -82,7 +82,8 @@ def main() -> None:
 
 
 def _name(variant: Any) -> str:
-    """A variant's name in the JSON lines: ``none``, ``with`` (the default nice) or ``nice-N``."""
+    """A variant's name in the JSON lines: ``none``, ``with`` (``dhg view`` as it starts by
+    default), ``nice-N``, ``other`` (another build's) or ``runtime`` (``--viewer-runtime``)."""
     return "none" if variant is None else variant if variant in ("with", "other", "runtime") else f"nice-{variant}"
 
 
@@ -117,6 +118,8 @@ def _one(args: argparse.Namespace, variant: Any) -> dict[str, Any]:
             viewer = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env)
             assert viewer.stdout is not None
             out.append(viewer.stdout.readline())  # ready
+            if "dhg view:" not in out[-1]:
+                raise SystemExit(f"dhg view ({_name(variant)}) did not start (exit {viewer.wait(timeout=30)})")
             threading.Thread(target=lambda: out.extend(viewer.stdout), daemon=True).start()
             if args.browser:
                 threading.Thread(target=_browse, args=(f"http://127.0.0.1:{port}", done), daemon=True).start()
@@ -147,6 +150,9 @@ def _one(args: argparse.Namespace, variant: Any) -> dict[str, Any]:
     rates = [float(m.group(1)) for line in out if (m := re.search(r"\(([\d.]+)/s", line))]
     return {
         "viewer": _name(variant),
+        "clients": args.clients,
+        "seconds": args.seconds,
+        **({"zenoh_runtime": args.viewer_runtime} if variant == "runtime" else {}),
         "p50_ms": load["pose_to_force_ms"]["p50"],
         "p99_ms": load["pose_to_force_ms"]["p99"],
         "cpu_cores": load["server_cpu_cores"],

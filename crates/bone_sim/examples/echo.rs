@@ -50,6 +50,10 @@ fn main() {
             }
         }
     }
+    if let Err(e) = bone_sim::transport::check_zenoh_runtime() {
+        eprintln!("error: {e}");
+        std::process::exit(2);
+    }
     if let Err(e) = run(&listen, &prefix, &transport) {
         eprintln!("error: {e}");
         std::process::exit(5);

@@ -75,6 +75,9 @@ fn parse_args() -> Result<Args, String> {
     if a.clients == 0 || !a.seconds.is_finite() || a.seconds <= 0.0 {
         return Err("--clients and --seconds must be positive".into());
     }
+    if a.lowlatency && a.transport.is_some() {
+        return Err("--lowlatency and --transport both set Zenoh's transport section: give one".into());
+    }
     Ok(a)
 }
 
@@ -139,7 +142,10 @@ fn query_json(session: &zenoh::Session, key: &str, body: Option<String>) -> Resu
 }
 
 fn main() {
-    let args = match parse_args() {
+    let args = match parse_args().and_then(|a| {
+        bone_sim::transport::check_zenoh_runtime().map_err(|e| e.to_string())?;
+        Ok(a)
+    }) {
         Ok(a) => a,
         Err(e) => {
             eprintln!("{e}");

@@ -328,7 +328,7 @@ fn parse_zenoh_runtime() -> Result<(), String> {
 }
 
 /// What Zenoh's panic says of its RON parse (`SpannedError { code: ExpectedInteger, span: Span {
-/// start: Position { line: 1, col: 22 }, ...`), as "ExpectedInteger at line 1, column 22".
+/// start: Position { line: 1, col: 22 }, ...`), as "`ExpectedInteger` at line 1, column 22".
 fn ron_reason(panic: &str) -> String {
     let between = |after: &str, until: &str| -> Option<&str> {
         let rest = &panic[panic.find(after)? + after.len()..];
