@@ -32,21 +32,23 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from bench_server import LOWLATENCY, _context_switches, _wait_for_port
+from bench_server import LOWLATENCY, RUNTIMES, _context_switches, _wait_for_port, _zenoh_runtime
 
 from dhg.live.process import free_port
 
 SHM_ON = {"shared_memory": {"enabled": True, "mode": "init",
                             "transport_optimization": {"enabled": True, "message_size_threshold": 1}}}  # fmt: skip
 SHM_OFF = {"shared_memory": {"enabled": False}}
-# variant: (binaries built with shm, the transport section both sides use, the echo's ZENOH_RUNTIME)
-VARIANTS: dict[str, tuple[bool, dict[str, Any], str | None]] = {
-    "default": (False, {}, None),
-    "shm": (True, SHM_ON, None),
-    "shm-off": (True, SHM_OFF, None),
-    "lowlatency": (False, LOWLATENCY, None),
-    "rx1": (False, {}, "(rx: (worker_threads: 1))"),
+# variant: (binaries built with shm, the transport section both sides use, the echo's runtime tag:
+# a key of bench_server.RUNTIMES, or "" for Zenoh's defaults)
+VARIANTS: dict[str, tuple[bool, dict[str, Any], str]] = {
+    "default": (False, {}, ""),
+    "shm": (True, SHM_ON, ""),
+    "shm-off": (True, SHM_OFF, ""),
+    "lowlatency": (False, LOWLATENCY, ""),
+    "rx1": (False, {}, "rx1"),
 }
+assert all(tag in ("", *RUNTIMES) for _, _, tag in VARIANTS.values())
 
 
 def main() -> None:
@@ -107,27 +109,27 @@ def _shm_files() -> set[str]:
 
 
 def _one(args: argparse.Namespace, variant: str, n: int) -> dict[str, Any]:
-    shm_build, transport, runtime = VARIANTS[variant]
+    shm_build, transport, tag = VARIANTS[variant]
     build = Path(args.shm_build if shm_build else args.build)
     for tool in ("load", "echo"):
         if not (build / tool).exists():
             raise SystemExit(f"no {build / tool}: build it first (see --help)")
     before = _shm_files()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    defaults = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}  # the load tool's, always
-    env = {**defaults, **({"ZENOH_RUNTIME": runtime} if runtime else {})}  # the echo's
     section = json.dumps(transport)
-    echo = subprocess.Popen(
-        [str(build / "echo"), "--listen", endpoint, "--transport", section], stderr=subprocess.PIPE, text=True, env=env
-    )
+    with _zenoh_runtime(tag):
+        echo = subprocess.Popen(
+            [str(build / "echo"), "--listen", endpoint, "--transport", section], stderr=subprocess.PIPE, text=True
+        )
     try:
         _wait_for_port(endpoint, echo)
         switches0 = _context_switches(echo.pid)
-        r = subprocess.run(
-            [str(build / "load"), "--connect", endpoint, "--clients", str(n), "--seconds", str(args.seconds),
-             "--server-pid", str(echo.pid), "--transport", section],
-            capture_output=True, text=True, timeout=args.seconds + 120, env=defaults,
-        )  # fmt: skip
+        with _zenoh_runtime(""):  # the load tool on Zenoh's defaults, whatever the variant
+            r = subprocess.run(
+                [str(build / "load"), "--connect", endpoint, "--clients", str(n), "--seconds", str(args.seconds),
+                 "--server-pid", str(echo.pid), "--transport", section],
+                capture_output=True, text=True, timeout=args.seconds + 120,
+            )  # fmt: skip
         switches = _context_switches(echo.pid) - switches0
     finally:
         echo.terminate()

@@ -142,16 +142,17 @@ fn query_json(session: &zenoh::Session, key: &str, body: Option<String>) -> Resu
 }
 
 fn main() {
-    let args = match parse_args().and_then(|a| {
-        bone_sim::transport::check_zenoh_runtime().map_err(|e| e.to_string())?;
-        Ok(a)
-    }) {
+    let args = match parse_args() {
         Ok(a) => a,
         Err(e) => {
             eprintln!("{e}");
             std::process::exit(2);
         }
     };
+    if let Err(e) = bone_sim::transport::check_zenoh_runtime() {
+        eprintln!("error: {e}");
+        std::process::exit(2);
+    }
     if let Err(e) = run(&args) {
         eprintln!("error: {e}");
         std::process::exit(5);

@@ -285,12 +285,13 @@ pub fn check_zenoh_runtime() -> SimResult<()> {
     static PARSED: OnceLock<(Option<String>, Result<(), String>)> = OnceLock::new();
     let value = std::env::var(zenoh_runtime::ZENOH_RUNTIME_ENV).ok();
     let (parsed_value, outcome) = PARSED.get_or_init(|| (value.clone(), parse_zenoh_runtime()));
+    let shown = |v: &Option<String>| v.as_deref().map_or("unset".into(), |v| format!("{v:?}"));
     let refuse = |reason: String| SimError::InvalidConfig {
         what: "ZENOH_RUNTIME (the environment variable of Zenoh's runtime threads)",
-        reason: format!("{}: {reason}", value.as_deref().map_or("unset".into(), |v| format!("{v:?}"))),
+        reason: format!("{}: {reason}", shown(&value)),
     };
     if *parsed_value != value {
-        let was = parsed_value.as_deref().map_or("unset".into(), |v| format!("{v:?}"));
+        let was = shown(parsed_value);
         return Err(refuse(format!("it was {was} when Zenoh read it, once for this process: restart the process")));
     }
     outcome
