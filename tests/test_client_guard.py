@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
@@ -82,20 +83,37 @@ def test_decoders_refuse_garbage_with_a_clear_error(payload, name):
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.integers(0, 64), st.integers(0, 64), st.binary(max_size=64))
-@example(rows=3, cols=60, tail=b"")  # 180 floats: what the fixed layout's 20 x 9 window holds already
-@example(rows=1, cols=1, tail=b"")
-def test_the_predict_decoder_refuses_a_window_its_payload_does_not_hold(rows, cols, tail):
-    head = protocol.encode("predict", window_seq=1, rows=rows, cols=cols)  # its window: 20 x 9 zeros
-    payload = head + tail
-    start = next(f[2] for f in protocol.LAYOUTS["predict"].fields if f[0] == "window")  # the window's offset
+@given(
+    st.integers(0, 64),
+    st.integers(0, 64),
+    st.binary(max_size=64),
+    st.integers(0, protocol.MAX_QUERY_WINDOWS + 1),
+    st.permutations(range(3)),
+)
+@example(rows=3, cols=60, tail=b"", n=1, order=[0, 1, 2])  # 180 floats: what the fixed 20 x 9 window holds
+@example(rows=20, cols=9, tail=b"", n=protocol.MAX_QUERY_WINDOWS, order=[0, 1, 2])
+@example(rows=20, cols=9, tail=b"", n=3, order=[1, 0, 2])
+def test_the_predict_decoder_takes_only_whole_windows_of_the_engines_shape_in_entry_order(rows, cols, tail, n, order):
+    """A model query is 1 to MAX_QUERY_WINDOWS ``predict`` messages of 20 x 9 back to back, entry
+    0, 1, …; anything else is refused with a message, never misread."""
+    entries = [order[i] if i < 3 else i for i in range(n)]
+    payload = (
+        b"".join(
+            protocol.encode("predict", window_seq=100 + i, rows=rows, cols=cols, entry=e, window=np.full(180, float(i)))
+            for i, e in enumerate(entries)
+        )
+        + tail
+    )
     try:
-        seq, window = protocol.decode_predict(payload)
+        seqs, windows = protocol.decode_predict(payload)
     except InvalidInputError as exc:
-        assert "predict payload" in str(exc)
-        assert len(payload) != start + 4 * rows * cols
+        assert "predict" in str(exc)
+        good = 1 <= n <= protocol.MAX_QUERY_WINDOWS and not tail and (rows, cols) == (20, 9)
+        assert not (good and entries == list(range(n)))
     else:
-        assert seq == 1 and window.shape == (rows, cols) and len(payload) == start + 4 * rows * cols
+        assert (rows, cols, tail) == (20, 9, b"") and entries == list(range(n))
+        assert list(seqs) == [100 + i for i in range(n)] and windows.shape == (n, 20, 9)
+        assert all(np.all(windows[i] == i) for i in range(n))
 
 
 class _Sample:
@@ -123,8 +141,6 @@ def test_the_recorder_writes_only_possible_states_and_never_stops(messages):
     finite states with a session clock, and counts every other message."""
     import tempfile
     from pathlib import Path
-
-    import numpy as np
 
     from dhg.core.layers import Layer
     from dhg.data.dataset import load_dataset

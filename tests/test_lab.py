@@ -131,8 +131,11 @@ def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_pat
             rogue_n = (0.0, 0.0, 2.5)
 
             def rogue(q):
-                seq, _ = protocol.decode_predict(q.payload.to_bytes())
-                q.reply("dhg/model/predict", protocol.encode_prediction(seq, rogue_n, 0.0, "rogue"))
+                seqs, _ = protocol.decode_predict(q.payload.to_bytes())
+                answers = (
+                    protocol.encode_prediction(int(s), rogue_n, 0.0, "rogue", entry=i) for i, s in enumerate(seqs)
+                )
+                q.reply("dhg/model/predict", b"".join(answers))
 
             rogue_q = s1._z.declare_queryable("dhg/model/predict", rogue, complete=True)
             # ...and to join the worker pool: its token and queryable are refused as well.

@@ -137,12 +137,12 @@ def test_a_rogue_peer_cannot_steer_guidance_from_outside_the_pool_or_inside_it(s
     stop = threading.Event()
 
     def on_query(q):
-        seq, _ = protocol.decode_predict(q.payload.to_bytes())
+        (seq,), _ = protocol.decode_predict(q.payload.to_bytes())  # one trainee: one window a query
         with lock:
             if stop.is_set():  # the drill is over: end the query unanswered
                 q.drop()
                 return
-            late.append((time.monotonic() + 0.2, q, seq))
+            late.append((time.monotonic() + 0.2, q, int(seq)))
 
     def newest_guided_window() -> int:
         g = trainee[0].guidance if trainee else ()
@@ -200,8 +200,9 @@ def test_a_rogue_peer_cannot_steer_guidance_from_outside_the_pool_or_inside_it(s
 
 def test_sessions_started_apart_share_the_models_forward_passes():
     """The engine puts every session's 10 Hz records on one 100 ms grid (decision 0028), so the
-    sessions' model queries arrive together and the model service answers them in shared batches
-    (at random phases, four sessions' queries seldom meet: about one batch a query)."""
+    sessions' windows are asked for together, in one query (decision 0032), and the model service
+    answers them in shared batches (at random phases, four sessions' windows seldom meet: about
+    one query and one batch a window)."""
     proc, endpoint = serve("--idle-timeout", "600")
     clients: list[TraineeClient] = []
     batching = re.compile(r"model service answered (\d+) in (\d+) batches")
@@ -220,9 +221,14 @@ def test_sessions_started_apart_share_the_models_forward_passes():
             time.sleep(0.037)
         wait_until(lambda: answered_in_batches()[0] >= 40, 60.0, "the model answering all four")
         a0, b0 = answered_in_batches()
+        m0 = clients[0].health(1.0)["model"]
         wait_until(lambda: answered_in_batches()[0] >= a0 + 200, 120.0, "200 more answers")
         a1, b1 = answered_in_batches()
+        m1 = clients[0].health(1.0)["model"]
         assert (a1 - a0) / (b1 - b0) >= 1.6, f"{a1 - a0} queries in {b1 - b0} forward passes"
+        # ...and the engine asks for each burst's windows in one query (decision 0032).
+        windows, bursts = m1["queries"] - m0["queries"], m1["bursts"] - m0["bursts"]
+        assert windows >= 200 and windows / bursts >= 2.0, f"{windows} windows in {bursts} queries"
     finally:
         for c in clients:
             c.close()

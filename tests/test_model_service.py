@@ -24,10 +24,14 @@ def model():
     return load_model(default_model_path())
 
 
-def _query(z, key: str, window: np.ndarray, seq: int) -> tuple[bool, bytes]:
-    payload = protocol.encode(
-        "predict", window_seq=seq, rows=window.shape[0], cols=window.shape[1], window=window.ravel()
+def _predict(window: np.ndarray, seq: int, entry: int = 0) -> bytes:
+    return protocol.encode(
+        "predict", window_seq=seq, rows=window.shape[0], cols=window.shape[1], entry=entry, window=window.ravel()
     )
+
+
+def _query(z, key: str, window: np.ndarray, seq: int, payload: bytes | None = None) -> tuple[bool, bytes]:
+    payload = _predict(window, seq) if payload is None else payload
     replies = list(z.get(key, payload=payload, timeout=10.0))
     assert len(replies) == 1, f"{len(replies)} replies"
     r = replies[0]
@@ -53,6 +57,53 @@ def test_a_window_the_model_overflows_on_is_refused_not_answered_with_nan(execut
         assert not ok and "not finite" in json.loads(body)["error"]
         stats = service.stats()
         assert (stats["answered"], stats["refused"]) == (1, 1)
+    finally:
+        service.close()
+        z.close()
+
+
+def _predictions(body: bytes) -> list[dict]:
+    """The predictions of a reply, back to back (32 bytes each and the model id)."""
+    out = []
+    while body:
+        head = protocol.decode("prediction", body[:32])
+        out.append(head)
+        body = body[32 + head["model_id_len"] :]
+    return out
+
+
+def test_a_query_of_several_windows_is_answered_window_by_window_in_one_pass(model):
+    """Decision 0032: the engine sends a burst of sessions' windows in one query. Each window's
+    prediction names its entry and window_seq; it is the model's prediction for that window alone;
+    a window the model overflows on goes unanswered while the others are answered; a query whose
+    entries are out of order, or one too many windows, gets an error reply."""
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    service = ModelService(z, model, prefix="svc-multi")
+    rng = np.random.default_rng(3)
+    windows = [rng.normal(0.0, 1.0, (model.window, 9)).astype(np.float32) for _ in range(3)]
+    huge = np.full((model.window, 9), 3e38, dtype=np.float32)
+    try:
+        key = protocol.keys("svc-multi", "x")["predict"]
+        payload = b"".join(_predict(w, 10 + i, entry=i) for i, w in enumerate(windows))
+        ok, body = _query(z, key, windows[0], 0, payload)
+        assert ok
+        got = _predictions(body)
+        assert [(g["entry"], g["window_seq"]) for g in got] == [(0, 10), (1, 11), (2, 12)]
+        alone = model.predict(np.stack(windows))
+        np.testing.assert_allclose([g["force_n"] for g in got], alone, rtol=1e-4, atol=1e-5)
+        assert service.batches == 1  # one forward pass for the three windows
+
+        mixed = _predict(windows[0], 20, entry=0) + _predict(huge, 21, entry=1) + _predict(windows[2], 22, entry=2)
+        ok, body = _query(z, key, windows[0], 0, mixed)
+        assert ok and [(g["entry"], g["window_seq"]) for g in _predictions(body)] == [(0, 20), (2, 22)]
+
+        swapped = _predict(windows[0], 30, entry=1) + _predict(windows[1], 31, entry=0)
+        ok, body = _query(z, key, windows[0], 0, swapped)
+        assert not ok and "entry" in json.loads(body)["error"]
+        too_many = b"".join(_predict(windows[0], i, entry=i) for i in range(protocol.MAX_QUERY_WINDOWS + 1))
+        ok, body = _query(z, key, windows[0], 0, too_many)
+        assert not ok and f"1 to {protocol.MAX_QUERY_WINDOWS} windows" in json.loads(body)["error"]
+        assert service.stats()["answered"] == 3 + 2
     finally:
         service.close()
         z.close()

@@ -28,6 +28,7 @@ __all__ = [
     "PROTOCOL_VERSION",
     "WINDOW_RECORDS",
     "MAX_PAYLOAD_BYTES",
+    "MAX_QUERY_WINDOWS",
     "MAX_TICK_ROWS",
     "Server",
     "SurgeonController",
@@ -63,6 +64,7 @@ MAX_POSITION_M: Final[float]
 PROTOCOL_VERSION: Final[int]
 WINDOW_RECORDS: Final[int]
 MAX_PAYLOAD_BYTES: Final[int]
+MAX_QUERY_WINDOWS: Final[int]
 MAX_TICK_ROWS: Final[int]
 ERROR_KINDS: Final[list[str]]
 FLAGS: Final[list[tuple[str, int]]]

@@ -205,9 +205,9 @@ def rogue_worker(endpoint: str) -> Outcome:
         before = c.health(1.0)["model"]
 
         def on_query(q):
-            seq, _ = protocol.decode_predict(q.payload.to_bytes())
+            seqs, _ = protocol.decode_predict(q.payload.to_bytes())
             with lock:
-                late.append((time.monotonic() + 0.15, q, seq))
+                late.append((time.monotonic() + 0.15, q, seqs))
 
         shared = r._z.declare_queryable("dhg/model/predict", outside.append, complete=True)
         qa = r._z.declare_queryable("dhg/model/workers/rogue3/predict", on_query, complete=True)
@@ -220,9 +220,12 @@ def rogue_worker(endpoint: str) -> Outcome:
                 with lock:
                     due = [x for x in late if x[0] <= now]
                     late[:] = [x for x in late if x[0] > now]
-                for _, q, seq in due:
+                for _, q, seqs in due:
+                    answers = b"".join(
+                        protocol.encode_prediction(int(s), rogue_n, 0.0, "rogue", entry=i) for i, s in enumerate(seqs)
+                    )
                     for _ in range(200):
-                        q.reply(q.key_expr, protocol.encode_prediction(seq, rogue_n, 0.0, "rogue"))
+                        q.reply(q.key_expr, answers)
                     q.drop()
                 time.sleep(0.002)
 

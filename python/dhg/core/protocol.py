@@ -24,6 +24,7 @@ __all__ = [
     "FLAGS",
     "LAYOUTS",
     "MAX_PAYLOAD_BYTES",
+    "MAX_QUERY_WINDOWS",
     "MAX_TICK_ROWS",
     "VERSION",
     "WINDOW_RECORDS",
@@ -41,6 +42,8 @@ __all__ = [
 VERSION: int = _bone_sim.PROTOCOL_VERSION
 WINDOW_RECORDS: int = _bone_sim.WINDOW_RECORDS
 MAX_PAYLOAD_BYTES: int = _bone_sim.MAX_PAYLOAD_BYTES
+MAX_QUERY_WINDOWS: int = _bone_sim.MAX_QUERY_WINDOWS
+"""The most windows one model query holds (``predict`` messages back to back, ``entry`` 0, 1, …)."""
 
 FLAGS: dict[str, int] = dict(_bone_sim.FLAGS)
 """Flag bits of the force and state headers (bit 0 of a pose: drill on), as the core defines them
@@ -186,15 +189,34 @@ def encode_pose(
     )
 
 
-def decode_predict(payload: bytes) -> tuple[int, npt.NDArray[np.float32]]:
-    """A model query → (window_seq, window (rows, cols) float32, oldest record first)."""
-    head = decode("predict", payload[: LAYOUTS["predict"].size])
-    rows, cols = head["rows"], head["cols"]
-    start = [f for f in LAYOUTS["predict"].fields if f[0] == "window"][0][2]
-    if len(payload) != start + 4 * rows * cols:
-        raise InvalidInputError(f"predict payload has {len(payload)} bytes for a {rows}x{cols} window")
-    window = np.frombuffer(payload, dtype="<f4", offset=start, count=rows * cols).reshape(rows, cols)
-    return int(head["window_seq"]), window
+def decode_predict(payload: bytes) -> tuple[npt.NDArray[np.uint32], npt.NDArray[np.float32]]:
+    """A model query → (window_seq of each window (n,), the windows (n, rows, cols) float32, oldest
+    record first). A query holds 1 to :data:`MAX_QUERY_WINDOWS` ``predict`` messages back to back,
+    ``entry`` 0, 1, … in order; the reply answers window ``i`` with a ``prediction`` of ``entry`` i.
+
+    Raises :class:`InvalidInputError` on a wrong kind, version, size or entry order.
+    """
+    size = LAYOUTS["predict"].size
+    start, count = next((f[2], f[3]) for f in LAYOUTS["predict"].fields if f[0] == "window")
+    cols = count // WINDOW_RECORDS
+    n, extra = divmod(len(payload), size)
+    if n == 0 or extra or n > MAX_QUERY_WINDOWS:
+        raise InvalidInputError(
+            f"predict payload has {len(payload)} bytes: 1 to {MAX_QUERY_WINDOWS} windows of {size} bytes"
+        )
+    seqs = np.empty(n, dtype=np.uint32)
+    for i in range(n):
+        head = decode("predict", payload[i * size : (i + 1) * size])
+        if (head["rows"], head["cols"]) != (WINDOW_RECORDS, cols):
+            raise InvalidInputError(
+                f"predict window {i} is {head['rows']}x{head['cols']}, expected {WINDOW_RECORDS}x{cols}"
+            )
+        if head["entry"] != i:
+            raise InvalidInputError(f"predict window {i} has entry {head['entry']}: entries run 0, 1, … in order")
+        seqs[i] = head["window_seq"]
+    records = np.frombuffer(payload, dtype="<f4").reshape(n, size // 4)
+    windows = records[:, start // 4 :].reshape(n, WINDOW_RECORDS, cols)
+    return seqs, windows
 
 
 def decode_ticks(payload: bytes) -> npt.NDArray[np.void]:
@@ -217,10 +239,18 @@ def decode_ticks(payload: bytes) -> npt.NDArray[np.void]:
     return out
 
 
-def encode_prediction(window_seq: int, force_n: npt.ArrayLike, inference_s: float, model_id: str) -> bytes:
-    """A model reply: predicted expert force (N, world), inference time (s) and the model id."""
+def encode_prediction(
+    window_seq: int, force_n: npt.ArrayLike, inference_s: float, model_id: str, entry: int = 0
+) -> bytes:
+    """A model reply's answer to the query's window ``entry``: predicted expert force (N, world),
+    inference time (s) and the model id. A reply holds one or more back to back."""
     ident = model_id.encode()[:1024]
     body = encode(
-        "prediction", window_seq=window_seq, force_n=force_n, inference_s=inference_s, model_id_len=len(ident)
+        "prediction",
+        window_seq=window_seq,
+        force_n=force_n,
+        inference_s=inference_s,
+        model_id_len=len(ident),
+        entry=entry,
     )
     return body + ident

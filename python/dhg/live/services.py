@@ -37,9 +37,10 @@ cores a forward pass gives way to the forces' threads at once (decision 0026).""
 
 BURST_WAIT_S = 0.002
 """How long (s) the model worker waits, after a batch of N > 1 queries, for the next burst's N: the
-engine's sessions record on one 100 ms grid, and their queries arrive within a tick or two of the
-mark (the tick phase of each client's poses, the comm thread's wake-up), so 2 ms gathers a burst
-that a forward pass would otherwise split in two (decision 0028)."""
+engine's sessions record on one 100 ms grid, and an engine sends each burst of their windows in
+one query (decision 0032), so N > 1 queries a burst come from several engines sharing the worker
+(or an engine whose query was full), within a tick or two of the mark; 2 ms gathers a burst that
+a forward pass would otherwise split in two (decision 0028)."""
 
 BURST_MEMORY_S = 0.15
 """How long (s) the model worker remembers a batch's size as the size of the bursts to come: one
@@ -76,19 +77,23 @@ class ModelService:
     lets it hold). It also serves the shared ``<prefix>/model/predict``, which the engine queries
     while its pool is empty.
 
-    Queries are queued by the Zenoh callback; one worker thread takes everything that arrived
-    within ``max_wait_s`` of the first query (up to ``max_batch`` windows), runs one forward pass,
-    and replies to each query. With the default ``max_wait_s = 0`` it waits for nothing: queries
-    that arrive during a forward pass form the next batch, so batches grow with the load and a
-    lone query pays no waiting. One exception: the engine puts every session's records on one
-    100 ms grid, so its queries come in bursts, one a session. Within :data:`BURST_MEMORY_S` of a
-    batch of N > 1 queries the worker waits up to ``burst_wait_s`` (default
-    :data:`BURST_WAIT_S`) for N, so that one pass answers the whole burst, not its first query
-    alone; where the batches were lone queries it waits for nothing
-    (``docs/decisions/0028-records-on-one-grid.md``). Bad queries get an error reply and are counted. The queue holds at
-    most ``max_queue`` queries (more are refused at once, as ``busy``), and a query that waited
-    longer than ``max_age_s`` (the engine's 0.25 s query timeout by default: its asker has given up)
-    is refused as ``stale`` instead of computed. Why no batching wait: ``docs/decisions/0010-model-service.md``.
+    A query holds the windows of one or more sessions (the engine sends each 100 ms burst in one
+    query; ``docs/protocol.md``), and its reply one prediction per window. Queries are queued by the
+    Zenoh callback; one worker thread takes everything that arrived within ``max_wait_s`` of the
+    first query (up to ``max_batch`` queries), runs one forward pass (``max_batch`` windows at most;
+    more take more passes), and replies to each query. With the default ``max_wait_s = 0`` it waits
+    for nothing: queries that arrive during a forward pass form the next batch, so batches grow with
+    the load and a lone query pays no waiting. One exception: the engines put every session's
+    records on one 100 ms grid, so where several engines share the worker their queries come in
+    bursts, one an engine (each sends its sessions' windows in one query). Within
+    :data:`BURST_MEMORY_S` of a batch of N > 1 queries the worker waits up to ``burst_wait_s``
+    (default :data:`BURST_WAIT_S`) for N, so that one pass answers the whole burst, not its first
+    query alone; where the batches were lone queries it waits for nothing
+    (``docs/decisions/0028-records-on-one-grid.md``). Bad queries get an error reply and are
+    counted. The queue holds at most ``max_queue`` queries (more are refused at once, as ``busy``),
+    and a query that waited longer than ``max_age_s`` (the engine's 0.25 s query timeout by default:
+    its asker has given up) is refused as ``stale`` instead of computed. Why no batching wait:
+    ``docs/decisions/0010-model-service.md``.
 
     The worker thread runs at the Linux nice value ``nice`` (default :data:`MODEL_NICE`, the
     lowest priority): where the model shares cores with the 1 kHz engine, the Zenoh threads that
@@ -211,19 +216,27 @@ class ModelService:
         for q in batch:
             try:
                 payload = q.payload.to_bytes() if q.payload is not None else b""
-                seq, window = protocol.decode_predict(payload)
-                if window.shape != (self.model.window, 9) or not np.all(np.isfinite(window)):
-                    raise InvalidInputError(f"window of shape {window.shape} or non-finite values")
+                seqs, w = protocol.decode_predict(payload)
+                if w.shape[1:] != (self.model.window, 9) or not np.all(np.isfinite(w)):
+                    raise InvalidInputError(f"windows of shape {w.shape[1:]} or non-finite values")
             except (InvalidInputError, ValueError) as exc:
                 self._reply_error(q, str(exc))
                 continue
-            good.append((q, seq))
-            windows.append(window)
+            good.append((q, seqs))
+            windows.append(w)
         if not good:
             return
+        stacked = np.concatenate(windows)
         t0 = time.perf_counter()
         try:
-            forces = self.model.predict(np.stack(windows), check_output=False)
+            # One pass for the whole batch (at most max_batch windows a pass: a burst of queries
+            # from several engines may hold more).
+            forces = np.concatenate(
+                [
+                    self.model.predict(stacked[i : i + self.max_batch], check_output=False)
+                    for i in range(0, len(stacked), self.max_batch)
+                ]
+            )
         except Exception as exc:  # a model failure must not kill the worker
             log.exception("model forward failed")
             for q, _ in good:
@@ -232,20 +245,31 @@ class ModelService:
         dt = time.perf_counter() - t0
         self.batches += 1
         self.inference_s.append(dt)
-        for (q, seq), f in zip(good, forces, strict=True):
-            if not np.all(np.isfinite(f)):  # a window far outside the training ranges overflows the model
+        at = 0
+        for q, seqs in good:
+            f = forces[at : at + len(seqs)]
+            at += len(seqs)
+            # A window far outside the training ranges overflows the model: that window goes
+            # unanswered (its session keeps its last guidance), the others of the query are answered.
+            finite = [i for i in range(len(seqs)) if np.all(np.isfinite(f[i]))]
+            if not finite:
                 self._reply_error(
                     q, "the prediction is not finite: the window's values lie far outside the model's ranges"
                 )
                 continue
             try:
-                q.reply(q.key_expr, protocol.encode_prediction(seq, f, dt, self.model_id))
-                self.answered += 1
+                q.reply(
+                    q.key_expr,
+                    b"".join(
+                        protocol.encode_prediction(int(seqs[i]), f[i], dt, self.model_id, entry=i) for i in finite
+                    ),
+                )
+                self.answered += len(finite)
             finally:
                 q.drop()
 
     def stats(self) -> dict[str, float]:
-        """Answered and refused queries (of them: busy, stale), batches, and inference time p50/p99 (s)."""
+        """Answered windows, refused queries (of them: busy, stale), batches, and inference time p50/p99 (s)."""
         t = np.array(self.inference_s) if self.inference_s else np.zeros(1)
         return {
             "answered": self.answered,

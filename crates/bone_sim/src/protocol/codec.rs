@@ -3,8 +3,8 @@
 use nalgebra::Vector3;
 
 use super::{
-    flags, Layout, FORCE, GUIDANCE, MAX_PAYLOAD_BYTES, POSE, PREDICT, PREDICTION, STATE, TICKS, TICK_ROW, VERSION,
-    WINDOW_RECORDS,
+    flags, Layout, FORCE, GUIDANCE, MAX_PAYLOAD_BYTES, MAX_QUERY_WINDOWS, POSE, PREDICT, PREDICTION, STATE, TICKS,
+    TICK_ROW, VERSION, WINDOW_RECORDS,
 };
 use crate::error::{SimError, SimResult};
 use crate::record::FEATURE_COUNT;
@@ -314,22 +314,32 @@ pub fn encode_state(m: &StateMsg) -> [u8; STATE.size] {
     buf
 }
 
-/// Encodes a model query for one window of `WINDOW_RECORDS` records (oldest first).
+/// Encodes a model query for one window of `WINDOW_RECORDS` records (oldest first), as entry 0.
 #[must_use]
 pub fn encode_predict(window_seq: u32, window: &[[f32; FEATURE_COUNT]; WINDOW_RECORDS]) -> Vec<u8> {
-    let mut buf = vec![0u8; PREDICT.size];
-    let mut w = Writer(&mut buf);
+    let mut buf = Vec::with_capacity(PREDICT.size);
+    push_predict(&mut buf, 0, window_seq, window);
+    buf
+}
+
+/// Appends one window of a model query to `out` (a query holds up to [`MAX_QUERY_WINDOWS`],
+/// `entry` 0, 1, … in order).
+pub fn push_predict(out: &mut Vec<u8>, entry: u32, window_seq: u32, window: &[[f32; FEATURE_COUNT]; WINDOW_RECORDS]) {
+    let start = out.len();
+    out.resize(start + PREDICT.size, 0);
+    let buf = &mut out[start..];
+    let mut w = Writer(buf);
     w.header(&PREDICT, 0);
     w.u32(4, window_seq);
     w.u16(8, WINDOW_RECORDS as u16);
     w.u16(10, FEATURE_COUNT as u16);
+    w.u32(12, entry);
     for (r, row) in window.iter().enumerate() {
         for (c, v) in row.iter().enumerate() {
             let at = 16 + 4 * (r * FEATURE_COUNT + c);
             buf[at..at + 4].copy_from_slice(&v.to_le_bytes());
         }
     }
-    buf
 }
 
 /// A decoded model reply.
@@ -337,6 +347,8 @@ pub fn encode_predict(window_seq: u32, window: &[[f32; FEATURE_COUNT]; WINDOW_RE
 pub struct Prediction {
     /// The query's window sequence number.
     pub window_seq: u32,
+    /// Which of the query's windows this answers (its `entry`).
+    pub entry: u32,
     /// Predicted expert force (N).
     pub force_n: Vector3<f64>,
     /// The model's inference time (s).
@@ -345,23 +357,74 @@ pub struct Prediction {
     pub model_id: String,
 }
 
-/// Decodes a model reply.
+/// Decodes a model reply that holds one prediction.
 ///
 /// # Errors
 /// The [`Refusal`] that applies.
 pub fn decode_prediction(bytes: &[u8]) -> Result<Prediction, Refusal> {
-    check(&PREDICTION, bytes, false)?;
+    let (p, rest) = split_prediction(bytes)?;
+    if rest.is_empty() {
+        Ok(p)
+    } else {
+        Err(Refusal::WrongSize)
+    }
+}
+
+/// The predictions of a model reply (one or more back to back, at most [`MAX_QUERY_WINDOWS`]),
+/// in order; the first that is refused ends them.
+#[must_use]
+pub fn decode_predictions(bytes: &[u8]) -> Predictions<'_> {
+    Predictions { rest: bytes, left: MAX_QUERY_WINDOWS }
+}
+
+/// The iterator [`decode_predictions`] returns.
+#[derive(Debug)]
+pub struct Predictions<'a> {
+    rest: &'a [u8],
+    left: usize,
+}
+
+impl Iterator for Predictions<'_> {
+    type Item = Result<Prediction, Refusal>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.rest.is_empty() {
+            return None;
+        }
+        if self.left == 0 {
+            self.rest = &[];
+            return Some(Err(Refusal::Oversized));
+        }
+        self.left -= 1;
+        match split_prediction(self.rest) {
+            Ok((p, rest)) => {
+                self.rest = rest;
+                Some(Ok(p))
+            }
+            Err(r) => {
+                self.rest = &[];
+                Some(Err(r))
+            }
+        }
+    }
+}
+
+/// The first prediction of `bytes` and what follows it.
+fn split_prediction(bytes: &[u8]) -> Result<(Prediction, &[u8]), Refusal> {
+    check(&PREDICTION, &bytes[..bytes.len().min(PREDICTION.size)], false)?;
     let id_len = rd_u16(bytes, 24) as usize;
-    if bytes.len() != PREDICTION.size + id_len {
-        return Err(Refusal::WrongSize);
+    let size = PREDICTION.size + id_len;
+    if bytes.len() < size || size > MAX_PAYLOAD_BYTES {
+        return Err(if size > MAX_PAYLOAD_BYTES { Refusal::Oversized } else { Refusal::WrongSize });
     }
     let force_n = Vector3::new(rd_f32(bytes, 8), rd_f32(bytes, 12), rd_f32(bytes, 16));
     let inference_s = rd_f32(bytes, 20);
     if !force_n.iter().all(|x| x.is_finite()) || !inference_s.is_finite() {
         return Err(Refusal::NonFinite);
     }
-    let model_id = String::from_utf8_lossy(&bytes[PREDICTION.size..]).into_owned();
-    Ok(Prediction { window_seq: rd_u32(bytes, 4), force_n, inference_s, model_id })
+    let model_id = String::from_utf8_lossy(&bytes[PREDICTION.size..size]).into_owned();
+    let p = Prediction { window_seq: rd_u32(bytes, 4), entry: rd_u32(bytes, 28), force_n, inference_s, model_id };
+    Ok((p, &bytes[size..]))
 }
 
 /// One tick of the recorders' 1 kHz stream ([`TICK_ROW`]).

@@ -136,12 +136,13 @@ const PREDICT_FIELDS: [Field; 8] = concat(
         f("window_seq", "u32", 4, 1, "1"),
         f("rows", "u16", 8, 1, "1"),
         f("cols", "u16", 10, 1, "1"),
-        f("reserved", "u32", 12, 1, "1"),
+        f("entry", "u32", 12, 1, "1"),
         f("window", "f32", 16, WINDOW_RECORDS * FEATURE_COUNT, "record"),
     ],
 );
 /// Model query, engine → model service: one window of records (rows × cols, row-major, oldest
-/// first, columns in record order).
+/// first, columns in record order). A query holds 1 to [`MAX_QUERY_WINDOWS`] of them back to
+/// back, `entry` 0, 1, … in order.
 pub const PREDICT: Layout =
     Layout { name: "predict", kind: 5, size: 16 + 4 * WINDOW_RECORDS * FEATURE_COUNT, fields: &PREDICT_FIELDS };
 
@@ -153,11 +154,12 @@ const PREDICTION_FIELDS: [Field; 9] = concat(
         f("inference_s", "f32", 20, 1, "s"),
         f("model_id_len", "u16", 24, 1, "1"),
         f("reserved", "u16", 26, 1, "1"),
-        f("reserved2", "u32", 28, 1, "1"),
+        f("entry", "u32", 28, 1, "1"),
     ],
 );
 /// Model reply, model service → engine: the predicted expert force, followed by `model_id_len`
-/// bytes of UTF-8 model id.
+/// bytes of UTF-8 model id. A reply holds one or more of them back to back, each naming the
+/// `entry` of the query's window it answers.
 pub const PREDICTION: Layout = Layout { name: "prediction", kind: 6, size: 32, fields: &PREDICTION_FIELDS };
 
 const TICKS_FIELDS: [Field; 6] = concat(

@@ -22,6 +22,10 @@ pub const VERSION: u8 = 1;
 pub const WINDOW_RECORDS: usize = 20;
 /// The longest payload the server reads; anything longer is refused unread.
 pub const MAX_PAYLOAD_BYTES: usize = 4096;
+/// The most windows one model query holds (`predict` messages back to back): the engine asks for
+/// a burst of sessions' windows in one query (decision 0032), and a reply may hold as many
+/// `prediction`s, each at most [`MAX_PAYLOAD_BYTES`].
+pub const MAX_QUERY_WINDOWS: usize = 32;
 
 /// Flag bits of the force and state headers.
 pub mod flags {

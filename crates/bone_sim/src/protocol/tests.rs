@@ -126,6 +126,75 @@ fn predict_and_prediction_round_trip() {
     assert_eq!(decode_prediction(&reply[..33]), Err(Refusal::WrongSize));
 }
 
+/// A prediction for `entry` with a model id of `id`.
+fn prediction(entry: u32, window_seq: u32, z: f64, id: &[u8]) -> Vec<u8> {
+    let mut reply = vec![0u8; PREDICTION.size];
+    let mut w = Writer(&mut reply);
+    w.header(&PREDICTION, 0);
+    w.u32(4, window_seq);
+    w.vec3_f32(8, &Vector3::new(0.0, 0.0, z));
+    w.u16(24, id.len() as u16);
+    w.u32(28, entry);
+    reply.extend_from_slice(id);
+    reply
+}
+
+#[test]
+fn a_query_holds_windows_back_to_back_and_a_reply_their_predictions() {
+    let mut window = [[0f32; FEATURE_COUNT]; WINDOW_RECORDS];
+    let mut q = Vec::new();
+    for entry in 0..3 {
+        window[0][0] = entry as f32;
+        push_predict(&mut q, entry, 40 + entry, &window);
+    }
+    assert_eq!(q.len(), 3 * PREDICT.size);
+    let at = |entry: usize, name: &str| entry * PREDICT.size + field(&PREDICT, name).offset;
+    for entry in 0..3 {
+        assert_eq!(rd_u32(&q, at(entry, "entry")), entry as u32);
+        assert_eq!(rd_u32(&q, at(entry, "window_seq")), 40 + entry as u32);
+        assert_eq!(rd_f32(&q, at(entry, "window")), entry as f64);
+    }
+    let mut one = Vec::new();
+    push_predict(&mut one, 0, 7, &window);
+    assert_eq!(encode_predict(7, &window), one);
+
+    let reply = [prediction(2, 42, 1.5, b"m"), prediction(0, 40, -1.0, b"model-7")].concat();
+    let got: Vec<_> = decode_predictions(&reply).collect::<Result<_, _>>().unwrap();
+    assert_eq!(
+        got.iter().map(|p| (p.entry, p.window_seq, p.force_n.z)).collect::<Vec<_>>(),
+        [(2, 42, 1.5), (0, 40, -1.0)]
+    );
+    assert_eq!((got[0].model_id.as_str(), got[1].model_id.as_str()), ("m", "model-7"));
+    // A reply of one prediction is what `decode_prediction` takes; two are too many for it.
+    assert_eq!(decode_prediction(&reply), Err(Refusal::WrongSize));
+    assert_eq!(decode_prediction(&reply[..=PREDICTION.size]).unwrap().entry, 2);
+}
+
+#[test]
+fn a_refused_prediction_ends_the_reply_and_too_many_are_oversized() {
+    let mut nan = prediction(1, 5, 0.0, b"");
+    nan[8..12].copy_from_slice(&f32::NAN.to_le_bytes());
+    let reply = [prediction(0, 4, 1.0, b""), nan, prediction(2, 6, 1.0, b"")].concat();
+    let got: Vec<_> = decode_predictions(&reply).collect();
+    assert_eq!(got.len(), 2);
+    assert!(got[0].is_ok());
+    assert_eq!(got[1], Err(Refusal::NonFinite));
+    // A truncated last one, a wrong kind.
+    let cut = [prediction(0, 4, 1.0, b"ab"), prediction(1, 5, 1.0, b"ab")].concat();
+    let got: Vec<_> = decode_predictions(&cut[..cut.len() - 1]).collect();
+    assert_eq!((got[0].is_ok(), got[1].clone()), (true, Err(Refusal::WrongSize)));
+    let mut wrong = prediction(0, 4, 1.0, b"");
+    wrong[0] = PREDICT.kind;
+    assert_eq!(decode_predictions(&wrong).collect::<Vec<_>>(), [Err(Refusal::WrongVersion)]);
+    // One more than a query may hold.
+    let many: Vec<u8> = (0..=MAX_QUERY_WINDOWS as u32).flat_map(|e| prediction(e, e, 0.0, b"")).collect();
+    let got: Vec<_> = decode_predictions(&many).collect();
+    assert_eq!(got.len(), MAX_QUERY_WINDOWS + 1);
+    assert!(got[..MAX_QUERY_WINDOWS].iter().all(Result::is_ok));
+    assert_eq!(got[MAX_QUERY_WINDOWS], Err(Refusal::Oversized));
+    assert_eq!(decode_predictions(&[]).count(), 0);
+}
+
 #[test]
 fn ticks_batch_round_trips_and_refuses_bad_payloads() {
     let row = |tick: u64| TickRow {

@@ -43,6 +43,7 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("PROTOCOL_VERSION", crate::protocol::VERSION)?;
     m.add("WINDOW_RECORDS", crate::protocol::WINDOW_RECORDS)?;
     m.add("MAX_PAYLOAD_BYTES", crate::protocol::MAX_PAYLOAD_BYTES)?;
+    m.add("MAX_QUERY_WINDOWS", crate::protocol::MAX_QUERY_WINDOWS)?;
     m.add("MAX_TICK_ROWS", crate::protocol::MAX_TICK_ROWS)?;
     let features: Vec<&str> = FEATURES.iter().map(|f| f.name).collect();
     let units: Vec<&str> = FEATURES.iter().map(|f| f.unit).collect();

@@ -1,10 +1,11 @@
 //! The comm thread: drains the outputs of every tick, publishes them (but the forces a pose's own
 //! thread already put), keeps each session's window of records and the batches of its ticks, and
-//! sends the model queries. It sleeps until a tick unparks it (at most [`IDLE_WAKE`]), or spins
+//! sends the model queries, one for each burst of sessions' windows. It sleeps until a tick
+//! unparks it (at most [`IDLE_WAKE`], or until the burst waiting is due), or spins
 //! ([`WaitMode::Spin`]).
 
 use std::collections::VecDeque;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
@@ -25,7 +26,7 @@ use crate::engine::stats::HistogramSnapshot;
 use crate::engine::OutputQueue;
 use crate::engine::WaitMode;
 use crate::error::{SimError, SimResult};
-use crate::protocol::{self, TickBatch, WINDOW_RECORDS};
+use crate::protocol::{self, TickBatch, MAX_PAYLOAD_BYTES, MAX_QUERY_WINDOWS, PREDICT, WINDOW_RECORDS};
 use crate::record::{FEATURE_COUNT, RECORD_PERIOD_TICKS};
 use crate::session::Pose;
 
@@ -36,6 +37,13 @@ const LATENCIES_KEPT: usize = 2000;
 /// Longest the comm thread sleeps: forces a pose's thread already put are queued without waking
 /// it, only to be added to the recorders' batches, so it takes them in this often.
 pub(crate) const IDLE_WAKE: Duration = Duration::from_millis(20);
+/// Longest a session's new window waits for the rest of its burst before its model query leaves.
+/// Every session records on one 100 ms grid (decision 0028), so each period's windows reach this
+/// thread within a tick or two of one another (each client's pose phase, the thread's wake-ups);
+/// they leave in one query as soon as every open session's is in, or after this wait (one at a
+/// time, a query and its reply cost about as much as the forward pass: decision 0032).
+pub(crate) const BURST_WAIT: Duration = Duration::from_millis(2);
+const _: () = assert!(MAX_QUERY_WINDOWS <= 64, "a query's answered windows are bits of a u64");
 
 /// One second's cumulative tick statistics.
 #[derive(Debug, Clone)]
@@ -186,11 +194,46 @@ impl Outlet {
     }
 }
 
+/// A window in the burst waiting for its query: whose it is.
+#[derive(Debug, Clone, Copy)]
+struct Asked {
+    slot: u16,
+    generation: u32,
+    window_seq: u32,
+    /// The client time of the pose its session's last force used (the guidance echoes it).
+    pose_time_ns: u64,
+}
+
+/// The windows of the burst now arriving, and their query's payload so far.
+struct Burst {
+    asked: Vec<Asked>,
+    payload: Vec<u8>,
+    /// When its first window arrived.
+    since: Instant,
+}
+
+impl Burst {
+    fn new() -> Self {
+        Burst {
+            asked: Vec::with_capacity(MAX_QUERY_WINDOWS),
+            payload: Vec::with_capacity(MAX_QUERY_WINDOWS * PREDICT.size),
+            since: Instant::now(),
+        }
+    }
+
+    /// Whether its query leaves now: every open session's window is in, or the first has waited
+    /// [`BURST_WAIT`].
+    fn due(&self, sessions: u64, now: Instant) -> bool {
+        !self.asked.is_empty() && (self.asked.len() as u64 >= sessions || now >= self.since + BURST_WAIT)
+    }
+}
+
 struct Comm {
     session: zenoh::Session,
     shared: Arc<Shared>,
     outlets: Vec<Option<Outlet>>,
     querier: zenoh::query::Querier<'static>,
+    burst: Burst,
 }
 
 impl Comm {
@@ -301,14 +344,22 @@ impl Comm {
                 }
                 o.window.push_back(record.features.map(|x| x as f32));
                 o.window_seq = o.window_seq.wrapping_add(1);
-                let (seq, pose_time_ns) = (o.window_seq, o.pose_time_ns);
-                let payload = protocol::encode_predict(seq, &model_window(&o.window));
+                let (window_seq, pose_time_ns) = (o.window_seq, o.pose_time_ns);
+                let window = model_window(&o.window);
                 if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
                     if info.generation == generation {
                         info.metrics.add_state(&msg, &info.path);
                     }
                 }
-                self.query(slot, generation, seq, pose_time_ns, payload);
+                let b = &mut self.burst;
+                if b.asked.is_empty() {
+                    b.since = Instant::now();
+                }
+                protocol::push_predict(&mut b.payload, b.asked.len() as u32, window_seq, &window);
+                b.asked.push(Asked { slot, generation, window_seq, pose_time_ns });
+                if b.asked.len() == MAX_QUERY_WINDOWS {
+                    self.send_burst();
+                }
             }
             Output::Guidance { slot, generation, msg } => {
                 if let Some(o) = self.outlet(slot, generation) {
@@ -326,62 +377,91 @@ impl Comm {
         }
     }
 
-    fn query(&self, slot: u16, generation: u32, window_seq: u32, pose_time_ns: u64, payload: Vec<u8>) {
+    /// Sends the burst's windows in one model query (if it has any).
+    fn send_burst(&mut self) {
+        if self.burst.asked.is_empty() {
+            return;
+        }
+        let Burst { asked, payload, .. } = std::mem::replace(&mut self.burst, Burst::new());
+        self.query(asked, payload);
+    }
+
+    fn query(&self, asked: Vec<Asked>, payload: Vec<u8>) {
         let shared = self.shared.clone();
         let sent = Instant::now();
-        shared.counters.model_queries.fetch_add(1, Ordering::Relaxed);
+        shared.counters.model_queries.fetch_add(asked.len() as u64, Ordering::Relaxed);
+        shared.counters.model_bursts.fetch_add(1, Ordering::Relaxed);
         // One worker of the pool answers (`pool`), or, with no worker in the pool, every
-        // queryable on the shared key. Either way at most one reply per query is applied: the
-        // first valid one; a second worker's (or a rogue's) extra replies must not override it.
+        // queryable on the shared key. Either way at most one prediction per window is applied:
+        // the first valid one; a second worker's (or a rogue's) extra replies must not override it.
         let worker = lock(&shared.pool).pick(sent);
-        let ending = Ending { shared: shared.clone(), worker: worker.clone(), applied: AtomicBool::new(false) };
+        let ending = Ending { shared: shared.clone(), worker: worker.clone(), applied: AtomicU64::new(0) };
         let on_reply = move |reply: zenoh::query::Reply| {
             let shared = &ending.shared;
             let latency_s = sent.elapsed().as_secs_f64();
-            let decoded = match reply.result() {
-                Ok(sample) => protocol::decode_prediction(&sample.payload().to_bytes()).ok(),
-                Err(_) => None,
+            let bytes = match reply.result() {
+                Ok(sample) if sample.payload().len() <= MAX_QUERY_WINDOWS * MAX_PAYLOAD_BYTES => {
+                    sample.payload().to_bytes()
+                }
+                _ => {
+                    shared.counters.model_errors.fetch_add(1, Ordering::Relaxed);
+                    return;
+                }
             };
-            let Some(p) = decoded.filter(|p| p.window_seq == window_seq) else {
-                shared.counters.model_errors.fetch_add(1, Ordering::Relaxed);
-                return;
-            };
-            let cmd = Command::Prediction {
-                slot,
-                generation,
-                window_seq,
-                predicted_n: [p.force_n.x, p.force_n.y, p.force_n.z],
-                latency_s,
-                pose_client_time_ns: pose_time_ns,
-            };
+            let (mut applied, mut model_id) = (0u64, None);
             let mut reg = lock(&shared.registry);
-            let Some(info) = reg.slots.get_mut(usize::from(slot)).filter(|i| i.generation == generation) else {
-                return; // the session is gone
-            };
-            let older = info.applied_window_seq.is_some_and(|newest| !seq_after(window_seq, newest));
-            // A reply older than the newest applied is of no use: to the pool its worker failed.
-            if older || ending.applied.swap(true, Ordering::AcqRel) {
-                shared.counters.model_ignored.fetch_add(1, Ordering::Relaxed);
-                return;
-            }
-            info.applied_window_seq = Some(window_seq);
-            let sent_cmd = reg.send(cmd).is_ok();
-            drop(reg);
-            if sent_cmd {
-                shared.counters.model_replies.fetch_add(1, Ordering::Relaxed);
+            for p in protocol::decode_predictions(&bytes) {
+                let Some((a, p)) = p.ok().and_then(|p| Some((*asked.get(p.entry as usize)?, p))) else {
+                    shared.counters.model_errors.fetch_add(1, Ordering::Relaxed);
+                    continue; // a refused prediction ends them; an unknown entry is skipped
+                };
+                if p.window_seq != a.window_seq {
+                    shared.counters.model_errors.fetch_add(1, Ordering::Relaxed);
+                    continue;
+                }
+                let Some(info) = reg.slots.get_mut(usize::from(a.slot)).filter(|i| i.generation == a.generation) else {
+                    continue; // the session is gone
+                };
+                let older = info.applied_window_seq.is_some_and(|newest| !seq_after(a.window_seq, newest));
+                let bit = 1u64 << p.entry;
+                // A reply older than the newest applied is of no use: to the pool its worker failed.
+                if older || ending.applied.fetch_or(bit, Ordering::AcqRel) & bit != 0 {
+                    shared.counters.model_ignored.fetch_add(1, Ordering::Relaxed);
+                    continue;
+                }
+                info.applied_window_seq = Some(a.window_seq);
+                let cmd = Command::Prediction {
+                    slot: a.slot,
+                    generation: a.generation,
+                    window_seq: a.window_seq,
+                    predicted_n: [p.force_n.x, p.force_n.y, p.force_n.z],
+                    latency_s,
+                    pose_client_time_ns: a.pose_time_ns,
+                };
                 // The guidance message leaves as the prediction is applied: now, not at the
                 // session's next tick (up to 1 ms away, more for a paused client): sending the
                 // command woke the tick thread. Why:
                 // docs/decisions/0009-model-reply-wakes-the-tick.md.
+                if reg.send(cmd).is_ok() {
+                    shared.counters.model_replies.fetch_add(1, Ordering::Relaxed);
+                }
+                applied += 1;
+                model_id = Some(p.model_id);
+            }
+            drop(reg);
+            if applied == 0 {
+                return;
             }
             let mut m = lock(&shared.model);
             m.last_reply = Some(Instant::now());
-            if m.latencies_s.len() == LATENCIES_KEPT {
-                m.latencies_s.pop_front();
+            for _ in 0..applied {
+                if m.latencies_s.len() == LATENCIES_KEPT {
+                    m.latencies_s.pop_front();
+                }
+                m.latencies_s.push_back(latency_s);
             }
-            m.latencies_s.push_back(latency_s);
-            if m.model_id != p.model_id {
-                m.model_id = p.model_id;
+            if let Some(id) = model_id.filter(|id| *id != m.model_id) {
+                m.model_id = id;
             }
         };
         let sent_ok = match &worker {
@@ -439,11 +519,18 @@ impl Comm {
             if wait == WaitMode::Spin && self.shared.stats.sessions.load(Ordering::Relaxed) > 0 {
                 std::hint::spin_loop();
             } else {
-                // A tick unparks this thread when it queued output to publish.
-                thread::park_timeout(IDLE_WAKE);
+                // A tick unparks this thread when it queued output to publish; a burst's query
+                // leaves at most BURST_WAIT after its first window.
+                let due = self.burst.since + BURST_WAIT;
+                let nap =
+                    if self.burst.asked.is_empty() { IDLE_WAKE } else { due.saturating_duration_since(Instant::now()) };
+                thread::park_timeout(nap);
             }
             drain_forces_first(outputs, &mut later, |out| self.handle(out));
             let now = Instant::now();
+            if self.burst.due(self.shared.stats.sessions.load(Ordering::Relaxed), now) {
+                self.send_burst();
+            }
             for o in self.outlets.iter_mut().flatten() {
                 o.publish_view(now);
             }
@@ -456,6 +543,7 @@ impl Comm {
             o.publish_ticks();
         }
         self.outlets.clear();
+        self.burst = Burst::new(); // the windows of a stopping server go unasked
     }
 }
 
@@ -527,14 +615,15 @@ fn seq_after(a: u32, b: u32) -> bool {
 struct Ending {
     shared: Arc<Shared>,
     worker: Option<String>,
-    /// Whether a reply was applied (the first valid one, if not older than the newest applied).
-    applied: AtomicBool,
+    /// Bit `entry` of each window whose prediction was applied (the first valid one, if not older
+    /// than the newest applied).
+    applied: AtomicU64,
 }
 
 impl Drop for Ending {
     fn drop(&mut self) {
         if let Some(id) = &self.worker {
-            let outcome = if self.applied.load(Ordering::Acquire) { Outcome::Answered } else { Outcome::Failed };
+            let outcome = if self.applied.load(Ordering::Acquire) != 0 { Outcome::Answered } else { Outcome::Failed };
             lock(&self.shared.pool).ended(id, outcome, Instant::now());
         }
     }
@@ -583,7 +672,7 @@ pub(crate) fn spawn(
         .wait()
         .map_err(|e| SimError::Transport(format!("cannot declare the model querier: {e}")))?;
     let slots = lock(&shared.registry).slots.len();
-    let mut comm = Comm { session, shared, outlets: (0..slots).map(|_| None).collect(), querier };
+    let mut comm = Comm { session, shared, outlets: (0..slots).map(|_| None).collect(), querier, burst: Burst::new() };
     thread::Builder::new()
         .name("dhg-comm".into())
         .spawn(move || comm.run(&outputs, wait))
@@ -637,6 +726,20 @@ mod tests {
         let col: Vec<f32> = model_window(&full).iter().map(|r| r[8]).collect();
         let expected: Vec<f32> = (6..=WINDOW_RECORDS + 5).map(|k| k as f32).collect();
         assert_eq!(col, expected, "the newest WINDOW_RECORDS, oldest first");
+    }
+
+    #[test]
+    fn a_burst_leaves_when_every_session_has_asked_or_its_first_window_has_waited() {
+        let mut b = Burst::new();
+        let t0 = b.since;
+        assert!(!b.due(0, t0 + BURST_WAIT), "an empty burst never leaves");
+        b.asked.push(Asked { slot: 0, generation: 1, window_seq: 1, pose_time_ns: 0 });
+        assert!(!b.due(3, t0), "one window of three sessions' waits");
+        assert!(!b.due(3, t0 + BURST_WAIT / 2));
+        assert!(b.due(3, t0 + BURST_WAIT), "...at most BURST_WAIT");
+        b.asked.extend([b.asked[0]; 2]);
+        assert!(b.due(3, t0), "every session's window is in: at once");
+        assert!(b.due(2, t0), "a session ended meanwhile");
     }
 
     #[test]

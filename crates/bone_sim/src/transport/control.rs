@@ -515,6 +515,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
             available,
             id: model.model_id.clone(),
             queries: n(&c.model_queries),
+            bursts: n(&c.model_bursts),
             replies: n(&c.model_replies),
             errors: n(&c.model_errors),
             ignored: n(&c.model_ignored),

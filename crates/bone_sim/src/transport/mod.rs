@@ -205,8 +205,10 @@ pub struct Counters {
     pub unknown_key: AtomicU64,
     /// Sessions refused because every slot was taken (or the id was bad).
     pub sessions_refused: AtomicU64,
-    /// Model queries sent.
+    /// Windows sent to the model.
     pub model_queries: AtomicU64,
+    /// Model queries sent (each holds one or more windows).
+    pub model_bursts: AtomicU64,
     /// Model replies applied.
     pub model_replies: AtomicU64,
     /// Model queries that failed (error reply or bad payload).

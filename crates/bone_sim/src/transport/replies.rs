@@ -224,8 +224,10 @@ pub struct ModelHealth {
     pub available: bool,
     /// The id of the model that replied last.
     pub id: String,
-    /// Model queries sent.
+    /// Windows sent to the model (one a session every 100 ms).
     pub queries: u64,
+    /// The Zenoh queries that carried them: one for each burst of sessions' windows.
+    pub bursts: u64,
     /// Replies applied.
     pub replies: u64,
     /// Replies that were errors.
