@@ -222,13 +222,19 @@ def test_sessions_started_apart_share_the_models_forward_passes():
         wait_until(lambda: answered_in_batches()[0] >= 40, 60.0, "the model answering all four")
         a0, b0 = answered_in_batches()
         m0 = clients[0].health(1.0)["model"]
+        g0 = [len(c.guidance) for c in clients]
         wait_until(lambda: answered_in_batches()[0] >= a0 + 200, 120.0, "200 more answers")
         a1, b1 = answered_in_batches()
         m1 = clients[0].health(1.0)["model"]
+        g1 = [len(c.guidance) for c in clients]
         assert (a1 - a0) / (b1 - b0) >= 1.6, f"{a1 - a0} queries in {b1 - b0} forward passes"
-        # ...and the engine asks for each burst's windows in one query (decision 0032).
+        # ...and the engine asks for each burst's windows in one query (decision 0032), each
+        # session getting its own window's prediction back.
         windows, bursts = m1["queries"] - m0["queries"], m1["bursts"] - m0["bursts"]
         assert windows >= 200 and windows / bursts >= 2.0, f"{windows} windows in {bursts} queries"
+        applied, errors = m1["replies"] - m0["replies"], m1["errors"] - m0["errors"]
+        assert applied >= 0.9 * windows and errors <= 0.02 * windows, (m0, m1)
+        assert all(after - before >= 30 for before, after in zip(g0, g1, strict=True)), (g0, g1)
     finally:
         for c in clients:
             c.close()

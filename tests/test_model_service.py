@@ -109,6 +109,59 @@ def test_a_query_of_several_windows_is_answered_window_by_window_in_one_pass(mod
         z.close()
 
 
+class _Query:
+    """A query as the service's callback gets it, answered in memory."""
+
+    def __init__(self, payload: bytes) -> None:
+        self.payload = self
+        self._payload = payload
+        self.key_expr = "dhg/model/predict"
+        self.replies: list[bytes] = []
+        self.errors: list[str] = []
+        self.dropped = False
+
+    def to_bytes(self) -> bytes:
+        return self._payload
+
+    def reply(self, key, body: bytes) -> None:
+        self.replies.append(body)
+
+    def reply_err(self, body: str) -> None:
+        self.errors.append(json.loads(body)["error"])
+
+    def drop(self) -> None:
+        self.dropped = True
+
+
+def test_a_batch_of_queries_is_answered_query_by_query_in_passes_of_max_batch_windows(model):
+    """Two queries of three and two windows in one batch, with passes of at most two windows: each
+    query's reply holds its own windows' predictions (the model's for each window alone), a window
+    with a NaN goes unanswered, and every query is dropped."""
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    service = ModelService(z, model, prefix="svc-direct", max_batch=2)
+    rng = np.random.default_rng(5)
+    w = [rng.normal(0.0, 1.0, (model.window, 9)).astype(np.float32) for _ in range(5)]
+    w[3][4, 2] = np.nan
+    try:
+        q1 = _Query(b"".join(_predict(w[i], 100 + i, entry=i) for i in range(3)))
+        q2 = _Query(_predict(w[3], 7, entry=0) + _predict(w[4], 8, entry=1))
+        batches = service.batches
+        service._answer([q1, q2])
+        assert service.batches - batches == 3  # five windows, two a pass
+        assert q1.dropped and q2.dropped and not q1.errors and not q2.errors
+        got1, got2 = _predictions(q1.replies[0]), _predictions(q2.replies[0])
+        assert [(g["entry"], g["window_seq"]) for g in got1] == [(0, 100), (1, 101), (2, 102)]
+        assert [(g["entry"], g["window_seq"]) for g in got2] == [(1, 8)]
+        expected = model.predict(np.stack([w[0], w[1], w[2], w[4]]))
+        np.testing.assert_allclose([g["force_n"] for g in got1 + got2], expected, rtol=1e-4, atol=1e-5)
+        assert service.stats()["answered"] == 4
+        with pytest.raises(InvalidInputError, match="max_batch"):
+            ModelService(z, model, prefix="svc-direct0", max_batch=0)
+    finally:
+        service.close()
+        z.close()
+
+
 def test_onnx_runtimes_pool_threads_run_at_the_services_nice_value():
     """With more than one thread ONNX Runtime does part of each pass on a pool it starts when the
     model is loaded; the service lowers those threads with its own (decision 0026)."""

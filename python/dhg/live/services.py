@@ -116,6 +116,8 @@ class ModelService:
         worker_id: str | None = None,
         nice: int = 0,
     ):
+        if max_batch < 1:
+            raise InvalidInputError(f"max_batch is the most windows a forward pass takes: at least 1, got {max_batch}")
         if not 0 <= nice <= 19:
             raise InvalidInputError(f"nice must be 0 (as the engine) to 19 (yield to everything), got {nice}")
         if model.window != protocol.WINDOW_RECORDS:
@@ -217,8 +219,8 @@ class ModelService:
             try:
                 payload = q.payload.to_bytes() if q.payload is not None else b""
                 seqs, w = protocol.decode_predict(payload)
-                if w.shape[1:] != (self.model.window, 9) or not np.all(np.isfinite(w)):
-                    raise InvalidInputError(f"windows of shape {w.shape[1:]} or non-finite values")
+                if w.shape[1:] != (self.model.window, 9):
+                    raise InvalidInputError(f"windows of shape {w.shape[1:]}, the model takes ({self.model.window}, 9)")
             except (InvalidInputError, ValueError) as exc:
                 self._reply_error(q, str(exc))
                 continue
@@ -227,44 +229,49 @@ class ModelService:
         if not good:
             return
         stacked = np.concatenate(windows)
-        t0 = time.perf_counter()
+        usable = np.isfinite(stacked).all(axis=(1, 2))  # a window with NaN or inf is not computed
+        stacked = np.where(usable[:, None, None], stacked, np.float32(0.0))
+        forces = np.empty((len(stacked), 3), dtype=np.float32)
+        pass_s = np.empty(len(stacked))
         try:
-            # One pass for the whole batch (at most max_batch windows a pass: a burst of queries
-            # from several engines may hold more).
-            forces = np.concatenate(
-                [
-                    self.model.predict(stacked[i : i + self.max_batch], check_output=False)
-                    for i in range(0, len(stacked), self.max_batch)
-                ]
-            )
+            # One forward pass for the whole batch, up to max_batch windows a pass.
+            for i in range(0, len(stacked), self.max_batch):
+                t0 = time.perf_counter()
+                forces[i : i + self.max_batch] = self.model.predict(stacked[i : i + self.max_batch], check_output=False)
+                pass_s[i : i + self.max_batch] = dt = time.perf_counter() - t0
+                self.batches += 1
+                self.inference_s.append(dt)
         except Exception as exc:  # a model failure must not kill the worker
             log.exception("model forward failed")
             for q, _ in good:
                 self._reply_error(q, f"model failed: {exc}")
             return
-        dt = time.perf_counter() - t0
-        self.batches += 1
-        self.inference_s.append(dt)
+        usable &= np.isfinite(forces).all(axis=1)  # a window far outside the training ranges overflows
         at = 0
         for q, seqs in good:
-            f = forces[at : at + len(seqs)]
+            part = range(at, at + len(seqs))
             at += len(seqs)
-            # A window far outside the training ranges overflows the model: that window goes
-            # unanswered (its session keeps its last guidance), the others of the query are answered.
-            finite = [i for i in range(len(seqs)) if np.all(np.isfinite(f[i]))]
-            if not finite:
+            # A window the model cannot answer goes unanswered (its session keeps its last
+            # guidance); the query's other windows are answered.
+            answered = [k for k in part if usable[k]]
+            if not answered:
                 self._reply_error(
-                    q, "the prediction is not finite: the window's values lie far outside the model's ranges"
+                    q,
+                    "no window of the query has a finite prediction: its values are not finite, or lie "
+                    "far outside the model's ranges",
                 )
                 continue
             try:
-                q.reply(
-                    q.key_expr,
-                    b"".join(
-                        protocol.encode_prediction(int(seqs[i]), f[i], dt, self.model_id, entry=i) for i in finite
-                    ),
+                body = b"".join(
+                    protocol.encode_prediction(
+                        int(seqs[k - part.start]), forces[k], pass_s[k], self.model_id, k - part.start
+                    )
+                    for k in answered
                 )
-                self.answered += len(finite)
+                q.reply(q.key_expr, body)
+                self.answered += len(answered)
+            except Exception:  # a reply Zenoh cannot send (the session closing) must not end the worker
+                log.exception("model reply failed")
             finally:
                 q.drop()
 

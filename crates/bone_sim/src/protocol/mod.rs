@@ -20,7 +20,8 @@ pub use layout::*;
 pub const VERSION: u8 = 1;
 /// Records in one model window (the paper's window of 20 records at 10 Hz).
 pub const WINDOW_RECORDS: usize = 20;
-/// The longest payload the server reads; anything longer is refused unread.
+/// The longest payload the server reads (in a model reply, the longest prediction); anything
+/// longer is refused unread.
 pub const MAX_PAYLOAD_BYTES: usize = 4096;
 /// The most windows one model query holds (`predict` messages back to back): the engine asks for
 /// a burst of sessions' windows in one query (decision 0032), and a reply may hold as many

@@ -202,6 +202,9 @@ struct Asked {
     window_seq: u32,
     /// The client time of the pose its session's last force used (the guidance echoes it).
     pose_time_ns: u64,
+    /// When the window reached this thread: its model latency counts from here, its wait for the
+    /// rest of the burst included.
+    at: Instant,
 }
 
 /// The windows of the burst now arriving, and their query's payload so far.
@@ -351,13 +354,14 @@ impl Comm {
                         info.metrics.add_state(&msg, &info.path);
                     }
                 }
-                let b = &mut self.burst;
+                let (b, at) = (&mut self.burst, Instant::now());
                 if b.asked.is_empty() {
-                    b.since = Instant::now();
+                    b.since = at;
                 }
                 protocol::push_predict(&mut b.payload, b.asked.len() as u32, window_seq, &window);
-                b.asked.push(Asked { slot, generation, window_seq, pose_time_ns });
-                if b.asked.len() == MAX_QUERY_WINDOWS {
+                b.asked.push(Asked { slot, generation, window_seq, pose_time_ns, at });
+                let sessions = self.shared.stats.sessions.load(Ordering::Relaxed);
+                if b.asked.len() == MAX_QUERY_WINDOWS || b.due(sessions, at) {
                     self.send_burst();
                 }
             }
@@ -388,17 +392,15 @@ impl Comm {
 
     fn query(&self, asked: Vec<Asked>, payload: Vec<u8>) {
         let shared = self.shared.clone();
-        let sent = Instant::now();
         shared.counters.model_queries.fetch_add(asked.len() as u64, Ordering::Relaxed);
         shared.counters.model_bursts.fetch_add(1, Ordering::Relaxed);
         // One worker of the pool answers (`pool`), or, with no worker in the pool, every
         // queryable on the shared key. Either way at most one prediction per window is applied:
         // the first valid one; a second worker's (or a rogue's) extra replies must not override it.
-        let worker = lock(&shared.pool).pick(sent);
-        let ending = Ending { shared: shared.clone(), worker: worker.clone(), applied: AtomicU64::new(0) };
+        let worker = lock(&shared.pool).pick(Instant::now());
+        let ending = Ending { shared: shared.clone(), worker: worker.clone(), answers: Answers::new(asked) };
         let on_reply = move |reply: zenoh::query::Reply| {
             let shared = &ending.shared;
-            let latency_s = sent.elapsed().as_secs_f64();
             let bytes = match reply.result() {
                 Ok(sample) if sample.payload().len() <= MAX_QUERY_WINDOWS * MAX_PAYLOAD_BYTES => {
                     sample.payload().to_bytes()
@@ -408,28 +410,17 @@ impl Comm {
                     return;
                 }
             };
-            let (mut applied, mut model_id) = (0u64, None);
+            let mut latencies = Vec::new();
             let mut reg = lock(&shared.registry);
-            for p in protocol::decode_predictions(&bytes) {
-                let Some((a, p)) = p.ok().and_then(|p| Some((*asked.get(p.entry as usize)?, p))) else {
-                    shared.counters.model_errors.fetch_add(1, Ordering::Relaxed);
-                    continue; // a refused prediction ends them; an unknown entry is skipped
-                };
-                if p.window_seq != a.window_seq {
-                    shared.counters.model_errors.fetch_add(1, Ordering::Relaxed);
-                    continue;
-                }
+            let tally = ending.answers.take(&bytes, |a, p| {
                 let Some(info) = reg.slots.get_mut(usize::from(a.slot)).filter(|i| i.generation == a.generation) else {
-                    continue; // the session is gone
+                    return Verdict::Gone;
                 };
-                let older = info.applied_window_seq.is_some_and(|newest| !seq_after(a.window_seq, newest));
-                let bit = 1u64 << p.entry;
-                // A reply older than the newest applied is of no use: to the pool its worker failed.
-                if older || ending.applied.fetch_or(bit, Ordering::AcqRel) & bit != 0 {
-                    shared.counters.model_ignored.fetch_add(1, Ordering::Relaxed);
-                    continue;
+                if info.applied_window_seq.is_some_and(|newest| !seq_after(a.window_seq, newest)) {
+                    return Verdict::Older;
                 }
                 info.applied_window_seq = Some(a.window_seq);
+                let latency_s = a.at.elapsed().as_secs_f64();
                 let cmd = Command::Prediction {
                     slot: a.slot,
                     generation: a.generation,
@@ -442,25 +433,27 @@ impl Comm {
                 // session's next tick (up to 1 ms away, more for a paused client): sending the
                 // command woke the tick thread. Why:
                 // docs/decisions/0009-model-reply-wakes-the-tick.md.
-                if reg.send(cmd).is_ok() {
-                    shared.counters.model_replies.fetch_add(1, Ordering::Relaxed);
+                if reg.send(cmd).is_err() {
+                    return Verdict::Gone; // the engine's command ring is full
                 }
-                applied += 1;
-                model_id = Some(p.model_id);
-            }
+                latencies.push(latency_s);
+                Verdict::Applied
+            });
             drop(reg);
-            if applied == 0 {
-                return;
-            }
+            let c = &shared.counters;
+            c.model_replies.fetch_add(latencies.len() as u64, Ordering::Relaxed);
+            c.model_errors.fetch_add(tally.errors, Ordering::Relaxed);
+            c.model_ignored.fetch_add(tally.ignored, Ordering::Relaxed);
+            let Some(id) = tally.model_id.filter(|_| !latencies.is_empty()) else { return };
             let mut m = lock(&shared.model);
             m.last_reply = Some(Instant::now());
-            for _ in 0..applied {
+            for latency_s in latencies {
                 if m.latencies_s.len() == LATENCIES_KEPT {
                     m.latencies_s.pop_front();
                 }
                 m.latencies_s.push_back(latency_s);
             }
-            if let Some(id) = model_id.filter(|id| *id != m.model_id) {
+            if m.model_id != id {
                 m.model_id = id;
             }
         };
@@ -610,20 +603,97 @@ fn seq_after(a: u32, b: u32) -> bool {
     (a.wrapping_sub(b) as i32) > 0
 }
 
+/// What the engine made of a window's prediction.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Verdict {
+    /// Applied: its session's guidance follows it.
+    Applied,
+    /// Not applied: its session has applied a newer window's (a late reply).
+    Older,
+    /// Not applied: its session ended (or the engine could not take it).
+    Gone,
+}
+
+/// What one reply held, beyond the predictions applied.
+#[derive(Debug, Default, PartialEq)]
+struct Tally {
+    /// Predictions refused by the decoder (the first ends the reply), for a window the query does
+    /// not have, or with another window's `window_seq`.
+    errors: u64,
+    /// Valid predictions not applied: a second one for a window, or one for a window older than
+    /// its session's newest applied.
+    ignored: u64,
+    /// The model id of the last prediction taken.
+    model_id: Option<String>,
+}
+
+/// A query's windows and which of them have been answered (a bit per entry).
+#[derive(Debug)]
+struct Answers {
+    asked: Vec<Asked>,
+    /// Bit `entry` of each window a valid prediction came for.
+    answered: AtomicU64,
+    /// Bit `entry` of each window whose prediction was applied.
+    applied: AtomicU64,
+}
+
+impl Answers {
+    fn new(asked: Vec<Asked>) -> Self {
+        Answers { asked, answered: AtomicU64::new(0), applied: AtomicU64::new(0) }
+    }
+
+    /// Takes one reply: each prediction is matched to its window by `entry` and `window_seq`,
+    /// and the first valid one for each window goes to `apply` (later ones are ignored).
+    fn take(&self, bytes: &[u8], mut apply: impl FnMut(&Asked, &protocol::Prediction) -> Verdict) -> Tally {
+        let mut tally = Tally::default();
+        for p in protocol::decode_predictions(bytes) {
+            let matched = p.ok().and_then(|p| Some((*self.asked.get(p.entry as usize)?, p)));
+            let Some((a, p)) = matched.filter(|(a, p)| a.window_seq == p.window_seq) else {
+                tally.errors += 1;
+                continue; // a refused prediction ends the reply: the decoder yields nothing after it
+            };
+            let bit = 1u64 << p.entry; // entry < asked.len() <= MAX_QUERY_WINDOWS <= 64
+            if self.answered.fetch_or(bit, Ordering::AcqRel) & bit != 0 {
+                tally.ignored += 1;
+                continue;
+            }
+            match apply(&a, &p) {
+                Verdict::Applied => {
+                    self.applied.fetch_or(bit, Ordering::AcqRel);
+                }
+                Verdict::Older => tally.ignored += 1,
+                Verdict::Gone => {}
+            }
+            tally.model_id = Some(p.model_id);
+        }
+        tally
+    }
+
+    /// How the query did, once it has ended: answered when most of its windows' predictions were
+    /// applied (a worker that answers the first window of each query alone fails), and how many
+    /// windows no valid prediction came for.
+    fn outcome(&self) -> (Outcome, u64) {
+        let n = self.asked.len() as u64;
+        let applied = u64::from(self.applied.load(Ordering::Acquire).count_ones());
+        let unanswered = n - u64::from(self.answered.load(Ordering::Acquire).count_ones());
+        (if 2 * applied > n { Outcome::Answered } else { Outcome::Failed }, unanswered)
+    }
+}
+
 /// What a model query holds until it ends (Zenoh drops the reply callback, and this with it, once
-/// every reply is in or the query timed out): tells the pool how its worker did.
+/// every reply is in or the query timed out): counts the windows left unanswered and tells the
+/// pool how its worker did.
 struct Ending {
     shared: Arc<Shared>,
     worker: Option<String>,
-    /// Bit `entry` of each window whose prediction was applied (the first valid one, if not older
-    /// than the newest applied).
-    applied: AtomicU64,
+    answers: Answers,
 }
 
 impl Drop for Ending {
     fn drop(&mut self) {
+        let (outcome, unanswered) = self.answers.outcome();
+        self.shared.counters.model_unanswered.fetch_add(unanswered, Ordering::Relaxed);
         if let Some(id) = &self.worker {
-            let outcome = if self.applied.load(Ordering::Acquire) != 0 { Outcome::Answered } else { Outcome::Failed };
             lock(&self.shared.pool).ended(id, outcome, Instant::now());
         }
     }
@@ -664,8 +734,9 @@ pub(crate) fn spawn(
     let querier = session
         .declare_querier(format!("{}/model/predict", shared.prefix))
         // With no worker in the pool: every queryable on the shared key gets every query (the
-        // first valid reply is applied, the rest are counted as ignored); with BestMatching,
-        // Zenoh would pick one per query, and a stalled one would get a share to itself.
+        // first valid prediction for each window is applied, the rest are counted as ignored);
+        // with BestMatching, Zenoh would pick one per query, and a stalled one would get a share
+        // to itself.
         .target(QueryTarget::All)
         .consolidation(ConsolidationMode::None)
         .timeout(Duration::from_secs_f64(shared.config.model_timeout_s))
@@ -728,12 +799,70 @@ mod tests {
         assert_eq!(col, expected, "the newest WINDOW_RECORDS, oldest first");
     }
 
+    fn asked(slot: u16, window_seq: u32) -> Asked {
+        Asked { slot, generation: 1, window_seq, pose_time_ns: 0, at: Instant::now() }
+    }
+
+    /// A prediction of `entry` for window `window_seq` (force z = `z`), as a worker writes it.
+    fn prediction(entry: u32, window_seq: u32, z: f32) -> Vec<u8> {
+        let mut b = vec![0u8; protocol::PREDICTION.size];
+        b[0] = protocol::PREDICTION.kind;
+        b[1] = protocol::VERSION;
+        b[4..8].copy_from_slice(&window_seq.to_le_bytes());
+        b[16..20].copy_from_slice(&z.to_le_bytes());
+        b[24..26].copy_from_slice(&1u16.to_le_bytes());
+        b[28..32].copy_from_slice(&entry.to_le_bytes());
+        b.push(b'm');
+        b
+    }
+
+    #[test]
+    fn each_window_takes_the_first_valid_prediction_for_it_in_any_order_and_over_several_replies() {
+        let answers = Answers::new(vec![asked(3, 10), asked(5, 20), asked(7, 30)]);
+        let mut got = Vec::new();
+        let mut apply = |a: &Asked, p: &protocol::Prediction| {
+            got.push((a.slot, p.force_n.z));
+            Verdict::Applied
+        };
+        let first = [prediction(2, 30, 3.0), prediction(0, 10, 1.0)].concat();
+        assert_eq!(answers.take(&first, &mut apply), Tally { model_id: Some("m".into()), ..Tally::default() });
+        // A second reply: entry 0 again (ignored), entry 1 with entry 2's window_seq and an entry
+        // the query does not have (errors), then entry 1 itself.
+        let second =
+            [prediction(0, 10, 9.0), prediction(1, 30, 9.0), prediction(3, 20, 9.0), prediction(1, 20, 2.0)].concat();
+        let t = answers.take(&second, &mut apply);
+        assert_eq!((t.errors, t.ignored), (2, 1));
+        assert_eq!(got, [(7, 3.0), (3, 1.0), (5, 2.0)], "each session got its own window's prediction, once");
+        assert_eq!(answers.outcome(), (Outcome::Answered, 0));
+    }
+
+    #[test]
+    fn a_worker_that_answers_only_the_first_window_fails_and_the_rest_count_as_unanswered() {
+        let answers = Answers::new(vec![asked(0, 1), asked(1, 1), asked(2, 1)]);
+        answers.take(&prediction(0, 1, 1.0), |_, _| Verdict::Applied);
+        assert_eq!(answers.outcome(), (Outcome::Failed, 2));
+        // Most applied: answered, the one left out counted.
+        let answers = Answers::new(vec![asked(0, 1), asked(1, 1), asked(2, 1)]);
+        answers.take(&[prediction(0, 1, 1.0), prediction(2, 1, 1.0)].concat(), |_, _| Verdict::Applied);
+        assert_eq!(answers.outcome(), (Outcome::Answered, 1));
+        // A late worker: every prediction valid but older than its session's newest: failed.
+        let answers = Answers::new(vec![asked(0, 1)]);
+        let t = answers.take(&prediction(0, 1, 1.0), |_, _| Verdict::Older);
+        assert_eq!((t.ignored, answers.outcome()), (1, (Outcome::Failed, 0)));
+        // A refused prediction ends the reply; nothing after it is read.
+        let answers = Answers::new(vec![asked(0, 1), asked(1, 2)]);
+        let mut bad = prediction(0, 1, f32::NAN);
+        bad.extend(prediction(1, 2, 1.0));
+        let t = answers.take(&bad, |_, _| Verdict::Applied);
+        assert_eq!((t.errors, answers.outcome()), (1, (Outcome::Failed, 2)));
+    }
+
     #[test]
     fn a_burst_leaves_when_every_session_has_asked_or_its_first_window_has_waited() {
         let mut b = Burst::new();
         let t0 = b.since;
         assert!(!b.due(0, t0 + BURST_WAIT), "an empty burst never leaves");
-        b.asked.push(Asked { slot: 0, generation: 1, window_seq: 1, pose_time_ns: 0 });
+        b.asked.push(asked(0, 1));
         assert!(!b.due(3, t0), "one window of three sessions' waits");
         assert!(!b.due(3, t0 + BURST_WAIT / 2));
         assert!(b.due(3, t0 + BURST_WAIT), "...at most BURST_WAIT");

@@ -209,13 +209,15 @@ pub struct Counters {
     pub model_queries: AtomicU64,
     /// Model queries sent (each holds one or more windows).
     pub model_bursts: AtomicU64,
-    /// Model replies applied.
+    /// Predictions applied.
     pub model_replies: AtomicU64,
-    /// Model queries that failed (error reply or bad payload).
+    /// Error replies, replies too long to read, and predictions refused or matching no window.
     pub model_errors: AtomicU64,
-    /// Model replies ignored: a second (or later) reply to a query already answered, or a reply
-    /// to a window older than the newest one applied (a late or rogue worker).
+    /// Valid predictions ignored: a second (or later) one for a window, or one for a window older
+    /// than its session's newest applied (a late or rogue worker).
     pub model_ignored: AtomicU64,
+    /// Windows whose query ended without a valid prediction for them.
+    pub model_unanswered: AtomicU64,
     /// Whether the comm thread got the short EEVDF slice (`engine::realtime`); 0 = no, 1 = yes.
     pub comm_short_slice: AtomicU64,
     /// Zenoh I/O threads on the short slice.

@@ -3,14 +3,15 @@
 //! Zenoh does not balance load between queryables: a query reaches every matching one (or,
 //! with `BestMatching`, one of Zenoh's choosing). So each worker announces itself with a
 //! liveliness token `<prefix>/model/workers/<id>` and serves `<prefix>/model/workers/<id>/predict`;
-//! the engine follows the tokens and sends each query to one worker, the one with the fewest
-//! queries in flight (ties in turn). A worker whose query ends unanswered (timed out, an error
-//! reply, a bad payload) is left out for a while — 0.25 s, doubling with each further failure up
+//! the engine follows the tokens and sends each query (a burst of sessions' windows) to one
+//! worker, the one with the fewest queries in flight (ties in turn). A worker whose query ends
+//! without most of its windows answered (timed out, an error reply, a bad payload) is left out for
+//! a while — 0.25 s, doubling with each further failure up
 //! to 8 s — and tried again after; one good answer clears it. A frozen worker therefore costs a
 //! few queries, not a share of them, and a worker that is killed leaves the pool when its token
 //! goes (at once when its connection closes). With no worker in the pool the engine queries the
-//! shared `<prefix>/model/predict` key instead (every queryable there, first valid reply
-//! applied), so a worker written from `docs/protocol.md` alone still works.
+//! shared `<prefix>/model/predict` key instead (every queryable there, each window's first valid
+//! prediction applied), so a worker written from `docs/protocol.md` alone still works.
 
 use std::time::{Duration, Instant};
 
@@ -26,9 +27,9 @@ pub(crate) const MAX_WORKERS: usize = 64;
 /// How a query sent to a worker ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Outcome {
-    /// A valid prediction for the window arrived and was applied.
+    /// Valid predictions for most of the query's windows arrived and were applied.
     Answered,
-    /// The query ended without one (timeout, an error reply, a bad payload, too late).
+    /// The query ended without (timeout, an error reply, a bad payload, too late).
     Failed,
 }
 

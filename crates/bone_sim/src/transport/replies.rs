@@ -228,13 +228,15 @@ pub struct ModelHealth {
     pub queries: u64,
     /// The Zenoh queries that carried them: one for each burst of sessions' windows.
     pub bursts: u64,
-    /// Replies applied.
+    /// Predictions applied.
     pub replies: u64,
-    /// Replies that were errors.
+    /// Error replies, replies too long to read, and predictions refused or matching no window.
     pub errors: u64,
-    /// Replies not applied (a second worker's, a late or rogue one's).
+    /// Valid predictions not applied (a second worker's, a late or rogue one's).
     pub ignored: u64,
-    /// Query → reply time, median (s).
+    /// Windows whose query ended without a valid prediction for them.
+    pub unanswered: u64,
+    /// A window's record → its prediction applied (its wait for the burst included), median (s).
     pub latency_p50_s: f64,
     /// ... 99th percentile (s).
     pub latency_p99_s: f64,
