@@ -113,8 +113,13 @@ def test_a_pose_ticks_its_session_on_the_thread_that_received_it_unless_told_not
             # Most poses come a period or more after the last tick and tick where they arrive; an
             # early one (sleep() overshoots, then catches up) or a late one is the tick thread's.
             assert h["ticks_on_pose_thread"] >= 0.3 * h["poses"], h
+            # Every pose ticked where it arrived or was left to the tick thread, with its reason.
+            left = h["poses_to_tick_thread"]
+            assert set(left) == {"early", "claimed", "behind"}, left
+            assert h["ticks_on_pose_thread"] + sum(left.values()) == h["poses"], h
         else:
             assert h["ticks_on_pose_thread"] == 0, "a pose ticked its session although told not to"
+            assert h["poses_to_tick_thread"] == {"early": 0, "claimed": 0, "behind": 0}, h
     finally:
         srv.stop()
 
@@ -281,6 +286,9 @@ def test_the_short_slices_reported_are_the_ones_the_kernel_gave(coarse_phantom):
     # On any kernel: SCHED_FIFO (policy 1) is reported as the kernel has it, and such a tick
     # thread is left in its class, not moved to the fair class for a slice.
     assert health["tick_realtime"] == (tick[0][0] == os.SCHED_FIFO)
+    # The poses' threads run the ticks (the default): the tick thread does not take SCHED_FIFO,
+    # even where it may (decision 0033; cargo's engine tests check that it takes it when asked).
+    assert health["tick_on"] == "pose" and tick[0][0] != os.SCHED_FIFO
     if health["tick_realtime"]:
         assert not h["tick"], "a SCHED_FIFO tick thread must not be moved to the fair class"
     if comm[0][1] is None:
@@ -376,8 +384,11 @@ def test_stop_is_idempotent_and_later_calls_fail_clearly(engine):
 
 
 def test_the_scheduling_hint_suggests_spinning_only_where_it_helps():
-    sleeping = {"tick_realtime": False, "tick_wait": "sleep"}
+    sleeping = {"tick_realtime": False, "tick_wait": "sleep", "tick_on": "thread"}
     assert scheduling_hint({**sleeping, "tick_realtime": True}, 16) is None
+    # Ticks on the poses' threads: the tick thread keeps normal scheduling on purpose (0033).
+    assert scheduling_hint({**sleeping, "tick_on": "pose"}, 2) is None
+    assert scheduling_hint({**sleeping, "tick_on": "pose"}, 16) is None
     assert scheduling_hint({**sleeping, "tick_wait": "spin"}, 16) is None
     many = scheduling_hint(sleeping, 16)
     assert many is not None and "--wait spin" in many and "16-core" in many

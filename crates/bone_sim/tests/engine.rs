@@ -175,7 +175,7 @@ fn a_force_carries_the_arrival_of_the_pose_it_used_and_none_without_a_fresh_pose
 fn the_tick_thread_ticks_and_stops() {
     let (core, mut link, _) = engine(1);
     activate(&mut link, 0, 1, 1.0);
-    let mut t = TickThread::spawn(core, None, WaitMode::Sleep).unwrap();
+    let mut t = TickThread::spawn(core, None, WaitMode::Sleep, true).unwrap();
     while link.stats.ticks.load(Ordering::Relaxed) < 20 {
         std::thread::yield_now();
     }
@@ -186,11 +186,40 @@ fn the_tick_thread_ticks_and_stops() {
 }
 
 #[test]
+fn a_tick_thread_not_asked_for_real_time_priority_keeps_normal_scheduling() {
+    // Where the poses' threads run the ticks (decision 0033); with it asked for, the thread has
+    // SCHED_FIFO exactly where the process may have it (root, CAP_SYS_NICE or an rtprio limit).
+    for asked in [false, true] {
+        let (core, mut link, _) = engine(1);
+        activate(&mut link, 0, 1, 1.0);
+        let mut t = TickThread::spawn(core, None, WaitMode::Sleep, asked).unwrap();
+        let got = link.stats.realtime.load(Ordering::Relaxed) == 1;
+        t.stop();
+        assert!(!got || asked, "SCHED_FIFO taken without being asked for");
+        if asked {
+            assert_eq!(got, may_use_sched_fifo(), "SCHED_FIFO asked for and allowed but not taken (or the reverse)");
+        }
+    }
+}
+
+/// Whether a thread of this process may switch to `SCHED_FIFO` (tried on a scratch thread).
+#[allow(unsafe_code)]
+fn may_use_sched_fifo() -> bool {
+    std::thread::spawn(|| {
+        let param = libc::sched_param { sched_priority: 1 };
+        // SAFETY: a valid sched_param; pid 0 is this scratch thread, which ends right after.
+        unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &raw const param) == 0 }
+    })
+    .join()
+    .unwrap_or(false)
+}
+
+#[test]
 fn a_spinning_tick_thread_uses_a_pose_nobody_woke_it_for_ticks_at_most_1_khz_and_stops() {
     let (core, mut link, surface) = engine(1);
     activate(&mut link, 0, 1, 1.0);
     let t0 = std::time::Instant::now();
-    let mut t = TickThread::spawn(core, None, WaitMode::Spin).unwrap();
+    let mut t = TickThread::spawn(core, None, WaitMode::Spin, true).unwrap();
     // Handed over without an unpark: only a thread that keeps looking finds it.
     send(&mut link, 0, 1, 7, surface - 1e-3);
     let mut echoed = false;

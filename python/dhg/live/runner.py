@@ -60,8 +60,10 @@ SPIN_MIN_CORES = 8
 def scheduling_hint(health: dict[str, Any], cores: int) -> str | None:
     """What to tell the operator about the tick thread's scheduling, from an engine ``health()``
     report and the machine's core count; ``None`` when nothing needs saying (real-time priority
-    granted, or already spinning)."""
-    if health.get("tick_realtime") or health.get("tick_wait") == "spin":
+    granted, already spinning, or not asked for: where the poses' threads run the ticks, the
+    default ``--tick-on pose``, the tick thread keeps normal scheduling on purpose,
+    ``docs/decisions/0033-the-tick-thread-yields-to-the-poses.md``)."""
+    if health.get("tick_realtime") or health.get("tick_wait") == "spin" or health.get("tick_on") == "pose":
         return None
     # Without SCHED_FIFO the engine still asks the kernel (Linux 6.12+) for a short time slice.
     meanwhile = (

@@ -372,13 +372,22 @@ impl PoseTicker {
     /// (the copy returned), and the comm side only records it. Never waits, allocates or does I/O.
     #[must_use]
     pub fn tick(&self, slot: u16, generation: u32, now: Instant, out_up_to: u64, publish_here: bool) -> PoseTick {
-        let Some(cell) = self.cells.get(usize::from(slot)) else { return PoseTick::NotDue };
-        let Some(mut st) = claim(cell) else { return PoseTick::Claimed };
+        let left = |why: PoseTick| {
+            let i = match why {
+                PoseTick::Claimed => 1,
+                PoseTick::Behind => 2,
+                _ => 0,
+            };
+            self.stats.poses_left[i].fetch_add(1, Ordering::Relaxed);
+            why
+        };
+        let Some(cell) = self.cells.get(usize::from(slot)) else { return left(PoseTick::NotDue) };
+        let Some(mut st) = claim(cell) else { return left(PoseTick::Claimed) };
         if !st.slot.active || st.slot.generation != generation {
-            return PoseTick::NotDue;
+            return left(PoseTick::NotDue);
         }
         if st.slot.order() > out_up_to {
-            return PoseTick::Behind;
+            return left(PoseTick::Behind);
         }
         let (mut force, mut state) = (None, false);
         let (outputs, stats) = (&*self.outputs, &*self.stats);
@@ -403,7 +412,7 @@ impl PoseTicker {
                 self.stats.pose_thread_ticks.fetch_add(1, Ordering::Relaxed);
                 PoseTick::Ticked { force, state }
             }
-            _ => PoseTick::NotDue,
+            _ => left(PoseTick::NotDue),
         }
     }
 

@@ -111,6 +111,10 @@ pub struct TickStats {
     pub ticks: AtomicU64,
     /// Of them, those run on the thread that received their pose (`engine::PoseTicker`).
     pub pose_thread_ticks: AtomicU64,
+    /// Poses their own thread left to the tick thread, by why: [not due (early, or the session's
+    /// commands not applied yet), claimed (the tick thread held the slot), behind (the slot's
+    /// newest force had not left yet)] (`engine::PoseTick`).
+    pub poses_left: [AtomicU64; 3],
     /// Times the sleeping tick thread woke (a slot's deadline, a pose or command that woke it, a
     /// retry; not counted when it spins).
     pub wakes: AtomicU64,
@@ -145,6 +149,7 @@ impl Default for TickStats {
         Self {
             ticks: AtomicU64::new(0),
             pose_thread_ticks: AtomicU64::new(0),
+            poses_left: [AtomicU64::new(0), AtomicU64::new(0), AtomicU64::new(0)],
             wakes: AtomicU64::new(0),
             missed: AtomicU64::new(0),
             lateness: Histogram::new(10_000),

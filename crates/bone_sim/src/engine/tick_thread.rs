@@ -26,9 +26,16 @@ impl TickThread {
     /// [`WaitMode::Spin`] the thread does not sleep while a session is open: it checks for due
     /// slots, fresh poses and commands continuously.
     ///
+    /// With `realtime` (and [`WaitMode::Sleep`]) the thread asks for `SCHED_FIFO`: for a thread
+    /// that runs every tick (`TickOn::Thread`). Where the poses' threads run the ticks
+    /// (`TickOn::Pose`, the default) it keeps normal scheduling with the short slice: at that
+    /// priority each of its wake-ups (the sessions' deadlines, early poses) preempted the threads
+    /// that carry the other sessions' poses, on a host whose cores they share. Why:
+    /// `docs/decisions/0033-the-tick-thread-yields-to-the-poses.md`.
+    ///
     /// # Errors
     /// The thread could not be spawned.
-    pub fn spawn(mut core: TickCore, notify: Option<Thread>, wait: WaitMode) -> SimResult<Self> {
+    pub fn spawn(mut core: TickCore, notify: Option<Thread>, wait: WaitMode, realtime: bool) -> SimResult<Self> {
         let stop = Arc::new(AtomicBool::new(false));
         let flag = stop.clone();
         let waker = core.waker().clone();
@@ -40,7 +47,7 @@ impl TickThread {
                 core.waker().register();
                 // Never both: the kernel's real-time throttling (sched_rt_runtime_us, 95 % by
                 // default) would stop a spinning SCHED_FIFO thread for 50 ms every second.
-                let rt = wait == WaitMode::Sleep && realtime::promote();
+                let rt = realtime && wait == WaitMode::Sleep && realtime::promote();
                 core.stats.realtime.store(u64::from(rt), Ordering::Relaxed);
                 // Without it, at least preempt a longer-sliced thread on waking (no privilege).
                 let slice = !rt && realtime::short_slice(0);

@@ -15,7 +15,8 @@ use zenoh::Wait;
 use super::comm::put_force;
 use super::registry::ForcePublisher;
 use super::replies::{
-    Closed, ErrorReply, HealthReply, MetricsReply, ModelHealth, PathLayer, Refused, SessionInfo, ShortSlices,
+    Closed, ErrorReply, HealthReply, MetricsReply, ModelHealth, PathLayer, PosesToTickThread, Refused, SessionInfo,
+    ShortSlices,
 };
 use super::{lock, Shared};
 use crate::engine::handoff::{Command, Output};
@@ -479,6 +480,11 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
         window_s: window,
         ticks: d.ticks,
         ticks_on_pose_thread: d.pose_thread_ticks,
+        poses_to_tick_thread: PosesToTickThread {
+            early: d.poses_left[0],
+            claimed: d.poses_left[1],
+            behind: d.poses_left[2],
+        },
         tick_thread_wakes: d.wakes,
         missed_ticks: d.missed,
         missed_ticks_total: now.missed,

@@ -409,7 +409,8 @@ impl Server {
         control::declare(&session, &shared)?;
         let comm = comm::spawn(session.clone(), shared.clone(), link.outputs, engine_config.wait)?;
         let _ = shared.comm_thread.set(comm.thread().clone());
-        let tick = TickThread::spawn(core, Some(comm.thread().clone()), engine_config.wait)?;
+        let realtime = shared.config.tick_on == TickOn::Thread; // see TickThread::spawn
+        let tick = TickThread::spawn(core, Some(comm.thread().clone()), engine_config.wait, realtime)?;
         Ok(Self { shared, session, tick, comm: Some(comm) })
     }
 

@@ -124,6 +124,20 @@ pub struct MetricsReply {
     pub burr_radius_m: f64,
 }
 
+/// Why poses did not tick their session on the thread that received them (`health`): each such
+/// pose wakes the tick thread, which ticks it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, JsonSchema)]
+pub struct PosesToTickThread {
+    /// The session was not due: the pose came early (it waits for the session's budget), or the
+    /// session's commands were not applied yet.
+    pub early: u64,
+    /// The tick thread held the session (ticking it, or applying a command).
+    pub claimed: u64,
+    /// The session's newest force had not left yet (the comm thread puts it): this pose's force
+    /// follows it, so that forces leave in order.
+    pub behind: u64,
+}
+
 /// `get <p>/server/health?window=N`: the server's health, tick figures over the last N seconds.
 #[derive(Debug, Clone, Serialize, JsonSchema)]
 pub struct HealthReply {
@@ -141,6 +155,8 @@ pub struct HealthReply {
     pub ticks: u64,
     /// Of them, those a pose ran on the thread that received it, whose force left from there.
     pub ticks_on_pose_thread: u64,
+    /// Poses in the window that their own thread left to the tick thread, and why.
+    pub poses_to_tick_thread: PosesToTickThread,
     /// Times the sleeping tick thread woke in the window: at a session's deadline (often to find
     /// that its pose already ticked it), for a pose or command that woke it, or a retry. About
     /// 500–1,000 a second with clients streaming, 50 a second idle.
