@@ -490,6 +490,10 @@ fn a_due_pose_ticks_on_its_own_thread_and_an_early_one_waits_for_the_tick_thread
     send(&mut link, 0, 2, 3, surface - 1e-3);
     assert!(matches!(link.ticker.tick(0, 2, t0 + 3 * MS, u64::MAX, true), PoseTick::NotDue));
     assert_eq!(link.stats.pose_thread_ticks.load(Ordering::Relaxed), 1);
+    // Each pose left to the tick thread is counted once, under its reason (health's
+    // `poses_to_tick_thread`: early, claimed, behind).
+    let left = link.stats.poses_left.each_ref().map(|n| n.load(Ordering::Relaxed));
+    assert_eq!(left, [2, 0, 1], "[not due, claimed, behind]");
 }
 
 #[test]
@@ -500,6 +504,7 @@ fn a_slot_held_by_another_thread_is_passed_over_and_its_commands_wait() {
     let ticker = link.ticker.clone();
     let held = ticker.session(0).unwrap(); // a pose's thread in the middle of a tick
     assert!(matches!(link.ticker.tick(0, 1, t0 + MS, u64::MAX, true), PoseTick::Claimed));
+    assert_eq!(link.stats.poses_left[1].load(Ordering::Relaxed), 1, "a claimed pose counted as such");
     link.commands.push(prediction(1, [0.0, 0.0, 0.2], 7)).unwrap();
     let (n, next) = core.tick_due(t0 + MS);
     assert_eq!((n, core.commands_applied()), (0, 0), "it ticked or changed a slot another thread held");

@@ -1,7 +1,9 @@
 //! Best-effort scheduling of the server's latency-critical threads.
 //!
 //! With `SCHED_FIFO` the tick thread preempts the Zenoh, Python and model threads when its
-//! deadline comes, which is what keeps missed ticks at zero on a loaded machine. It needs
+//! deadline comes, which is what kept missed ticks at zero on a loaded machine while it ran every
+//! tick (`--tick-on thread`, the only mode that asks for it since the poses' threads run the
+//! ticks: `docs/decisions/0033-the-tick-thread-yields-to-the-poses.md`). It needs
 //! `CAP_SYS_NICE` (or an `rtprio` limit); without it the thread keeps normal scheduling and the
 //! health report says so.
 //!

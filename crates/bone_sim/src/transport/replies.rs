@@ -159,7 +159,7 @@ pub struct HealthReply {
     pub poses_to_tick_thread: PosesToTickThread,
     /// Times the sleeping tick thread woke in the window: at a session's deadline (often to find
     /// that its pose already ticked it), for a pose or command that woke it, or a retry. About
-    /// 500–1,000 a second with clients streaming, 50 a second idle.
+    /// 500–3,000 a second with clients streaming, 50 a second idle.
     pub tick_thread_wakes: u64,
     /// Periods a session's tick came a whole period or more past its deadline, in the window.
     pub missed_ticks: u64,
@@ -292,7 +292,7 @@ mod tests {
         assert_eq!(keys(&s["metrics"]["properties"]), keys(&written));
         assert_eq!(written["target_distance_m"], Value::Null, "no record yet: no distance");
         for (reply, nested) in [
-            ("health", &["ShortSlices", "Refused", "ModelHealth", "Worker"][..]),
+            ("health", &["PosesToTickThread", "ShortSlices", "Refused", "ModelHealth", "Worker"][..]),
             ("metrics", &[]),
             ("info", &["FadingSchedule", "FadingParams", "PathLayer"]),
             ("closed", &[]),
