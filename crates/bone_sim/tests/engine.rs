@@ -203,13 +203,13 @@ fn a_tick_thread_not_asked_for_real_time_priority_keeps_normal_scheduling() {
     }
 }
 
-/// Whether a thread of this process may switch to `SCHED_FIFO` at the tick thread's priority
-/// (`engine::realtime::FIFO_PRIORITY`, 80), tried on a scratch thread.
+/// Whether a thread of this process may switch to `SCHED_FIFO` at the tick thread's priority,
+/// tried on a scratch thread.
 #[cfg(target_os = "linux")]
 #[allow(unsafe_code)]
 fn may_use_sched_fifo() -> bool {
     std::thread::spawn(|| {
-        let param = libc::sched_param { sched_priority: 80 };
+        let param = libc::sched_param { sched_priority: bone_sim::engine::realtime::FIFO_PRIORITY };
         // SAFETY: a valid sched_param; pid 0 is this scratch thread, which ends right after.
         unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &raw const param) == 0 }
     })

@@ -17,7 +17,7 @@
 ///
 /// Why this value: `docs/decisions/0007-realtime-priority.md`.
 #[cfg(target_os = "linux")]
-const FIFO_PRIORITY: i32 = 80;
+pub const FIFO_PRIORITY: i32 = 80;
 
 /// The slice asked for (ns): 0.1 ms, the shortest the kernel grants (the default is 0.7 ms
 /// times 1 + log2 of the core count, up to 2.8 ms).

@@ -456,9 +456,7 @@ impl Comm {
                 }
                 m.latencies_s.push_back(latency_s);
             }
-            if m.model_id != id {
-                m.model_id = id;
-            }
+            m.model_id = id;
         };
         let sent_ok = match &worker {
             Some(id) => self

@@ -454,10 +454,11 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
     let now = super::comm::sample(shared);
     let (window, base) = {
         let h = lock(&shared.history);
-        let back = (window_s.max(1.0).round() as usize).min(h.samples.len());
+        let seconds = window_s.max(1.0).round();
+        let back = (seconds as usize).min(h.samples.len());
         // A window reaching back to the server's start covers it all (its first sample came a
         // second in), as the totals (`poses`) do.
-        let whole = shared.started.elapsed().as_secs_f64() <= window_s.max(1.0).round();
+        let whole = shared.started.elapsed().as_secs_f64() <= seconds;
         match h.samples.len().checked_sub(back).and_then(|i| h.samples.get(i)) {
             Some(s) if back > 0 && !whole => (now.at.duration_since(s.at).as_secs_f64(), Some(s.clone())),
             _ => (shared.started.elapsed().as_secs_f64(), None),

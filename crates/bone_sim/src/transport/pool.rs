@@ -5,11 +5,11 @@
 //! liveliness token `<prefix>/model/workers/<id>` and serves `<prefix>/model/workers/<id>/predict`;
 //! the engine follows the tokens and sends each query (a burst of sessions' windows) to one
 //! worker, the one with the fewest queries in flight (ties in turn). A worker whose query ends
-//! without most of its windows answered (timed out, an error reply, a bad payload) is left out for
-//! a while — 0.25 s, doubling with each further failure up
-//! to 8 s — and tried again after; one good answer clears it. A frozen worker therefore costs a
-//! few queries, not a share of them, and a worker that is killed leaves the pool when its token
-//! goes (at once when its connection closes). With no worker in the pool the engine queries the
+//! without most of its windows answered (timed out, an error reply, a bad payload) is left out
+//! for a while — 0.25 s, doubling with each further failure up to 8 s — and tried again after;
+//! one good answer clears it. A frozen worker therefore costs a few queries, not a share of them,
+//! and a worker that is killed leaves the pool when its token goes (at once when its connection
+//! closes). With no worker in the pool the engine queries the
 //! shared `<prefix>/model/predict` key instead (every queryable there, each window's first valid
 //! prediction applied), so a worker written from `docs/protocol.md` alone still works.
 
@@ -29,7 +29,7 @@ pub(crate) const MAX_WORKERS: usize = 64;
 pub(crate) enum Outcome {
     /// Valid predictions for most of the query's windows arrived and were applied.
     Answered,
-    /// The query ended without (timeout, an error reply, a bad payload, too late).
+    /// The query ended without that (timeout, an error reply, a bad payload, too late).
     Failed,
 }
 
