@@ -18,7 +18,7 @@ export CARGO_TARGET_DIR ?= $(DHG_CACHE)/target
 export VIRTUAL_ENV := $(abspath $(VENV))
 PURELIB := import sysconfig; print(sysconfig.get_paths()["purelib"])
 
-.PHONY: help venv build browser demo test test-all test-rust test-python lint bench clean fuzz
+.PHONY: help venv build browser demo test test-all test-rust test-python lint bench device-kit clean fuzz
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -91,5 +91,8 @@ bench: build ## criterion benches and the Python benchmarks (figures go in docs/
 	$(VPY) tests/benchmarks/bench_volume.py
 	$(VPY) tests/benchmarks/bench_session.py
 
+device-kit: venv ## pack .devkit for the runs on a lent 16-core machine (tests/benchmarks/device/run.sh there)
+	tests/benchmarks/device/pack.sh
+
 clean: ## remove build outputs in the clone (keeps the caches)
-	rm -rf $(VENV) out python/dhg/*.so
+	rm -rf $(VENV) out .devkit python/dhg/*.so

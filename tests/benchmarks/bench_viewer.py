@@ -10,6 +10,7 @@ A page draws only while someone watches it, so each run holds the instructor's p
 trainee page open with a :class:`dhg.view.browser.PageWatcher` (a WebSocket client that reads what
 a browser tab would, without drawing it); ``--unwatched`` leaves every page closed. ``--browser``
 keeps a headless Chromium on the trainee page instead (the whole screen a trainee has).
+``--device cpu|cuda`` passes on to ``dhg-serve`` (where the model's passes run).
 ``--viewer-nice 0`` adds a variant, the viewer at that nice value instead of ``dhg view``'s default
 (decision 0027); ``--other PYTHONPATH`` one more, ``dhg view`` from another build (a checkout's
 ``python/`` folder with its extension built), the server staying this build's; ``--viewer-runtime
@@ -44,6 +45,7 @@ def main() -> None:
     ap.add_argument("--browser", action="store_true")
     target = os.environ.get("CARGO_TARGET_DIR", "target")
     ap.add_argument("--load", default=str(Path(target) / "release" / "examples" / "load"))
+    ap.add_argument("--device", choices=("auto", "cpu", "cuda"), help="dhg-serve --device (default auto)")
     ap.add_argument("--viewer-nice", type=int, metavar="N", help="also a viewer at nice N (dhg view --nice N)")
     ap.add_argument("--other", metavar="PYTHONPATH", help="also dhg view from the build this python/ folder holds")
     ap.add_argument(
@@ -97,9 +99,8 @@ def _emit(args: argparse.Namespace, line: dict[str, Any]) -> None:
 def _one(args: argparse.Namespace, variant: Any) -> dict[str, Any]:
     with_viewer = variant is not None
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    server = ServerProcess(
-        ["--listen", endpoint, "--status-every", "30", "--max-sessions", str(max(args.clients, 16))], echo=False
-    )
+    serve_args = ["--listen", endpoint, "--status-every", "30", "--max-sessions", str(max(args.clients, 16))]
+    server = ServerProcess(serve_args + (["--device", args.device] if args.device else []), echo=False)
     viewer = None
     out: list[str] = []
     done = threading.Event()
