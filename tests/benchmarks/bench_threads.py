@@ -6,10 +6,13 @@ alternated, with each thread's CPU and voluntary context switches (its wake-ups)
 ``--other PYTHONPATH`` adds a second engine build as the variant ``other``: a checkout of another
 commit whose ``python/dhg`` holds its own extension (``cargo build --release -p bone_sim --features
 python --lib``, then copy ``libbone_sim.so`` to ``python/dhg/_bone_sim.cpython-*.so``), so that two
-builds are compared in one alternating run (issue 24).
+builds are compared in one alternating run (issue 24). ``--echo-work-us US`` adds the echo spinning
+US microseconds in each pose's callback (``echo --work-us``) as ``echo-work``: the floor for a
+server that computes something per pose, so a tick's own cost and the engine's cost around it
+part.
 
     cargo build --release -p bone_sim --example load --example echo
-    python tests/benchmarks/bench_threads.py --clients 1,4,16 --rounds 2 [--other /tmp/old/python]
+    python tests/benchmarks/bench_threads.py --clients 1,4,16 --rounds 2 [--other /tmp/old/python] [--echo-work-us 5]
 """
 
 from __future__ import annotations
@@ -47,11 +50,14 @@ def threads(pid: int) -> dict[str, tuple[str, float, int]]:
     return out
 
 
-def one(variant: str, n: int, seconds: float, other: str | None) -> dict[str, Any]:
-    """One run: a fresh server of ``variant`` and ``n`` load-tool clients."""
+def one(variant: str, n: int, seconds: float, other: str | None, work_us: float = 0.0) -> dict[str, Any]:
+    """One run: a fresh server of ``variant`` and ``n`` load-tool clients (``echo-work``: the echo
+    spinning ``work_us`` in each pose's callback)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    if variant == "echo":
-        server: Any = subprocess.Popen([str(TARGET / "echo"), "--listen", endpoint], stderr=subprocess.PIPE, text=True)
+    if variant.startswith("echo"):
+        work = ["--work-us", f"{work_us:g}"] if variant == "echo-work" else []
+        cmd = [str(TARGET / "echo"), "--listen", endpoint, *work]
+        server: Any = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
         _wait_for_port(endpoint, server)  # the echo declares its keys before it listens
         pid = server.pid
     else:
@@ -71,7 +77,7 @@ def one(variant: str, n: int, seconds: float, other: str | None) -> dict[str, An
         b, dt = threads(pid), time.monotonic() - t0
         out = json.loads(load.communicate(timeout=seconds + 60)[0])
     finally:
-        if variant == "echo":
+        if variant.startswith("echo"):
             server.terminate()
             server.wait(timeout=30)
         else:
@@ -98,14 +104,21 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--seconds", type=float, default=12.0, help="load per run (s; threads read over its middle 60 %%)")
     p.add_argument("--other", metavar="PYTHONPATH", help="a second engine build, run as the variant 'other'")
+    p.add_argument(
+        "--echo-work-us",
+        type=float,
+        metavar="US",
+        help="also the echo spinning US microseconds in each pose's callback (echo --work-us), as the variant "
+        "'echo-work': what a tick's worth of work on the receive threads costs by itself",
+    )
     p.add_argument("--out", help="also append the JSON lines to this file")
     args = p.parse_args()
-    variants = ["dhg", *(["other"] if args.other else []), "echo"]
+    variants = ["dhg", *(["other"] if args.other else []), *(["echo-work"] if args.echo_work_us else []), "echo"]
     runs: list[dict[str, Any]] = []
     for _ in range(args.rounds):
         for n in (int(c) for c in args.clients.split(",")):
             for v in variants:
-                r = one(v, n, args.seconds, args.other)
+                r = one(v, n, args.seconds, args.other, args.echo_work_us or 0.0)
                 print(json.dumps(r), flush=True)
                 runs.append(r)
                 if args.out:

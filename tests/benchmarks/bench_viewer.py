@@ -73,7 +73,7 @@ def main() -> None:
 
     for variant in variants[1:]:
         summary: dict[str, Any] = {"viewer": _name(variant)}
-        for k in ("p50_ms", "p99_ms", "cpu_cores"):
+        for k in ("p50_ms", "p99_ms", "cpu_cores", "guidance_p50_ms", "guidance_p99_ms"):
             summary[k] = {"without": med(None, k), "with": med(variant, k)}
             summary[k]["ratio"] = summary[k]["with"] / summary[k]["without"]
         summary["viewer_updates_per_s"] = med(variant, "updates_per_s")
@@ -156,6 +156,9 @@ def _one(args: argparse.Namespace, variant: Any) -> dict[str, Any]:
         **({"zenoh_runtime": args.viewer_runtime} if variant == "runtime" else {}),
         "p50_ms": load["pose_to_force_ms"]["p50"],
         "p99_ms": load["pose_to_force_ms"]["p99"],
+        # What the model's guidance takes to come back (pose -> guidance: the window's model query).
+        "guidance_p50_ms": load["pose_to_guidance_ms"]["p50"],
+        "guidance_p99_ms": load["pose_to_guidance_ms"]["p99"],
         "cpu_cores": load["server_cpu_cores"],
         "updates_per_s": max(rates) if rates else 0.0,
         "viewer_cpu_cores": viewer_cpu,  # its start (meshing the bone) included

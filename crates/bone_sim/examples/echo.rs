@@ -15,10 +15,15 @@
 //! number and client time, on a publisher with the server's congestion control, priority and
 //! express flag) and `<p>/server/health` (an empty report: the load tool then prints null for
 //! the server-side figures). Poses that do not decode are counted and dropped.
+//!
+//! `--work-us US` makes each pose's callback spin that long before it answers: a stand-in for the
+//! tick's work, so that `bench_threads.py --echo-work-us` parts what the tick costs by itself from
+//! what the engine costs around it.
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
+use std::time::{Duration, Instant};
 
 use bone_sim::protocol::{self, decode_pose, encode_force, ForceMsg};
 use nalgebra::Vector3;
@@ -36,15 +41,20 @@ fn main() {
     let mut listen = "tcp/127.0.0.1:7447".to_string();
     let mut prefix = "dhg".to_string();
     let mut transport = "{}".to_string();
+    let mut work_us = 0.0_f64;
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
         match (flag.as_str(), it.next()) {
             ("--listen", Some(v)) => listen = v,
             ("--prefix", Some(v)) => prefix = v,
             ("--transport", Some(v)) => transport = v,
+            ("--work-us", Some(v)) if v.parse::<f64>().is_ok_and(|w| (0.0..=1000.0).contains(&w)) => {
+                work_us = v.parse().unwrap_or(0.0);
+            }
             _ => {
                 eprintln!(
-                    "usage: echo [--listen ENDPOINT] [--prefix P] [--transport JSON5 (zenoh's transport section)]"
+                    "usage: echo [--listen ENDPOINT] [--prefix P] [--transport JSON5 (zenoh's transport section)] \
+                     [--work-us US (0-1000: spin this long in each pose's callback, a stand-in for a tick)]"
                 );
                 std::process::exit(2);
             }
@@ -54,13 +64,13 @@ fn main() {
         eprintln!("error: {e}");
         std::process::exit(2);
     }
-    if let Err(e) = run(&listen, &prefix, &transport) {
+    if let Err(e) = run(&listen, &prefix, &transport, Duration::from_secs_f64(work_us * 1e-6)) {
         eprintln!("error: {e}");
         std::process::exit(5);
     }
 }
 
-fn run(listen: &str, prefix: &str, transport: &str) -> Result<(), String> {
+fn run(listen: &str, prefix: &str, transport: &str, work: Duration) -> Result<(), String> {
     let conf = format!(
         r#"{{ mode: "peer", listen: {{ endpoints: ["{listen}"] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {transport} }}"#
     );
@@ -109,6 +119,13 @@ fn run(listen: &str, prefix: &str, transport: &str) -> Result<(), String> {
                 bad.fetch_add(1, Ordering::Relaxed);
                 return;
             };
+            if !work.is_zero() {
+                // A stand-in for the engine's tick (`--work-us`): the same thread busy that long.
+                let t0 = Instant::now();
+                while t0.elapsed() < work {
+                    std::hint::spin_loop();
+                }
+            }
             let map = pubs.read().unwrap_or_else(std::sync::PoisonError::into_inner);
             if let Some(publisher) = map.get(id) {
                 let p = pose.pose.position_m;
