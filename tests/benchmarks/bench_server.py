@@ -195,15 +195,16 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
             role = "sim" if target in ("dhg-sim", "dhg-engine") else "all"
             nice = ["--model-nice", "0"] if target == "dhg-nice0" else []
             nice += ["--executor", "torchscript"] if target == "dhg-ts" else []
+            device = ["--device", args.device] if args.device else []
             server = serve_from(
                 args.other if target == "other" else None,
                 ["--listen", endpoint, "--max-sessions", str(max(n, 16)), "--status-every", "5", "--tick-on", tick_on,
-                 "--role", role, *nice],
+                 "--role", role, *nice, *device],
             )  # fmt: skip
             if target == "dhg-sim":
                 try:
                     model = ServerProcess(
-                        ["--role", "model", "--connect", endpoint, "--status-every", "30"], echo=False
+                        ["--role", "model", "--connect", endpoint, "--status-every", "30", *device], echo=False
                     )
                 except BaseException:
                     server.stop()
@@ -246,6 +247,7 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
     return {
         "target": f"{target}+{tag}" if tag else target,
         "clients": n,
+        **({"device": args.device} if args.device and target != "echo" else {}),
         "p50_ms": out["pose_to_force_ms"]["p50"],
         "p99_ms": out["pose_to_force_ms"]["p99"],
         "cpu_cores": out["server_cpu_cores"],

@@ -90,6 +90,7 @@ def one(variant: str, n: int, seconds: float, other: str | None, work_us: float 
             p[1] += (sw - a[tid][2]) / dt
     return {
         "variant": variant,
+        **({"work_us": work_us} if variant == "echo-work" else {}),
         "clients": n,
         "cpu_cores": out["server_cpu_cores"],
         "p50_ms": out["pose_to_force_ms"]["p50"],

@@ -10,7 +10,7 @@ A page draws only while someone watches it, so each run holds the instructor's p
 trainee page open with a :class:`dhg.view.browser.PageWatcher` (a WebSocket client that reads what
 a browser tab would, without drawing it); ``--unwatched`` leaves every page closed. ``--browser``
 keeps a headless Chromium on the trainee page instead (the whole screen a trainee has).
-``--device cpu|cuda`` passes on to ``dhg-serve`` (where the model's passes run).
+``--device auto|cpu|cuda`` passes on to ``dhg-serve`` (where the model's passes run).
 ``--viewer-nice 0`` adds a variant, the viewer at that nice value instead of ``dhg view``'s default
 (decision 0027); ``--other PYTHONPATH`` one more, ``dhg view`` from another build (a checkout's
 ``python/`` folder with its extension built), the server staying this build's; ``--viewer-runtime

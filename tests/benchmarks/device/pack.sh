@@ -26,7 +26,7 @@ if [ -z "${PY312:-}" ] || ! is312 "$PY312"; then
   exit 2
 fi
 # The packages of requirements.lock that the machine's image lacks (KINDS.md of the device tool),
-# at the lock's versions. Checked by run.sh, which imports every module dhg needs.
+# at the lock's versions. run.sh imports each of them there, and loads the bundled model.
 MISSING="eclipse-zenoh msgspec nibabel pydicom trimesh viser websockets zstandard"
 
 rm -rf "$KIT" && mkdir -p "$KIT/wheels"
