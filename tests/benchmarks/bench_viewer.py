@@ -74,6 +74,8 @@ def main() -> None:
     for variant in variants[1:]:
         summary: dict[str, Any] = {"viewer": _name(variant)}
         for k in ("p50_ms", "p99_ms", "cpu_cores", "guidance_p50_ms", "guidance_p99_ms"):
+            if any(r[k] is None for r in runs if r["viewer"] in ("none", _name(variant))):
+                continue  # a run with no guidance at all (the load tool's null): nothing to set beside
             summary[k] = {"without": med(None, k), "with": med(variant, k)}
             summary[k]["ratio"] = summary[k]["with"] / summary[k]["without"]
         summary["viewer_updates_per_s"] = med(variant, "updates_per_s")
