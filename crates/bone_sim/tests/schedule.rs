@@ -4,7 +4,10 @@
 mod common;
 
 use bone_sim::engine::handoff::{Output, PoseSample};
-use bone_sim::engine::{off_grid_ms, ticks_to_grid, EngineLink, PoseTick, TickCore, CLAIM_RETRY, GRACE_PERIODS};
+use bone_sim::engine::{
+    off_grid_ms, ticks_to_grid, EngineLink, PoseTick, TickCore, CLAIM_RETRY, GRACE_PERIODS, HOLD_BURST_PERIODS,
+    HOLD_LOOK_PERIODS,
+};
 use common::engine::*;
 use std::sync::atomic::Ordering;
 
@@ -21,8 +24,19 @@ fn started() -> (TickCore, EngineLink, f64, Instant) {
     let t0 = Instant::now();
     let (n, next) = core.tick_due(t0); // just activated: due at once
     assert_eq!(n, 1);
-    assert_eq!(next, t0 + MS);
+    // Due again without a pose a period on; the thread looks HOLD_LOOK_PERIODS after that.
+    assert_eq!(next, t0 + MS + look());
     (core, link, surface, t0)
+}
+
+/// How long past a tick without a pose the tick thread looks.
+fn look() -> Duration {
+    MS.mul_f64(HOLD_LOOK_PERIODS)
+}
+
+/// Whether pose `seq` ticked among `out` (ticks without a pose may run before it).
+fn pose_ticked(out: &[Output], seq: u32) -> bool {
+    forces(out).iter().any(|f| f.pose_seq == seq)
 }
 
 fn near(a: Instant, b: Instant) -> bool {
@@ -53,8 +67,32 @@ fn without_poses_a_slot_ticks_once_per_period() {
     let (mut core, _link, _, t0) = started();
     assert_eq!(core.tick_due(t0 + us(999)).0, 0);
     assert_eq!(core.tick_due(t0 + MS).0, 1);
-    assert!(near(core.tick_due(t0 + us(1500)).1, t0 + 2 * MS));
+    assert!(near(core.tick_due(t0 + us(1500)).1, t0 + 2 * MS + look()));
     assert_eq!(core.tick_due(t0 + 2 * MS).0, 1);
+}
+
+#[test]
+fn ticks_without_a_pose_run_late_as_of_their_time_when_the_thread_looks() {
+    let (mut core, mut link, _, t0) = started();
+    drain(&mut link);
+    // Due at 1, 2, … ms; the thread looks 4 periods after the first: five ticks, in order, each
+    // as it would have been at its time, none missed.
+    let (n, next) = core.tick_due(t0 + MS + look());
+    assert_eq!(n, 5);
+    let ticks: Vec<u64> = forces(&drain(&mut link)).iter().map(|f| f.tick).collect();
+    assert_eq!(ticks, [2, 3, 4, 5, 6]);
+    assert!(near(next, t0 + 6 * MS + look()), "{:?}", next - t0);
+    assert_eq!(link.stats.missed.load(Ordering::Relaxed), 0);
+    assert_eq!(link.stats.max_lateness_ns.load(Ordering::Relaxed), 0, "it looked when it meant to");
+    // 10 s of looking only when asked: 1 kHz exactly, the thread awake every 5 periods.
+    let (mut t, mut ticks, mut wakes) = (next, 6u64, 0u64);
+    while t < t0 + 10_000 * MS {
+        let (n, next) = core.tick_due(t);
+        (ticks, wakes, t) = (ticks + u64::from(n), wakes + 1, next);
+    }
+    let periods = (t - t0).as_secs_f64() / 1e-3;
+    assert!((ticks as f64 - periods).abs() <= 5.0, "{ticks} ticks in {periods:.1} periods");
+    assert!(wakes <= 2_001, "{wakes} looks in 10 s");
 }
 
 #[test]
@@ -91,7 +129,9 @@ fn a_late_pose_is_waited_for_and_ticks_as_it_arrives() {
     // At the next deadline no new pose yet: wait up to the grace for it.
     let (n, next) = core.tick_due(t0 + 2 * MS);
     assert_eq!(n, 0);
-    assert!(next > t0 + 2 * MS + almost && next <= t0 + 2 * MS + grace, "{:?}", next - t0);
+    // (Looked at HOLD_LOOK_PERIODS later: a pose that comes first runs that tick as of its time.)
+    let wait = next.checked_sub(look()).unwrap();
+    assert!(wait > t0 + 2 * MS + almost && wait <= t0 + 2 * MS + grace, "{:?}", next - t0);
     // It comes 0.9 ms late: it ticks as it arrives.
     send(&mut link, 0, 1, 2, surface - 1e-3);
     assert_eq!(core.tick_due(t0 + 2 * MS + us(900)).0, 1);
@@ -109,10 +149,12 @@ fn a_late_pose_is_waited_for_and_ticks_as_it_arrives() {
     for _ in 0..1000 {
         let (_, next) = core.tick_due(t);
         t = next;
+        drain(&mut link);
     }
     send(&mut link, 0, 1, 4, surface - 1e-3);
+    // (After the ticks without a pose due since the thread last looked, which run first.)
     let (n, _) = core.tick_due(t + us(10));
-    assert_eq!(n, 1, "after a silence, the first pose waited");
+    assert!(n >= 1, "after a silence, the first pose waited");
     assert_eq!(forces(&drain(&mut link)).last().unwrap().pose_seq, 4);
     assert_eq!(link.stats.missed.load(Ordering::Relaxed), 0);
 }
@@ -174,7 +216,7 @@ fn a_jittery_client_gets_1_khz_on_average_and_most_poses_tick_at_once() {
     let (mut core, mut link, surface, t0) = started();
     let arrivals = jittery_arrivals_us(10_000);
     let end = t0 + us(10_000_000);
-    let (mut ticks, mut at_once, mut k, mut wake) = (1u64, 0usize, 0usize, t0 + MS);
+    let (mut ticks, mut at_once, mut k, mut wake) = (1u64, 0usize, 0usize, t0 + MS + look());
     // The tick thread's loop: wake when the engine asks or when a pose arrives.
     loop {
         let arrival = arrivals.get(k).map(|&a| t0 + us(a));
@@ -190,9 +232,8 @@ fn a_jittery_client_gets_1_khz_on_average_and_most_poses_tick_at_once() {
         }
         let (n, next) = core.tick_due(now);
         ticks += u64::from(n);
-        at_once += usize::from(arrived && n > 0);
+        at_once += usize::from(arrived && pose_ticked(&drain(&mut link), k as u32));
         wake = next;
-        drain(&mut link);
     }
     eprintln!("{ticks} ticks in 10 000 periods; {at_once} of 10 000 poses ticked on arrival");
     // The thread woke on time throughout: the client's jitter is not the engine's lateness.
@@ -221,8 +262,7 @@ fn a_spinning_thread_that_looks_every_5_us_ticks_the_jittery_client_at_1_khz_too
         }
         let n = core.tick_due(now).0;
         ticks += u64::from(n);
-        at_once += usize::from(arrived && n > 0);
-        drain(&mut link);
+        at_once += usize::from(arrived && pose_ticked(&drain(&mut link), k as u32));
         now += us(5);
     }
     eprintln!("{ticks} ticks in 10 000 periods; {at_once} of 10 000 poses ticked within 5 µs");
@@ -239,7 +279,7 @@ fn a_spinning_thread_that_looks_every_5_us_ticks_the_jittery_client_at_1_khz_too
 fn replay(arrivals_us: &[u64], lag_us: u64) -> (u64, f64, Vec<f64>) {
     let (mut core, mut link, surface, t0) = started();
     let end = t0 + us(*arrivals_us.last().unwrap());
-    let (mut ticks, mut k, mut wake, mut waiting, mut last) = (1u64, 0usize, t0 + MS, None, t0);
+    let (mut ticks, mut k, mut wake, mut waiting, mut last) = (1u64, 0usize, t0 + MS + look(), None, t0);
     let mut waits = Vec::with_capacity(arrivals_us.len());
     loop {
         let arrival = arrivals_us.get(k).map(|&a| t0 + us(a));
@@ -251,18 +291,17 @@ fn replay(arrivals_us: &[u64], lag_us: u64) -> (u64, f64, Vec<f64>) {
         }
         while k < arrivals_us.len() && t0 + us(arrivals_us[k]) <= now {
             send(&mut link, 0, 1, k as u32 + 1, surface - 1e-3);
-            waiting = Some(t0 + us(arrivals_us[k])); // a newer pose supersedes a waiting one
+            waiting = Some((t0 + us(arrivals_us[k]), k as u32 + 1)); // a newer pose supersedes a waiting one
             k += 1;
         }
         let (n, next) = core.tick_due(now);
         ticks += u64::from(n);
-        if n > 0 {
-            if let Some(a) = waiting.take() {
-                waits.push(now.duration_since(a).as_secs_f64());
-            }
+        let out = drain(&mut link);
+        if let Some((a, _)) = waiting.filter(|&(_, seq)| pose_ticked(&out, seq)) {
+            waits.push(now.duration_since(a).as_secs_f64());
+            waiting = None;
         }
         wake = next;
-        drain(&mut link);
     }
     (ticks, end.duration_since(t0).as_secs_f64() / 1e-3, waits)
 }
@@ -275,19 +314,18 @@ fn replay(arrivals_us: &[u64], lag_us: u64) -> (u64, f64, Vec<f64>) {
 fn replay_on_pose_thread(arrivals_us: &[u64]) -> (u64, f64, Vec<f64>, u64, u64) {
     let (mut core, mut link, surface, t0) = started();
     let end = t0 + us(*arrivals_us.last().unwrap());
-    let (mut ticks, mut on_pose, mut wakes, mut wake, mut waiting) = (1u64, 0u64, 0u64, t0 + MS, None);
+    let (mut on_pose, mut wakes, mut wake, mut waiting) = (0u64, 0u64, t0 + MS + look(), None);
     let mut waits = Vec::with_capacity(arrivals_us.len());
     for (k, &a) in arrivals_us.iter().enumerate() {
         let arrival = t0 + us(a);
         while wake < arrival {
             // The tick thread's own wake-ups before this pose.
-            let (n, next) = core.tick_due(wake);
+            let (_, next) = core.tick_due(wake);
             wakes += 1;
-            ticks += u64::from(n);
-            if n > 0 {
-                if let Some(p) = waiting.take() {
-                    waits.push(wake.duration_since(p).as_secs_f64());
-                }
+            let out = drain(&mut link);
+            if let Some((p, _)) = waiting.filter(|&(_, seq)| pose_ticked(&out, seq)) {
+                waits.push(wake.duration_since(p).as_secs_f64());
+                waiting = None;
             }
             wake = next;
         }
@@ -297,12 +335,12 @@ fn replay_on_pose_thread(arrivals_us: &[u64]) -> (u64, f64, Vec<f64>, u64, u64) 
         send(&mut link, 0, 1, k as u32 + 1, surface - 1e-3);
         match link.ticker.tick(0, 1, arrival, u64::MAX, false) {
             PoseTick::Ticked { .. } => {
-                (ticks, on_pose) = (ticks + 1, on_pose + 1);
+                on_pose += 1;
                 waiting = None;
                 waits.push(0.0);
             }
             PoseTick::NotDue | PoseTick::Claimed | PoseTick::Behind => {
-                waiting = Some(arrival);
+                waiting = Some((arrival, k as u32 + 1));
                 let (n, next) = core.tick_due(arrival); // woken
                 wakes += 1;
                 assert_eq!(n, 0, "the tick thread ticked a pose its own thread found not due");
@@ -312,6 +350,8 @@ fn replay_on_pose_thread(arrivals_us: &[u64]) -> (u64, f64, Vec<f64>, u64, u64) 
         drain(&mut link);
     }
     assert_eq!(link.stats.pose_thread_ticks.load(Ordering::Relaxed), on_pose, "the engine's count");
+    // Ticks a pose ran before its own (without a pose, due before it came) are in the engine's.
+    let ticks = link.stats.ticks.load(Ordering::Relaxed);
     (ticks, end.duration_since(t0).as_secs_f64() / 1e-3, waits, on_pose, wakes)
 }
 
@@ -326,13 +366,22 @@ fn ticking_on_the_poses_thread_keeps_the_schedule_exactly() {
             "{ticks} / {ticks_p} ticks in {periods:.0} periods, {on_pose} on the poses' thread, the tick thread woke {wakes} times"
         );
         assert_eq!((ticks_p, periods_p), (ticks, periods));
-        assert_eq!(waits_p, waits, "a pose waited differently for its tick");
+        let first = waits_p.iter().zip(&waits).position(|(a, b)| a.to_bits() != b.to_bits());
+        assert!(
+            waits_p.len() == waits.len() && first.is_none(),
+            "a pose waited differently for its tick: {} / {} waits, first differing at {first:?}: {:?} / {:?}",
+            waits_p.len(),
+            waits.len(),
+            first.map(|i| &waits_p[i.saturating_sub(2)..(i + 3).min(waits_p.len())]),
+            first.map(|i| &waits[i.saturating_sub(2)..(i + 3).min(waits.len())]),
+        );
         let share = on_pose as f64 / arrivals.len() as f64;
         assert!(share >= 0.9, "only {:.1} % of the poses ticked on their own thread", share * 100.0);
-        // The tick thread sleeps to its slot's deadline, which a pose's tick has usually moved by
-        // the time it wakes: it wakes about every other period, not every period as it did while
-        // it slept a period at most (so that commands would not wait longer; now they wake it).
-        assert!(wakes < (0.75 * periods) as u64, "the tick thread woke {wakes} times in {periods:.0} periods");
+        // The tick thread looks HOLD_LOOK_PERIODS after its slot's next tick without a pose, which a
+        // pose's tick has usually moved on by then, and at each pose that could not tick: 4,002
+        // and 4,129 times in these 16,993 periods. While it woke at each such tick's own time it
+        // woke 9,893 and 10,132 times (every period while it slept a period at most).
+        assert!(wakes < (0.3 * periods) as u64, "the tick thread woke {wakes} times in {periods:.0} periods");
     }
 }
 
@@ -432,31 +481,47 @@ fn a_thread_that_wakes_late_still_locks_onto_its_client() {
 }
 
 #[test]
-fn a_stalled_thread_counts_a_streaming_slots_missed_ticks_past_the_grace() {
+fn a_thread_that_looks_late_loses_no_ticks() {
     let (mut core, mut link, surface, t0) = started();
     send(&mut link, 0, 1, 1, surface - 1e-3);
     // A fresh pose: the slot is streaming from here.
     assert_eq!(core.tick_due(t0 + MS).0, 1);
-    // Due without a pose at 3 ms (the deadline at 2 ms plus the grace); the thread wakes
-    // at 6.5 ms: 3.5 periods late, 3 whole periods missed.
-    assert_eq!(core.tick_due(t0 + us(6500)).0, 1);
-    assert_eq!(link.stats.missed.load(Ordering::Relaxed), 3);
-    // The bank kept 0.3 periods past the grace, no more: the next tick without a pose is
-    // 0.7 ms away, not a burst.
-    assert_eq!(core.tick_due(t0 + us(7150)).0, 0);
-    assert_eq!(core.tick_due(t0 + us(7200)).0, 1);
-    assert_eq!(link.stats.missed.load(Ordering::Relaxed), 3);
+    // Due without a pose at 3 ms (the deadline at 2 ms plus the grace), 4, 5 and 6 ms; the thread
+    // looks at 6.5 ms: all four run, as of their times.
+    assert_eq!(core.tick_due(t0 + us(6500)).0, 4);
+    assert_eq!(link.stats.missed.load(Ordering::Relaxed), 0);
+    // No more than that: the next is at 7 ms.
+    assert_eq!(core.tick_due(t0 + us(6990)).0, 0);
+    assert_eq!(core.tick_due(t0 + us(7000)).0, 1);
+    // A slot that never had a pose, due at 1 ms: looked at 2.5 periods late, three ticks.
+    let (mut core, link, _, t0) = started();
+    assert_eq!(core.tick_due(t0 + us(3500)).0, 3);
+    assert_eq!(core.tick_due(t0 + us(3600)).0, 0);
+    assert_eq!(core.tick_due(t0 + us(4000)).0, 1);
+    assert_eq!(link.stats.missed.load(Ordering::Relaxed), 0);
 }
 
 #[test]
-fn a_whole_period_late_counts_missed_ticks_and_buys_no_burst() {
-    let (mut core, link, _, t0) = started();
-    assert_eq!(core.tick_due(t0 + us(3500)).0, 1); // due at 1 ms: 2.5 periods late
-    assert_eq!(link.stats.missed.load(Ordering::Relaxed), 2);
-    // The budget banked at most 1.3 periods: the next tick is 0.7 ms away, not at once.
-    assert_eq!(core.tick_due(t0 + us(3600)).0, 0);
-    assert_eq!(core.tick_due(t0 + us(4150)).0, 0);
-    assert_eq!(core.tick_due(t0 + us(4200)).0, 1);
+fn a_stall_counts_missed_ticks_and_buys_a_burst_of_at_most_hold_burst_periods() {
+    let (mut core, mut link, surface, t0) = started();
+    send(&mut link, 0, 1, 1, surface - 1e-3);
+    assert_eq!(core.tick_due(t0 + MS).0, 1);
+    // Due without a pose at 3, 4, …, 23 ms; the thread stalls until 23.5 ms: the 7 due in its last
+    // 7 periods run (a burst of at most HOLD_BURST_PERIODS), the 14 before are skipped and counted.
+    assert!((HOLD_BURST_PERIODS - 8.0).abs() < 1e-12, "the counts below are for 8");
+    drain(&mut link);
+    assert_eq!(core.tick_due(t0 + us(23_500)).0, 7);
+    assert_eq!(link.stats.missed.load(Ordering::Relaxed), 14);
+    let ticks: Vec<u64> = forces(&drain(&mut link)).iter().map(|f| f.tick).collect();
+    assert_eq!(ticks, (3..=9).collect::<Vec<_>>(), "session ticks run on from where they were");
+    // Back on the schedule: the next at 24 ms, not a second burst.
+    assert_eq!(core.tick_due(t0 + us(23_990)).0, 0);
+    assert_eq!(core.tick_due(t0 + us(24_000)).0, 1);
+    assert_eq!(link.stats.missed.load(Ordering::Relaxed), 14);
+    // How late past its look the thread ran the first of them (16.5 periods past its time, 4 of
+    // them the look's): its lateness.
+    let max = link.stats.max_lateness_ns.load(Ordering::Relaxed);
+    assert!((2_500_000..=2_500_001).contains(&max), "{max} ns");
 }
 
 #[test]
@@ -500,7 +565,9 @@ fn a_due_pose_ticks_on_its_own_thread_and_an_early_one_waits_for_the_tick_thread
 fn a_slot_held_by_another_thread_is_passed_over_and_its_commands_wait() {
     let (mut core, mut link, surface, t0) = started();
     drain(&mut link);
-    send(&mut link, 0, 1, 1, surface - 1e-3);
+    // A pose received at its slot's deadline (1 ms); the tick thread sees it 50 µs later.
+    let pose = Some(pose_at(surface - 1e-3));
+    link.poses[0].write(PoseSample { pose, seq: 1, client_time_ns: 10, generation: 1, received: Some(t0 + MS) });
     let ticker = link.ticker.clone();
     let held = ticker.session(0).unwrap(); // a pose's thread in the middle of a tick
     assert!(matches!(link.ticker.tick(0, 1, t0 + MS, u64::MAX, true), PoseTick::Claimed));
@@ -583,7 +650,8 @@ fn a_session_a_stall_put_off_the_grid_returns_to_it_within_a_few_records_each_90
         }
         t += us(100);
     }
-    assert!(link.stats.missed.load(Ordering::Relaxed) >= 40, "the stall skipped no ticks");
+    // (All but the last few before the thread woke, which run as of their time.)
+    assert!(link.stats.missed.load(Ordering::Relaxed) >= 34, "the stall skipped no ticks");
     let off = |d: Duration| (d.as_secs_f64() * 1e3 - records[0].0.as_secs_f64() * 1e3 + 50.0).rem_euclid(100.0) - 50.0;
     // Before the stall each record is on the grid the first one set; after it, 42 ms off at first,
     // and back within a tick after at most five records.

@@ -102,6 +102,16 @@ impl Slot {
         newer
     }
 
+    /// When the server received the pose waiting to be ticked (`None`: none waits, or it was not
+    /// stamped).
+    pub(crate) fn pending_received(&self) -> Option<Instant> {
+        if self.fresh {
+            self.poses.peek_output_buffer().received
+        } else {
+            None
+        }
+    }
+
     /// Whether a pose newer than the last one ticked is waiting (as of the last
     /// [`poll_pose`](Self::poll_pose)).
     pub(crate) fn pose_pending(&self) -> bool {
@@ -193,11 +203,29 @@ impl Slot {
 
     /// One 1 ms tick at `now` (`None`: stepped offline): newest pose in, force (and every 100th
     /// tick the state) out. Returns when the server received the fresh pose it used, if it had one.
-    pub(crate) fn tick(&mut self, idx: u16, now: Option<Instant>, mut emit: impl FnMut(Output)) -> Option<Instant> {
+    pub(crate) fn tick(&mut self, idx: u16, now: Option<Instant>, emit: impl FnMut(Output)) -> Option<Instant> {
+        self.tick_with(idx, now, true, emit)
+    }
+
+    /// A tick without a pose, as of its scheduled time `at`: the session holds its last pose, and
+    /// a pose waiting (one that came after `at`) stays for the tick that follows.
+    pub(crate) fn hold_tick(&mut self, idx: u16, at: Instant, emit: impl FnMut(Output)) {
+        self.tick_with(idx, Some(at), false, emit);
+    }
+
+    fn tick_with(
+        &mut self,
+        idx: u16,
+        now: Option<Instant>,
+        take_pose: bool,
+        mut emit: impl FnMut(Output),
+    ) -> Option<Instant> {
         let mut fresh = None;
         let mut received = None;
-        self.poll_pose();
-        if std::mem::take(&mut self.fresh) {
+        if take_pose {
+            self.poll_pose();
+        }
+        if take_pose && std::mem::take(&mut self.fresh) {
             let s = *self.poses.peek_output_buffer();
             if s.generation == self.generation {
                 if let Some(p) = s.pose {
