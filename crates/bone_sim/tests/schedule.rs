@@ -339,7 +339,7 @@ fn replay_on_pose_thread(arrivals_us: &[u64]) -> (u64, f64, Vec<f64>, u64, u64) 
                 waiting = None;
                 waits.push(0.0);
             }
-            PoseTick::NotDue | PoseTick::Claimed | PoseTick::Behind => {
+            PoseTick::NotDue | PoseTick::Held | PoseTick::Claimed | PoseTick::Behind => {
                 waiting = Some((arrival, k as u32 + 1));
                 let (n, next) = core.tick_due(arrival); // woken
                 wakes += 1;
@@ -518,10 +518,97 @@ fn a_stall_counts_missed_ticks_and_buys_a_burst_of_at_most_hold_burst_periods() 
     assert_eq!(core.tick_due(t0 + us(23_990)).0, 0);
     assert_eq!(core.tick_due(t0 + us(24_000)).0, 1);
     assert_eq!(link.stats.missed.load(Ordering::Relaxed), 14);
-    // How late past its look the thread ran the first of them (16.5 periods past its time, 4 of
-    // them the look's): its lateness.
+    // The stall shows in the lateness: the oldest tick (3 ms) was looked at 20.5 periods past its
+    // time, 4 of them the look's.
     let max = link.stats.max_lateness_ns.load(Ordering::Relaxed);
-    assert!((2_500_000..=2_500_001).contains(&max), "{max} ns");
+    assert!((16_500_000..=16_500_001).contains(&max), "{max} ns");
+}
+
+#[test]
+fn a_command_comes_after_the_ticks_without_a_pose_that_fell_due_before_it() {
+    let (mut core, mut link, _, t0) = started();
+    drain(&mut link);
+    // Ticks without a pose due at 1, 2 and 3 ms, not looked at yet; a model reply at 3.5 ms.
+    link.commands.push(prediction(1, [0.0, 0.0, 0.2], 7)).unwrap();
+    assert_eq!(core.tick_due(t0 + us(3500)).0, 3);
+    let out = drain(&mut link);
+    let kinds: Vec<&str> = out
+        .iter()
+        .map(|o| match o {
+            Output::Force { .. } => "force",
+            Output::Guidance { .. } => "guidance",
+            _ => "other",
+        })
+        .collect();
+    assert_eq!(kinds, ["force", "force", "force", "guidance"], "{out:?}");
+    let Some(Output::Guidance { msg, .. }) = out.last() else { unreachable!() };
+    assert_eq!(msg.tick, 4, "the guidance was computed before the ticks due before it");
+}
+
+#[test]
+fn a_pose_after_ticks_without_a_pose_leaves_its_force_to_the_comm_side() {
+    let (mut core, mut link, surface, t0) = started();
+    drain(&mut link);
+    send(&mut link, 0, 1, 1, surface - 1e-3);
+    assert!(matches!(link.ticker.tick(0, 1, t0 + MS, u64::MAX, true), PoseTick::Ticked { .. }));
+    drain(&mut link);
+    // Pose 2 is later than the grace: the tick without a pose due at 3 ms (2 ms and the grace)
+    // runs first, on this thread, then pose 2's. Both forces leave from the comm side, in order.
+    send(&mut link, 0, 1, 2, surface - 1e-3);
+    let PoseTick::Ticked { force: Output::Force { msg, published, .. }, .. } =
+        link.ticker.tick(0, 1, t0 + us(3300), u64::MAX, true)
+    else {
+        panic!("the late pose did not tick on its own thread")
+    };
+    assert_eq!((msg.pose_seq, published), (2, false));
+    let queued: Vec<(u32, bool)> = drain(&mut link)
+        .into_iter()
+        .filter_map(|o| match o {
+            Output::Force { msg, published, .. } => Some((msg.pose_seq, published)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(queued, [(1, false), (2, false)], "the tick holding pose 1, then pose 2's, both for the comm side");
+    assert_eq!(core.tick_due(t0 + us(3310)).0, 0);
+    // A never-posed slot's first pose 0.2 periods after a tick without a pose it ran: too early
+    // for its own tick, so it is left to the tick thread, and the caller must wake the comm side.
+    let (mut core, mut link, surface, t0) = started();
+    drain(&mut link);
+    send(&mut link, 0, 1, 1, surface - 1e-3);
+    assert!(matches!(link.ticker.tick(0, 1, t0 + us(1200), u64::MAX, true), PoseTick::Held));
+    assert_eq!(forces(&drain(&mut link)).iter().map(|f| f.pose_seq).collect::<Vec<_>>(), [0]);
+    assert_eq!(link.stats.poses_left[0].load(Ordering::Relaxed), 1, "counted as early");
+    let (n, next) = core.tick_due(t0 + us(1200));
+    assert_eq!(n, 0);
+    assert!(near(next, t0 + us(1700)), "the pose ticks 0.3 periods early, not before");
+}
+
+#[test]
+fn a_deferred_pose_superseded_while_the_thread_is_late_still_takes_its_tick() {
+    // After a stall, a pose that would wait long is deferred to the slot's schedule (3 ms here).
+    // The thread looks late, at 3.4 ms, and a newer pose came at 3.2 ms meanwhile: the tick at
+    // 3 ms takes the newest pose, as it would have taken the deferred one, and no tick without a
+    // pose runs in its place.
+    let (mut core, mut link, surface, t0) = started();
+    send(&mut link, 0, 1, 1, surface - 1e-3);
+    assert_eq!(core.tick_due(t0 + MS).0, 1);
+    drain(&mut link);
+    // Pose 2 at 1.1 ms: 0.6 periods from its tick, longer than the 0.5 a pose waits: deferred.
+    let pose = |seq, at| PoseSample {
+        pose: Some(pose_at(surface - 1e-3)),
+        seq,
+        client_time_ns: 10,
+        generation: 1,
+        received: Some(at),
+    };
+    link.poses[0].write(pose(2, t0 + us(1100)));
+    let (n, next) = core.tick_due(t0 + us(1100));
+    assert_eq!(n, 0);
+    assert!(near(next, t0 + 3 * MS), "deferred to the schedule: {:?}", next - t0);
+    link.poses[0].write(pose(3, t0 + us(3200)));
+    assert_eq!(core.tick_due(t0 + us(3400)).0, 1);
+    let f = forces(&drain(&mut link));
+    assert_eq!(f.iter().map(|f| f.pose_seq).collect::<Vec<_>>(), [3]);
 }
 
 #[test]

@@ -226,6 +226,9 @@ struct Schedule {
     streaming: bool,
     /// When the waiting pose was first seen (its arrival, as near as the thread knows).
     seen: Instant,
+    /// When the first of the poses waiting since the last tick arrived (the receiving thread's
+    /// stamp, or when it was first seen): ticks without a pose run only up to there.
+    pending_from: Instant,
     /// Poses seen since the last tick.
     arrivals: u32,
     /// Running average of poses seen per tick (see [`FAST_CLIENT_POSES_PER_TICK`]).
@@ -234,7 +237,7 @@ struct Schedule {
 
 impl Schedule {
     fn new(now: Instant) -> Self {
-        Self { clock: None, streaming: false, seen: now, arrivals: 0, poses_per_tick: 1.0 }
+        Self { clock: None, streaming: false, seen: now, pending_from: now, arrivals: 0, poses_per_tick: 1.0 }
     }
 }
 
@@ -255,14 +258,20 @@ impl SlotState {
         let period_s = TICK_PERIOD.as_secs_f64();
         let (s, sched) = (&mut self.slot, &mut self.schedule);
         let clock = sched.clock.get_or_insert(SlotClock { last: now, tokens: 1.0 });
+        let waiting = s.pose_pending();
         if s.poll_pose() {
             sched.seen = now;
             sched.arrivals += 1;
+            if !waiting {
+                // As the receiving thread stamped it, when the thread that sees it first is
+                // another, later one.
+                sched.pending_from = s.pending_received().map_or(now, |r| r.min(now));
+            }
         }
         let fresh = s.pose_pending();
-        // With a pose waiting, up to its arrival (as the receiving thread stamped it, when the
-        // thread that sees it first is another, later one).
-        let horizon = if fresh { s.pending_received().map_or(sched.seen, |r| r.min(sched.seen)) } else { now };
+        // With a pose waiting, up to the arrival of the first one not ticked yet: a tick due after
+        // it would have taken that pose (or a newer one), had the thread looked on time.
+        let horizon = if fresh { sched.pending_from } else { now };
         let due = due_periods(sched.streaming);
         let mut held = 0;
         loop {
@@ -276,6 +285,12 @@ impl SlotState {
                 return held;
             }
             let behind = since(now) - gap;
+            // How late past the thread's look (the tick's time plus HOLD_LOOK_PERIODS) it runs: its
+            // wake-up latency (a pose that runs it sooner makes it on time). After a stall, the
+            // oldest skipped tick's too, so that the stall shows.
+            let late_ns = ((behind - HOLD_LOOK_PERIODS).max(0.0) * period_s * 1e9) as u64;
+            stats.lateness.record(late_ns);
+            stats.max_lateness_ns.fetch_max(late_ns, Ordering::Relaxed);
             if behind > HOLD_BURST_PERIODS - 1.0 {
                 // A stall: skip to the oldest tick that leaves at most HOLD_BURST_PERIODS to run
                 // by now, counting the rest.
@@ -285,11 +300,6 @@ impl SlotState {
                 continue;
             }
             let at = clock.last + Duration::from_nanos((gap * period_s * 1e9).round() as u64);
-            // How late past the thread's look (the tick's time plus HOLD_LOOK_PERIODS) it ran: its
-            // wake-up latency. A pose that runs it sooner makes it on time.
-            let late_ns = ((behind - HOLD_LOOK_PERIODS).max(0.0) * period_s * 1e9) as u64;
-            stats.lateness.record(late_ns);
-            stats.max_lateness_ns.fetch_max(late_ns, Ordering::Relaxed);
             s.hold_tick(idx, at, &mut emit);
             *clock = SlotClock { last: at, tokens: due - 1.0 };
             // No pose came before it: the waiting one (if any) counts for the tick that follows.
@@ -304,16 +314,23 @@ impl SlotState {
     /// when a waiting pose may tick, or [`HOLD_LOOK_PERIODS`] after its next tick without a pose.
     fn step(&mut self, idx: u16, now: Instant, stats: &TickStats, mut emit: impl FnMut(Output)) -> (u32, Instant) {
         let held = self.catch_up(idx, now, stats, &mut emit);
+        let (ticked, next) = self.pose_tick(idx, now, stats, emit);
+        (held + u32::from(ticked), next)
+    }
+
+    /// After [`catch_up`](Self::catch_up) at `now`: ticks the fresh pose if it is due. Returns
+    /// whether it ticked and when the slot should next be looked at (see [`step`](Self::step)).
+    fn pose_tick(&mut self, idx: u16, now: Instant, stats: &TickStats, emit: impl FnMut(Output)) -> (bool, Instant) {
         let period_s = TICK_PERIOD.as_secs_f64();
         let (s, sched) = (&mut self.slot, &mut self.schedule);
-        let Some(clock) = sched.clock.as_mut() else { unreachable!("catch_up starts the clock") };
+        let clock = sched.clock.get_or_insert(SlotClock { last: now, tokens: 1.0 });
         let elapsed = now.saturating_duration_since(clock.last).as_secs_f64() / period_s;
         let fresh = s.pose_pending();
         let timer = timer_until(sched.streaming, clock.tokens, elapsed);
         let look = |until: f64| now + ceil_us((until + HOLD_LOOK_PERIODS) * period_s);
         if !fresh {
             // Every tick without a pose due by now has run.
-            return (held, look(timer));
+            return (false, look(timer));
         }
         // A fresh pose that came before the budget could tick it, and not right behind the
         // last tick (its phase is ahead of the slot's; it is not a burst), counts its whole
@@ -337,7 +354,7 @@ impl SlotState {
         let until = if short + waited <= MAX_POSE_WAIT_PERIODS { short } else { timer };
         if until > DUE_SLACK_PERIODS {
             // The pose's tick is looked at on time.
-            return (held, now + ceil_us(until * period_s));
+            return (false, now + ceil_us(until * period_s));
         }
         // How far past its schedule the slot ticks: a deferred pose the thread looked at late (a
         // pose ticking as it arrives is on time).
@@ -357,7 +374,7 @@ impl SlotState {
         sched.poses_per_tick += POSE_RATE_WEIGHT * (f64::from(sched.arrivals) - sched.poses_per_tick);
         sched.arrivals = 0;
         sched.streaming = true;
-        (held + 1, look(timer_until(sched.streaming, clock.tokens, 0.0)))
+        (true, look(timer_until(sched.streaming, clock.tokens, 0.0)))
     }
 }
 
@@ -422,6 +439,9 @@ pub enum PoseTick {
     /// The slot was not due (the pose came early) or not ready (its session's commands are not
     /// applied yet): the tick thread ticks it at its time.
     NotDue,
+    /// As [`NotDue`](Self::NotDue), but ticks without a pose that fell due before this pose ran
+    /// here first, their outputs queued: the comm side must be woken to send them.
+    Held,
     /// Another thread held the slot (the tick thread, ticking it or applying a command).
     Claimed,
     /// The slot's newest force has not left yet (it waits for the comm side): the tick thread
@@ -478,7 +498,7 @@ impl PoseTicker {
             TickCore::emit(outputs, stats, out);
         });
         let publish_here = publish_here && held == 0;
-        let (ticks, _) = st.step(slot, now, stats, |out| {
+        let (ticked, _) = st.pose_tick(slot, now, stats, |out| {
             let out = match out {
                 Output::Force { slot, generation, msg, pose, received, order, .. } => {
                     let f = Output::Force { slot, generation, msg, pose, received, order, published: publish_here };
@@ -493,18 +513,17 @@ impl PoseTicker {
             TickCore::emit(outputs, stats, out);
         });
         drop(st);
-        let ticks = held + ticks;
+        let ticks = held + u32::from(ticked);
         if ticks > 0 {
             self.stats.ticks.fetch_add(u64::from(ticks), Ordering::Relaxed);
         }
         match force {
-            Some(force) => {
+            Some(force) if ticked => {
                 self.stats.pose_thread_ticks.fetch_add(1, Ordering::Relaxed);
                 PoseTick::Ticked { force, state }
             }
-            // (A tick without a pose may have run: the tick thread, woken for this pose, wakes
-            // the comm side when it ticks it.)
-            None => left(PoseTick::NotDue),
+            _ if held > 0 => left(PoseTick::Held),
+            _ => left(PoseTick::NotDue),
         }
     }
 
@@ -684,6 +703,8 @@ pub struct TickCore {
     stats: Arc<TickStats>,
     /// Commands the last [`TickCore::tick_due`] applied.
     applied: usize,
+    /// Ticks without a pose run before those commands.
+    held: u32,
     waker: Arc<TickWaker>,
 }
 
@@ -741,6 +762,7 @@ pub fn build(volume: &Arc<Volume>, config: &EngineConfig) -> SimResult<(TickCore
         default_path: config.default_path.clone(),
         stats: stats.clone(),
         applied: 0,
+        held: 0,
         waker: waker.clone(),
     };
     let commands = CommandSender { ring: commands_tx, waker };
@@ -819,6 +841,7 @@ impl TickCore {
     /// stopped at a command whose slot another thread held (it stays first in the ring).
     fn apply_commands(&mut self, wait: bool, now: Option<Instant>) -> bool {
         self.applied = 0;
+        self.held = 0;
         let cells = self.cells.clone();
         for _ in 0..COMMANDS_PER_TICK {
             let Ok(slot) = self.commands.peek().map(Command::slot) else { break };
@@ -828,6 +851,12 @@ impl TickCore {
                         return false;
                     };
                     if let Ok(cmd) = self.commands.pop() {
+                        // The ticks without a pose that fell due before the command came first, as
+                        // they would have run had the thread looked at their time.
+                        if let (Some(now), true) = (now, st.slot.active) {
+                            let (outputs, stats) = (&*self.outputs, &*self.stats);
+                            self.held += st.catch_up(slot, now, stats, |out| Self::emit(outputs, stats, out));
+                        }
                         self.apply(&mut st, cmd, now);
                     }
                 }
@@ -863,7 +892,7 @@ impl TickCore {
         if !self.apply_commands(false, Some(now)) {
             next = next.min(now + CLAIM_RETRY);
         }
-        let mut ticked = 0;
+        let mut ticked = self.held;
         let mut active = 0;
         let (outputs, stats) = (&*self.outputs, &*self.stats);
         for (i, cell) in self.cells.iter().enumerate() {

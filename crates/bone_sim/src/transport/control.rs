@@ -92,9 +92,11 @@ fn on_pose(shared: &Shared, id: &str, sample: &Sample, received: std::time::Inst
     shared.counters.poses.fetch_add(1, Ordering::Relaxed);
     if shared.config.tick_on == TickOn::Pose {
         let out_up_to = shared.put_done.get(usize::from(slot)).map_or(0, |n| n.load(Ordering::Acquire));
-        let tick = shared.ticker.tick(slot, generation, Instant::now(), out_up_to, force.is_some());
-        if let PoseTick::Ticked { force: out, state } = tick {
-            return tick_here(shared, force.as_deref(), &out, state);
+        match shared.ticker.tick(slot, generation, Instant::now(), out_up_to, force.is_some()) {
+            PoseTick::Ticked { force: out, state } => return tick_here(shared, force.as_deref(), &out, state),
+            // Ticks without a pose ran here, queued for the comm thread; the pose waits.
+            PoseTick::Held => wake_comm(shared),
+            PoseTick::NotDue | PoseTick::Claimed | PoseTick::Behind => {}
         }
     }
     shared.ticker.wake_tick_thread(); // the slot may tick now rather than at its next deadline
@@ -111,9 +113,13 @@ fn tick_here(shared: &Shared, publisher: Option<&ForcePublisher>, force: &Output
         put_force(shared, p, *slot, msg, *received, *order);
     }
     if state || publisher.is_none() || !here {
-        if let Some(t) = shared.comm_thread.get() {
-            t.unpark();
-        }
+        wake_comm(shared);
+    }
+}
+
+fn wake_comm(shared: &Shared) {
+    if let Some(t) = shared.comm_thread.get() {
+        t.unpark();
     }
 }
 
