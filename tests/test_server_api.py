@@ -169,6 +169,33 @@ def test_a_screen_hears_the_newest_force_and_pose_a_few_dozen_times_a_second_not
         srv.stop()
 
 
+def test_a_screen_that_comes_while_the_trainee_drills_hears_the_view_streams(coarse_phantom):
+    """A view stream nobody watches is not put (docs/decisions/0025-view-streams.md); a screen that
+    subscribes to a running session turns it on."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    conf = zenoh_config_json5([endpoint], mode="router")
+    srv = start_engine(coarse_phantom.volume, coarse_phantom.path, conf, ServerSettings())
+    screen = open_zenoh(zenoh_config_json5(connect=[endpoint], mode="client"))
+    try:
+        keys = protocol.keys("dhg", "late")
+        forces: list[dict] = []
+        with TraineeClient(endpoint, "late", on_force=forces.append) as c:
+            a = np.array(c.create()["entry_m"])
+            hand = Stylus(c, (1.0, 0.0, 0.0, 0.0))
+            try:
+                hand.move(np.repeat([a - [0.0, 0.0, 5e-3]], 3000, axis=0))
+                wait_until(lambda: len(forces) >= 300, 30.0, "300 forces before the screen")
+                heard: list[int] = []
+                sub = screen.declare_subscriber(keys["view/force"], lambda s: heard.append(len(forces)))
+                wait_until(lambda: len(heard) >= 3, 30.0, "3 view forces after the screen subscribed")
+                sub.undeclare()
+            finally:
+                hand.stop()
+    finally:
+        screen.close()
+        srv.stop()
+
+
 def test_an_idle_servers_tick_thread_sleeps_until_something_wakes_it(coarse_phantom):
     # With no session nothing is due: the tick thread sleeps until a command or a pose wakes it,
     # with a 20 ms backstop (IDLE_WAKE). It used to sleep a period at most, so that a command
