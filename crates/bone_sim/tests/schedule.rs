@@ -546,6 +546,19 @@ fn a_command_comes_after_the_ticks_without_a_pose_that_fell_due_before_it() {
 }
 
 #[test]
+fn a_new_sessions_commands_come_before_its_first_tick() {
+    // A create that sets its own settings queues them right behind the activation: they apply
+    // before the session's first tick, which no catch-up runs early.
+    let (mut core, mut link, _) = engine(1);
+    activate(&mut link, 0, 1, 1.0);
+    link.commands.push(prediction(1, [0.0, 0.0, 0.2], 7)).unwrap();
+    assert_eq!(core.tick_due(Instant::now()).0, 1);
+    let out = drain(&mut link);
+    assert!(matches!(out.first(), Some(Output::Guidance { msg, .. }) if msg.tick == 0), "{out:?}");
+    assert_eq!(forces(&out).len(), 1);
+}
+
+#[test]
 fn a_pose_after_ticks_without_a_pose_leaves_its_force_to_the_comm_side() {
     let (mut core, mut link, surface, t0) = started();
     drain(&mut link);

@@ -852,8 +852,9 @@ impl TickCore {
                     };
                     if let Ok(cmd) = self.commands.pop() {
                         // The ticks without a pose that fell due before the command came first, as
-                        // they would have run had the thread looked at their time.
-                        if let (Some(now), true) = (now, st.slot.active) {
+                        // they would have run had the thread looked at their time (none before a
+                        // session's first tick: a new session's settings come before it).
+                        if let (Some(now), true) = (now, st.slot.active && st.schedule.clock.is_some()) {
                             let (outputs, stats) = (&*self.outputs, &*self.stats);
                             self.held += st.catch_up(slot, now, stats, |out| Self::emit(outputs, stats, out));
                         }

@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 use zenoh::bytes::Encoding;
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::query::{ConsolidationMode, QueryTarget};
+use zenoh::sample::Locality;
 use zenoh::sample::SampleKind;
 use zenoh::Wait;
 use zenoh_ext::{AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
@@ -124,9 +125,8 @@ struct Outlet {
     view_sent: Instant,
 }
 
-/// One of a session's view streams: its publisher, and whether a subscriber (a screen) matches it,
-/// kept by Zenoh's matching listener. A stream nobody watches is not put: at 4 clients without
-/// screens the engine's CPU was about 5 % lower, at 16 no different
+/// One of a session's view streams: its publisher, and whether a subscriber in another Zenoh session
+/// (a screen) matches it, kept by Zenoh's matching listener. A stream nobody watches is not put
 /// (`docs/decisions/0025-view-streams.md`).
 struct ViewStream {
     publisher: zenoh::pubsub::Publisher<'static>,
@@ -134,6 +134,21 @@ struct ViewStream {
 }
 
 impl ViewStream {
+    /// Declares the stream on `key`: the newest, a frame's worth, dropped rather than queued, and
+    /// only for other sessions (the engine's own catch-all subscriber, which counts puts on
+    /// unknown keys, would otherwise always match it).
+    fn declare(session: &zenoh::Session, key: String, encoding: Encoding) -> Option<Self> {
+        let publisher = session
+            .declare_publisher(key)
+            .encoding(encoding)
+            .congestion_control(CongestionControl::Drop)
+            .priority(Priority::DataLow)
+            .allowed_destination(Locality::Remote)
+            .wait()
+            .ok()?;
+        Some(Self::new(publisher))
+    }
+
     fn new(publisher: zenoh::pubsub::Publisher<'static>) -> Self {
         let watched = Arc::new(AtomicBool::new(false));
         let flag = watched.clone();
@@ -328,17 +343,9 @@ impl Comm {
                     .wait()
                     .ok()
             };
-            // The screens' copies: a frame's worth of the newest, dropped rather than queued.
-            let view = |leaf: &str| {
-                self.session
-                    .declare_publisher(key(leaf))
-                    .encoding(encoding(leaf.trim_start_matches("view/")))
-                    .congestion_control(CongestionControl::Drop)
-                    .priority(Priority::DataLow)
-                    .wait()
-                    .ok()
-                    .map(ViewStream::new)
-            };
+            // The screens' copies.
+            let view =
+                |leaf: &str| ViewStream::declare(&self.session, key(leaf), encoding(leaf.trim_start_matches("view/")));
             self.outlets[i] = Some(Outlet {
                 generation,
                 force,
@@ -820,6 +827,44 @@ mod tests {
 
     fn record(k: usize) -> [f32; FEATURE_COUNT] {
         [k as f32; FEATURE_COUNT]
+    }
+
+    /// Waits up to 10 s for `done`.
+    fn wait_for(what: &str, done: impl Fn() -> bool) {
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while !done() {
+            assert!(Instant::now() < deadline, "waited 10 s for {what}");
+            thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    #[test]
+    fn a_view_stream_is_watched_only_while_another_session_subscribes_to_it() {
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let open = |side: &str| {
+            let conf = format!(
+                r#"{{"mode": "peer", "{side}": {{"endpoints": ["tcp/127.0.0.1:{port}"]}}, "scouting": {{"multicast": {{"enabled": false}}, "gossip": {{"enabled": false}}}}}}"#
+            );
+            zenoh::open(zenoh::Config::from_json5(&conf).unwrap()).wait().unwrap()
+        };
+        let server = open("listen");
+        // The engine's own catch-all subscriber (`control::declare`) is no screen.
+        server
+            .declare_subscriber("t/**")
+            .allowed_origin(Locality::Remote)
+            .callback(|_| {})
+            .background()
+            .wait()
+            .unwrap();
+        let view = ViewStream::declare(&server, "t/session/a/view/force".into(), encoding("force")).unwrap();
+        assert!(!view.watched(), "watched with no screen");
+        let screen = open("connect");
+        for _ in 0..2 {
+            let sub = screen.declare_subscriber("t/session/*/view/**").callback(|_| {}).wait().unwrap();
+            wait_for("the screen to be seen", || view.watched());
+            sub.undeclare().wait().unwrap();
+            wait_for("the screen's leaving to be seen", || !view.watched());
+        }
     }
 
     #[test]
