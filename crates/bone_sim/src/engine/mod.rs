@@ -134,10 +134,12 @@ const POSE_RATE_WEIGHT: f64 = 0.02;
 pub const MAX_POSE_WAIT_PERIODS: f64 = 0.5;
 /// A slot due within this many periods (1 ns) is due now: float rounding must not cost a wake-up.
 const DUE_SLACK_PERIODS: f64 = 1e-6;
-/// How late (in periods) the tick thread may wake past a slot's tick without a pose and still
-/// lose no time: the budget banks this much past that point, and drops the rest (a stall buys
-/// no burst of ticks). Without it each late wake-up cost its lateness: a replay of two recorded
-/// clients waking 100 µs late ran 0.2 % slow (`tests/schedule.rs`, `wake_up_latency_costs_no_ticks`).
+/// How late (in periods) a pose's tick may run past the slot's point of ticking without a pose
+/// and still lose no time: the budget banks this much past that point, and drops the rest. Without
+/// it each late wake-up cost its lateness: a replay of two recorded clients waking 100 µs late ran
+/// 0.2 % slow (`tests/schedule.rs`, `wake_up_latency_costs_no_ticks`). Since 0034 it matters only
+/// for a deferred pose's tick: ticks without a pose run as of their own time however late the
+/// thread looks (up to [`HOLD_BURST_PERIODS`] of them).
 ///
 /// Why this value: `docs/decisions/0002-lock-rate.md`.
 pub const WAKE_SLACK_PERIODS: f64 = 0.3;
