@@ -20,7 +20,7 @@ from dhg.live.client import TraineeClient
 from dhg.live.process import ServerProcess
 from dhg.live.services import ModelService
 from dhg.live.zenoh_config import open_zenoh, zenoh_config_json5
-from support import entry, serve, stream, wait_until
+from support import Stylus, entry, serve, stream, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -196,6 +196,35 @@ def test_a_rogue_peer_cannot_steer_guidance_from_outside_the_pool_or_inside_it(s
     ignored = after["ignored"] - before["ignored"]
     assert ignored >= 0.8 * sent["replies"] > 0, (ignored, sent)
     assert after["replies"] - before["replies"] <= after["queries"] - before["queries"]
+
+
+def test_a_silent_sessions_window_joins_the_burst_of_a_streaming_ones():
+    """A session whose client sends no poses records on ticks without a pose, which the tick
+    thread runs up to 4 ms late (decision 0034); a streaming session records as its poses come.
+    Their windows of one grid mark still leave in one model query: the burst waits long enough
+    for both (``BURST_WAIT``, decision 0035; with the earlier 2 ms, about four marks in ten were
+    split into two queries)."""
+    proc, endpoint = serve("--idle-timeout", "600")
+    streaming, silent = TraineeClient(endpoint, "burst-streaming"), TraineeClient(endpoint, "burst-silent")
+    stylus = None
+    try:
+        a, _, q = entry(streaming)
+        stylus = Stylus(streaming, q)
+        stylus.move(np.array([a]))  # held at the entry point, outside the bone
+        silent.create()
+        wait_until(lambda: streaming.health(1.0)["model"]["replies"] >= 40, 60.0, "the model answering both")
+        m0 = streaming.health(1.0)["model"]
+        wait_until(lambda: streaming.health(1.0)["model"]["queries"] >= m0["queries"] + 100, 60.0, "50 more marks")
+        m1 = streaming.health(1.0)["model"]
+        windows, bursts = m1["queries"] - m0["queries"], m1["bursts"] - m0["bursts"]
+        assert windows / bursts >= 1.8, f"{windows} windows in {bursts} queries: the silent one's left alone"
+        assert m1["replies"] - m0["replies"] >= 0.9 * windows, (m0, m1)
+    finally:
+        if stylus is not None:
+            stylus.stop()
+        streaming.close()
+        silent.close()
+        assert proc.stop() == 0
 
 
 def test_sessions_started_apart_share_the_models_forward_passes():

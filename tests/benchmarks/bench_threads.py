@@ -1,5 +1,6 @@
 """Where a server's CPU goes, thread by thread: ``dhg-serve --role sim`` (the engine, no model
-service) and the bare Zenoh echo (``crates/bone_sim/examples/echo.rs``) under the same load tool,
+service; with ``--role all`` the engine and the model service in one process, the model on CPU)
+and the bare Zenoh echo (``crates/bone_sim/examples/echo.rs``) under the same load tool,
 alternated, with each thread's CPU and voluntary context switches (its wake-ups) read from
 ``/proc`` over the middle of the run. Prints one line per run and a table of medians.
 
@@ -9,7 +10,9 @@ python --lib``, then copy ``libbone_sim.so`` to ``python/dhg/_bone_sim.cpython-*
 builds are compared in one alternating run (issue 24). ``--echo-work-us US`` adds the echo spinning
 US microseconds in each pose's callback (``echo --work-us``) as ``echo-work``: the floor for a
 server that computes something per pose, so a tick's own cost and the engine's cost around it
-part.
+part. With ``--role all`` the column ``model`` is the model service's worker thread (its forward
+passes and its Python) with the idle main thread: both carry the process's name. The Python Zenoh
+session's threads share the engine's names and cost next to nothing.
 
     cargo build --release -p bone_sim --example load --example echo
     python tests/benchmarks/bench_threads.py --clients 1,4,16 --rounds 2 [--other /tmp/old/python] [--echo-work-us 5]
@@ -50,9 +53,11 @@ def threads(pid: int) -> dict[str, tuple[str, float, int]]:
     return out
 
 
-def one(variant: str, n: int, seconds: float, other: str | None, work_us: float = 0.0) -> dict[str, Any]:
+def one(
+    variant: str, n: int, seconds: float, other: str | None, work_us: float = 0.0, role: str = "sim"
+) -> dict[str, Any]:
     """One run: a fresh server of ``variant`` and ``n`` load-tool clients (``echo-work``: the echo
-    spinning ``work_us`` in each pose's callback)."""
+    spinning ``work_us`` in each pose's callback; a ``dhg-serve`` variant in ``role``)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     if variant.startswith("echo"):
         work = ["--work-us", f"{work_us:g}"] if variant == "echo-work" else []
@@ -61,9 +66,12 @@ def one(variant: str, n: int, seconds: float, other: str | None, work_us: float 
         _wait_for_port(endpoint, server)  # the echo declares its keys before it listens
         pid = server.pid
     else:
-        args = ["--listen", endpoint, "--role", "sim", "--max-sessions", str(max(n, 16))]
+        model = ["--device", "cpu"] if role == "all" else []
+        args = ["--listen", endpoint, "--role", role, *model, "--max-sessions", str(max(n, 16))]
         server = serve_from(str(other) if variant == "other" else None, args)
         pid = server.proc.pid
+    # Python's threads carry the process's name: with the model service, its worker's.
+    own = Path(f"/proc/{pid}/comm").read_text().strip()
     try:
         load = subprocess.Popen(
             [str(TARGET / "load"), "--connect", endpoint, "--clients", str(n), "--seconds", f"{seconds:g}",
@@ -84,12 +92,15 @@ def one(variant: str, n: int, seconds: float, other: str | None, work_us: float 
             server.stop()
     per: dict[str, list[float]] = {}
     for tid, (name, cpu, sw) in b.items():
+        if not variant.startswith("echo") and name == own:
+            name = "model"
         if tid in a:
             p = per.setdefault(name, [0.0, 0.0])
             p[0] += (cpu - a[tid][1]) / dt
             p[1] += (sw - a[tid][2]) / dt
     return {
         "variant": variant,
+        **({"role": role} if not variant.startswith("echo") else {}),
         **({"work_us": work_us} if variant == "echo-work" else {}),
         "clients": n,
         "cpu_cores": out["server_cpu_cores"],
@@ -112,6 +123,13 @@ def main() -> None:
         help="also the echo spinning US microseconds in each pose's callback (echo --work-us), as the variant "
         "'echo-work': what a tick's worth of work on the receive threads costs by itself",
     )
+    p.add_argument(
+        "--role",
+        choices=("sim", "all"),
+        default="sim",
+        help="dhg-serve's role in the dhg and other variants: sim, the engine alone (default); all, with the "
+        "model service in its process (model on CPU)",
+    )
     p.add_argument("--out", help="also append the JSON lines to this file")
     args = p.parse_args()
     variants = ["dhg", *(["other"] if args.other else []), *(["echo-work"] if args.echo_work_us else []), "echo"]
@@ -119,14 +137,14 @@ def main() -> None:
     for _ in range(args.rounds):
         for n in (int(c) for c in args.clients.split(",")):
             for v in variants:
-                r = one(v, n, args.seconds, args.other, args.echo_work_us or 0.0)
+                r = one(v, n, args.seconds, args.other, args.echo_work_us or 0.0, args.role)
                 print(json.dumps(r), flush=True)
                 runs.append(r)
                 if args.out:
                     with open(args.out, "a") as f:
                         f.write(json.dumps(r) + "\n")
     print(f"\n{args.rounds} rounds, medians; cores (wake-ups a second)\n")
-    names = ["rx", "tx-0", "acc-0", "dhg-tick", "dhg-comm"]
+    names = ["rx", "tx-0", "acc-0", "dhg-tick", "dhg-comm", *(["model"] if args.role == "all" else [])]
     print("| clients | variant | CPU (cores) | / echo | " + " | ".join(names) + " |")
     print("|---:|---|---:|---:|" + "---:|" * len(names))
     for n in sorted({r["clients"] for r in runs}):
