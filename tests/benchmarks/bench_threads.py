@@ -10,12 +10,15 @@ python --lib``, then copy ``libbone_sim.so`` to ``python/dhg/_bone_sim.cpython-*
 builds are compared in one alternating run (issue 24). ``--echo-work-us US`` adds the echo spinning
 US microseconds in each pose's callback (``echo --work-us``) as ``echo-work``: the floor for a
 server that computes something per pose, so a tick's own cost and the engine's cost around it
-part. With ``--role all`` the column ``model`` is the model service's worker thread (its forward
-passes and its Python) with the idle main thread: both carry the process's name. The Python Zenoh
+part. ``--echo-router`` adds the echo in Zenoh's router mode, the engine's, as ``echo-router``.
+
+With ``--role all`` the column ``model`` is the model service's worker thread (its forward passes
+and its Python) with the idle main thread: both carry the process's name. The Python Zenoh
 session's threads share the engine's names and cost next to nothing.
 
     cargo build --release -p bone_sim --example load --example echo
     python tests/benchmarks/bench_threads.py --clients 1,4,16 --rounds 2 [--other /tmp/old/python] [--echo-work-us 5]
+        [--echo-router] [--role all]
 """
 
 from __future__ import annotations
@@ -61,9 +64,13 @@ def one(
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     if variant.startswith("echo"):
         work = ["--work-us", f"{work_us:g}"] if variant == "echo-work" else []
+        work += ["--mode", "router"] if variant == "echo-router" else []
         cmd = [str(TARGET / "echo"), "--listen", endpoint, *work]
         server: Any = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
-        _wait_for_port(endpoint, server)  # the echo declares its keys before it listens
+        _wait_for_port(endpoint, server)
+        # In router mode it listens before its keys are declared: it says so once they are.
+        if "echo listening" not in (said := server.stderr.readline() if server.stderr else ""):
+            raise SystemExit(f"the echo did not start: {said}")
         pid = server.pid
     else:
         model = ["--device", "cpu"] if role == "all" else []
@@ -124,6 +131,12 @@ def main() -> None:
         "'echo-work': what a tick's worth of work on the receive threads costs by itself",
     )
     p.add_argument(
+        "--echo-router",
+        action="store_true",
+        help="also the echo in Zenoh's router mode (echo --mode router), as the variant 'echo-router': the "
+        "engine is a router, the echo a peer",
+    )
+    p.add_argument(
         "--role",
         choices=("sim", "all"),
         default="sim",
@@ -132,7 +145,13 @@ def main() -> None:
     )
     p.add_argument("--out", help="also append the JSON lines to this file")
     args = p.parse_args()
-    variants = ["dhg", *(["other"] if args.other else []), *(["echo-work"] if args.echo_work_us else []), "echo"]
+    variants = [
+        "dhg",
+        *(["other"] if args.other else []),
+        *(["echo-work"] if args.echo_work_us else []),
+        *(["echo-router"] if args.echo_router else []),
+        "echo",
+    ]
     runs: list[dict[str, Any]] = []
     for _ in range(args.rounds):
         for n in (int(c) for c in args.clients.split(",")):

@@ -16,6 +16,8 @@
 //! express flag) and `<p>/server/health` (an empty report: the load tool then prints null for
 //! the server-side figures). Poses that do not decode are counted and dropped.
 //!
+//! `--mode router` runs it in Zenoh's router mode, as `dhg-serve`'s engine runs (default `peer`).
+//!
 //! `--work-us US` makes each pose's callback spin that long before it answers: a stand-in for the
 //! tick's work, so that `bench_threads.py --echo-work-us` parts what the tick costs by itself from
 //! what the engine costs around it.
@@ -42,19 +44,21 @@ fn main() {
     let mut prefix = "dhg".to_string();
     let mut transport = "{}".to_string();
     let mut work_us = 0.0_f64;
+    let mut mode = "peer".to_string();
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
         match (flag.as_str(), it.next()) {
             ("--listen", Some(v)) => listen = v,
             ("--prefix", Some(v)) => prefix = v,
             ("--transport", Some(v)) => transport = v,
+            ("--mode", Some(v)) if v == "peer" || v == "router" => mode = v,
             ("--work-us", Some(v)) if v.parse::<f64>().is_ok_and(|w| (0.0..=1000.0).contains(&w)) => {
                 work_us = v.parse().unwrap_or(0.0);
             }
             _ => {
                 eprintln!(
                     "usage: echo [--listen ENDPOINT] [--prefix P] [--transport JSON5 (zenoh's transport section)] \
-                     [--work-us US (0-1000: spin this long in each pose's callback, a stand-in for a tick)]"
+                     [--mode peer|router (default peer)] [--work-us US (0-1000: spin this long in each pose's callback, a stand-in for a tick)]"
                 );
                 std::process::exit(2);
             }
@@ -64,15 +68,15 @@ fn main() {
         eprintln!("error: {e}");
         std::process::exit(2);
     }
-    if let Err(e) = run(&listen, &prefix, &transport, Duration::from_secs_f64(work_us * 1e-6)) {
+    if let Err(e) = run(&listen, &prefix, &transport, &mode, Duration::from_secs_f64(work_us * 1e-6)) {
         eprintln!("error: {e}");
         std::process::exit(5);
     }
 }
 
-fn run(listen: &str, prefix: &str, transport: &str, work: Duration) -> Result<(), String> {
+fn run(listen: &str, prefix: &str, transport: &str, mode: &str, work: Duration) -> Result<(), String> {
     let conf = format!(
-        r#"{{ mode: "peer", listen: {{ endpoints: ["{listen}"] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {transport} }}"#
+        r#"{{ mode: "{mode}", listen: {{ endpoints: ["{listen}"] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {transport} }}"#
     );
     let zc = zenoh::Config::from_json5(&conf).map_err(|e| e.to_string())?;
     let session = zenoh::open(zc).wait().map_err(|e| format!("cannot listen on {listen}: {e}"))?;
