@@ -9,6 +9,7 @@ import os
 import platform
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -130,70 +131,73 @@ def test_a_pose_ticks_its_session_on_the_thread_that_received_it_unless_told_not
         srv.stop()
 
 
-def test_a_screen_hears_the_newest_force_and_pose_a_few_dozen_times_a_second_not_every_tick(coarse_phantom):
+@pytest.fixture()
+def engine_and_screen(coarse_phantom: Any) -> Iterator[tuple[str, Any]]:
+    """An engine on a free port (a router, as dhg-serve's) and a screen: a Zenoh client session
+    connected to it. Yields the endpoint and the screen's session."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     conf = zenoh_config_json5([endpoint], mode="router")
     srv = start_engine(coarse_phantom.volume, coarse_phantom.path, conf, ServerSettings())
-    screen = open_zenoh(zenoh_config_json5(connect=[endpoint], mode="client"))
     try:
-        keys = protocol.keys("dhg", "shown")
-        views: dict[str, list[dict]] = {"force": [], "pose": []}
-
-        def heard(name: str) -> Any:
-            return lambda s: views[name].append(protocol.decode(name, s.payload.to_bytes()))
-
-        subs = [screen.declare_subscriber(keys[f"view/{n}"], heard(n)) for n in views]
-        forces: list[dict] = []
-        with TraineeClient(endpoint, "shown", on_force=forces.append) as c:
-            a = np.array(c.create()["entry_m"])
-            hand = Stylus(c, (1.0, 0.0, 0.0, 0.0))  # 1 kHz, hovering 5 mm off A
-            try:
-                hand.move(np.repeat([a - [0.0, 0.0, 5e-3]], 600, axis=0))
-                done = lambda: hand.idle() and len(forces) >= 600 and len(views["pose"]) >= 5  # noqa: E731
-                wait_until(done, 30.0, "600 forces and 5 views")
-            finally:
-                hand.stop()
-        for s in subs:
-            s.undeclare()
-        vf, vp = list(views["force"]), list(views["pose"])
-        # The server's copies of the newest: far fewer than the forces (50-60 a second against
-        # 1,000), each one a force the session made, in order, with the pose that force used.
-        assert len(vf) <= len(forces) / 8, (len(vf), len(forces))
-        seqs = [m["pose_seq"] for m in vf]
-        assert seqs == sorted(seqs) and max(seqs) <= max(m["pose_seq"] for m in forces)
-        assert all(np.isfinite(m["force_n"]).all() and np.isfinite(m["tip_m"]).all() for m in vf)
-        assert {m["seq"] for m in vp} <= {m["pose_seq"] for m in vf} | {0}
-        assert all(np.allclose(m["orientation_wxyz"], (1.0, 0.0, 0.0, 0.0)) for m in vp if m["seq"] > 0)
+        screen = open_zenoh(zenoh_config_json5(connect=[endpoint], mode="client"))
+        try:
+            yield endpoint, screen
+        finally:
+            screen.close()
     finally:
-        screen.close()
         srv.stop()
 
 
-def test_a_screen_that_comes_while_the_trainee_drills_hears_the_view_streams(coarse_phantom):
+def test_a_screen_hears_the_newest_force_and_pose_a_few_dozen_times_a_second_not_every_tick(engine_and_screen):
+    endpoint, screen = engine_and_screen
+    keys = protocol.keys("dhg", "shown")
+    views: dict[str, list[dict]] = {"force": [], "pose": []}
+
+    def heard(name: str) -> Any:
+        return lambda s: views[name].append(protocol.decode(name, s.payload.to_bytes()))
+
+    subs = [screen.declare_subscriber(keys[f"view/{n}"], heard(n)) for n in views]
+    forces: list[dict] = []
+    with TraineeClient(endpoint, "shown", on_force=forces.append) as c:
+        a = np.array(c.create()["entry_m"])
+        hand = Stylus(c, (1.0, 0.0, 0.0, 0.0))  # 1 kHz, hovering 5 mm off A
+        try:
+            hand.move(np.repeat([a - [0.0, 0.0, 5e-3]], 600, axis=0))
+            done = lambda: hand.idle() and len(forces) >= 600 and len(views["pose"]) >= 5  # noqa: E731
+            wait_until(done, 30.0, "600 forces and 5 views")
+        finally:
+            hand.stop()
+    for s in subs:
+        s.undeclare()
+    vf, vp = list(views["force"]), list(views["pose"])
+    # The server's copies of the newest: far fewer than the forces (50-60 a second against
+    # 1,000), each one a force the session made, in order, with the pose that force used.
+    assert len(vf) <= len(forces) / 8, (len(vf), len(forces))
+    seqs = [m["pose_seq"] for m in vf]
+    assert seqs == sorted(seqs) and max(seqs) <= max(m["pose_seq"] for m in forces)
+    assert all(np.isfinite(m["force_n"]).all() and np.isfinite(m["tip_m"]).all() for m in vf)
+    assert {m["seq"] for m in vp} <= {m["pose_seq"] for m in vf} | {0}
+    assert all(np.allclose(m["orientation_wxyz"], (1.0, 0.0, 0.0, 0.0)) for m in vp if m["seq"] > 0)
+
+
+def test_a_screen_that_comes_while_the_trainee_drills_hears_the_view_streams(engine_and_screen):
     """A view stream nobody watches is not put (docs/decisions/0025-view-streams.md); a screen that
     subscribes to a running session turns it on."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    conf = zenoh_config_json5([endpoint], mode="router")
-    srv = start_engine(coarse_phantom.volume, coarse_phantom.path, conf, ServerSettings())
-    screen = open_zenoh(zenoh_config_json5(connect=[endpoint], mode="client"))
-    try:
-        keys = protocol.keys("dhg", "late")
-        forces: list[dict] = []
-        with TraineeClient(endpoint, "late", on_force=forces.append) as c:
-            a = np.array(c.create()["entry_m"])
-            hand = Stylus(c, (1.0, 0.0, 0.0, 0.0))
-            try:
-                hand.move(np.repeat([a - [0.0, 0.0, 5e-3]], 3000, axis=0))
-                wait_until(lambda: len(forces) >= 300, 30.0, "300 forces before the screen")
-                heard: list[int] = []
-                sub = screen.declare_subscriber(keys["view/force"], lambda s: heard.append(1))
-                wait_until(lambda: len(heard) >= 3, 30.0, "3 view forces after the screen subscribed")
-                sub.undeclare()
-            finally:
-                hand.stop()
-    finally:
-        screen.close()
-        srv.stop()
+    endpoint, screen = engine_and_screen
+    keys = protocol.keys("dhg", "late")
+    forces: list[dict] = []
+    with TraineeClient(endpoint, "late", on_force=forces.append) as c:
+        a = np.array(c.create()["entry_m"])
+        hand = Stylus(c, (1.0, 0.0, 0.0, 0.0))
+        try:
+            hand.move(np.repeat([a - [0.0, 0.0, 5e-3]], 3000, axis=0))
+            wait_until(lambda: len(forces) >= 300, 30.0, "300 forces before the screen")
+            heard: list[int] = []
+            sub = screen.declare_subscriber(keys["view/force"], lambda s: heard.append(1))
+            wait_until(lambda: len(heard) >= 3, 30.0, "3 view forces after the screen subscribed")
+            sub.undeclare()
+        finally:
+            hand.stop()
 
 
 def test_an_idle_servers_tick_thread_sleeps_until_something_wakes_it(coarse_phantom):
