@@ -205,14 +205,18 @@ def test_a_silent_sessions_window_joins_the_burst_of_a_streaming_ones():
     for both (``BURST_WAIT``, decision 0035; with the earlier 2 ms, almost half the marks were
     split into two queries: 100 windows in 73)."""
     proc, endpoint = serve("--idle-timeout", "600")
-    streaming, silent = TraineeClient(endpoint, "burst-streaming"), TraineeClient(endpoint, "burst-silent")
+    clients: list[TraineeClient] = []
     stylus = None
     try:
+        streaming = TraineeClient(endpoint, "burst-streaming")
+        clients.append(streaming)
+        silent = TraineeClient(endpoint, "burst-silent")
+        clients.append(silent)
         a, _, q = entry(streaming)
         stylus = Stylus(streaming, q)
         stylus.move(np.array([a]))  # held at the entry point, outside the bone
         silent.create()
-        wait_until(lambda: streaming.health(1.0)["model"]["replies"] >= 40, 60.0, "the model answering both")
+        wait_until(lambda: streaming.health(1.0)["model"]["replies"] >= 40, 60.0, "the model answering")
         m0 = streaming.health(1.0)["model"]
         wait_until(lambda: streaming.health(1.0)["model"]["queries"] >= m0["queries"] + 100, 60.0, "50 more marks")
         m1 = streaming.health(1.0)["model"]
@@ -222,8 +226,8 @@ def test_a_silent_sessions_window_joins_the_burst_of_a_streaming_ones():
     finally:
         if stylus is not None:
             stylus.stop()
-        streaming.close()
-        silent.close()
+        for c in clients:
+            c.close()
         assert proc.stop() == 0
 
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import select
 import statistics
 import subprocess
 import time
@@ -67,19 +68,25 @@ def one(
         work += ["--mode", "router"] if variant == "echo-router" else []
         cmd = [str(TARGET / "echo"), "--listen", endpoint, *work]
         server: Any = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
-        _wait_for_port(endpoint, server)
-        # In router mode it listens before its keys are declared: it says so once they are.
-        if "echo listening" not in (said := server.stderr.readline() if server.stderr else ""):
-            raise SystemExit(f"the echo did not start: {said}")
+        try:
+            _wait_for_port(endpoint, server)
+            # In router mode it listens before its keys are declared: it says so once they are.
+            ready = select.select([server.stderr], [], [], 60.0)[0] if server.stderr else []
+            said = server.stderr.readline() if ready else ""
+            if "echo listening" not in said:
+                raise SystemExit(f"the echo did not say it was ready within 60 s: {said!r}")
+        except BaseException:
+            server.kill()
+            raise
         pid = server.pid
     else:
         model = ["--device", "cpu"] if role == "all" else []
         args = ["--listen", endpoint, "--role", role, *model, "--max-sessions", str(max(n, 16))]
         server = serve_from(str(other) if variant == "other" else None, args)
         pid = server.proc.pid
-    # Python's threads carry the process's name: with the model service, its worker's.
-    own = Path(f"/proc/{pid}/comm").read_text().strip()
     try:
+        # Python's threads carry the process's name: with the model service, its worker's.
+        own = Path(f"/proc/{pid}/comm").read_text().strip() if role == "all" else None
         load = subprocess.Popen(
             [str(TARGET / "load"), "--connect", endpoint, "--clients", str(n), "--seconds", f"{seconds:g}",
              "--server-pid", str(pid)],
@@ -99,7 +106,7 @@ def one(
             server.stop()
     per: dict[str, list[float]] = {}
     for tid, (name, cpu, sw) in b.items():
-        if not variant.startswith("echo") and name == own:
+        if name == own and not variant.startswith("echo"):
             name = "model"
         if tid in a:
             p = per.setdefault(name, [0.0, 0.0])

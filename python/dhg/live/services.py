@@ -40,7 +40,9 @@ BURST_WAIT_S = 0.002
 engine's sessions record on one 100 ms grid, and an engine sends each burst of their windows in
 one query (decision 0032), so N > 1 queries a burst come from several engines sharing the worker
 (or an engine whose query was full), within a tick or two of the mark; 2 ms gathers a burst that
-a forward pass would otherwise split in two (decision 0028)."""
+a forward pass would otherwise split in two (decision 0028). An engine whose window comes late
+sends its query up to 6 ms after its first (decision 0035); that query then misses this wait and
+takes a pass of its own (several engines on one worker are not remeasured since)."""
 
 BURST_MEMORY_S = 0.15
 """How long (s) the model worker remembers a batch's size as the size of the bursts to come: one
