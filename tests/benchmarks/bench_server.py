@@ -28,7 +28,7 @@ import contextlib
 import json
 import os
 import re
-import socket
+import select
 import statistics
 import subprocess
 import tempfile
@@ -147,18 +147,17 @@ def serve_from(pythonpath: str | None, args: list[str]) -> ServerProcess:
             os.environ["PYTHONPATH"] = saved
 
 
-def _wait_for_port(endpoint: str, proc: subprocess.Popen[Any], deadline_s: float = 60.0) -> None:
-    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+def _wait_for_echo(proc: subprocess.Popen[Any], deadline_s: float = 60.0) -> None:
+    """Waits for the echo (started with ``stderr=PIPE``) to say it is ready: it does so once its
+    keys are declared, which in router mode comes after it listens."""
     end = time.monotonic() + deadline_s
-    while time.monotonic() < end:
+    while (left := end - time.monotonic()) > 0:
         if proc.poll() is not None:
             raise SystemExit(f"the echo exited ({proc.returncode}): {proc.stderr.read() if proc.stderr else ''}")
-        try:
-            socket.create_connection((host, int(port)), timeout=0.5).close()
-            return
-        except OSError:
-            time.sleep(0.05)
-    raise SystemExit(f"the echo did not listen on {endpoint} within {deadline_s} s")
+        if proc.stderr and select.select([proc.stderr], [], [], min(left, 0.5))[0]:
+            if "echo listening" in proc.stderr.readline():
+                return
+    raise SystemExit(f"the echo did not say it was ready within {deadline_s} s")
 
 
 def _context_switches(pid: int) -> int:
@@ -213,7 +212,7 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         else:
             echo = subprocess.Popen([args.echo, "--listen", endpoint], stderr=subprocess.PIPE, text=True)
             try:
-                _wait_for_port(endpoint, echo)
+                _wait_for_echo(echo)
             except BaseException:
                 echo.kill()
                 raise

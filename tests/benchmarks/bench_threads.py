@@ -26,14 +26,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import select
 import statistics
 import subprocess
 import time
 from pathlib import Path
 from typing import Any
 
-from bench_server import _wait_for_port, serve_from  # this folder: the echo's start; a server of either build
+from bench_server import _wait_for_echo, serve_from  # this folder: the echo's start; a server of either build
 
 from dhg.live.process import free_port
 
@@ -69,12 +68,7 @@ def one(
         cmd = [str(TARGET / "echo"), "--listen", endpoint, *work]
         server: Any = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
         try:
-            _wait_for_port(endpoint, server)
-            # In router mode it listens before its keys are declared: it says so once they are.
-            ready = select.select([server.stderr], [], [], 60.0)[0] if server.stderr else []
-            said = server.stderr.readline() if ready else ""
-            if "echo listening" not in said:
-                raise SystemExit(f"the echo did not say it was ready within 60 s: {said!r}")
+            _wait_for_echo(server)
         except BaseException:
             server.kill()
             raise

@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from bench_server import LOWLATENCY, RUNTIMES, _context_switches, _wait_for_port, _zenoh_runtime
+from bench_server import LOWLATENCY, RUNTIMES, _context_switches, _wait_for_echo, _zenoh_runtime
 
 from dhg.live.process import free_port
 
@@ -122,7 +122,7 @@ def _one(args: argparse.Namespace, variant: str, n: int) -> dict[str, Any]:
             [str(build / "echo"), "--listen", endpoint, "--transport", section], stderr=subprocess.PIPE, text=True
         )
     try:
-        _wait_for_port(endpoint, echo)
+        _wait_for_echo(echo)
         switches0 = _context_switches(echo.pid)
         with _zenoh_runtime(""):  # the load tool on Zenoh's defaults, whatever the variant
             r = subprocess.run(
