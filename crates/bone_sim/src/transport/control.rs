@@ -460,7 +460,7 @@ fn sorted_ids(by_id: &std::collections::HashMap<String, u16>) -> Vec<&String> {
 
 /// The health report; tick quantiles cover the last `window_s` seconds (whole seconds).
 pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
-    let now = super::comm::sample(shared);
+    let now = super::history::sample(shared);
     let (window, base) = {
         let h = lock(&shared.history);
         let seconds = window_s.max(1.0).round();

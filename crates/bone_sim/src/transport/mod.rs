@@ -1,6 +1,7 @@
 //! The engine on Zenoh: its own Zenoh session, subscribers and queryables whose callbacks hand
 //! data to the tick thread through the lock-free [`crate::engine::handoff`]
-//! structures, and a comm thread that owns the publishers and the model querier.
+//! structures, and a comm thread ([`comm`]) that owns each session's publishers ([`outlet`]) and
+//! sends the model queries ([`model_query`]).
 //!
 //! Key expressions (under a configurable prefix, `dhg` by default; payloads in
 //! `docs/protocol.md`):
@@ -14,7 +15,10 @@
 
 mod comm;
 mod control;
+mod history;
 pub mod metrics;
+mod model_query;
+mod outlet;
 mod pool;
 pub mod registry;
 pub mod replies;
@@ -245,7 +249,7 @@ pub struct Shared {
     /// The model workers whose liveliness tokens are alive.
     pub(crate) pool: Mutex<pool::Pool>,
     pub(crate) stats: Arc<TickStats>,
-    pub(crate) history: Mutex<comm::History>,
+    pub(crate) history: Mutex<history::History>,
     pub(crate) snapshot: Mutex<triple_buffer::Output<Snapshot>>,
     pub(crate) snapshot_seq: AtomicU64,
     pub(crate) stopping: AtomicBool,
@@ -393,7 +397,7 @@ impl Server {
             model: Mutex::new(ModelStats::default()),
             pool: Mutex::new(pool::Pool::default()),
             stats: link.stats,
-            history: Mutex::new(comm::History::default()),
+            history: Mutex::new(history::History::default()),
             snapshot: Mutex::new(link.snapshot),
             snapshot_seq: AtomicU64::new(0),
             stopping: AtomicBool::new(false),

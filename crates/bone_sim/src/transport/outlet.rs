@@ -1,0 +1,284 @@
+//! A session's outlet on the comm thread: its publishers (force, the recorded state, guidance and
+//! tick batches, the screens' view streams) and its window of records for the model.
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use zenoh::bytes::Encoding;
+use zenoh::qos::{CongestionControl, Priority};
+use zenoh::sample::Locality;
+use zenoh::Wait;
+use zenoh_ext::{AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
+
+use super::registry::ForcePublisher;
+use crate::protocol::{self, TickBatch, WINDOW_RECORDS};
+use crate::record::{FEATURE_COUNT, RECORD_PERIOD_TICKS};
+use crate::session::Pose;
+
+/// Most messages a second on a session's view streams (`view/force`, `view/pose`): what a screen
+/// draws the drill from, instead of taking in the two 1 kHz streams and dropping most of them (a
+/// viewer's CPU fell fourfold without them, `docs/benchmarks.md`, the live view). The comm thread
+/// wakes at least every [`IDLE_WAKE`](super::comm::IDLE_WAKE) (20 ms), so they leave 50–60 times a second.
+const VIEW_HZ: f64 = 60.0;
+
+/// Samples of each recorded stream (state, guidance) a session's publisher keeps for recorders
+/// to recover: 60 s of the 10 Hz streams.
+const RECORDED_HISTORY: usize = 600;
+/// Batches of the recorders' 1 kHz stream (`ticks`, 10 a second) a session's publisher keeps:
+/// 10 s, about 0.9 MB a session.
+const TICKS_HISTORY: usize = 100;
+/// Ticks in one batch: one record period, so a batch leaves at 10 Hz.
+const TICKS_PER_BATCH: usize = RECORD_PERIOD_TICKS as usize;
+/// A partial batch older than this (a silent or ended session) leaves at the next housekeeping.
+const BATCH_MAX_AGE: Duration = Duration::from_millis(200);
+/// How often a recorded stream's publisher announces its last sequence number, so that a
+/// recorder notices a lost last sample too.
+const RECORDED_HEARTBEAT: Duration = Duration::from_millis(500);
+
+/// A payload's encoding: bytes, with the layout's name and protocol version as its schema.
+pub(super) fn encoding(name: &str) -> Encoding {
+    Encoding::APPLICATION_OCTET_STREAM.with_schema(format!("dhg.{name}.v{}", protocol::VERSION))
+}
+
+/// A session's publishers and model window.
+pub(super) struct Outlet {
+    pub(super) generation: u32,
+    pub(super) force: Arc<ForcePublisher>,
+    pub(super) guidance: AdvancedPublisher<'static>,
+    pub(super) state: AdvancedPublisher<'static>,
+    ticks: AdvancedPublisher<'static>,
+    /// The ticks since the last batch was published, and when its first arrived.
+    batch: TickBatch,
+    batch_since: Instant,
+    /// The session's last [`WINDOW_RECORDS`] records (the model's window, oldest first), the
+    /// newest's number, and the client time of the pose its last force used.
+    pub(super) window: VecDeque<[f32; FEATURE_COUNT]>,
+    pub(super) window_seq: u32,
+    pub(super) pose_time_ns: u64,
+    /// The screens' streams (`view/force`, `view/pose`): the newest force and pose at most
+    /// [`VIEW_HZ`] times a second.
+    view_force: ViewStream,
+    view_pose: ViewStream,
+    /// The newest force and the pose it used, not yet on the view streams.
+    pub(super) view: Option<(protocol::ForceMsg, Option<Pose>)>,
+    view_sent: Instant,
+}
+
+impl Outlet {
+    /// Declares a session's publishers but the force's (`key` gives a leaf's key): the recorded
+    /// streams and the screens' copies. `None` if Zenoh refuses one.
+    pub(super) fn declare(
+        session: &zenoh::Session,
+        key: impl Fn(&str) -> String,
+        generation: u32,
+        force: Arc<ForcePublisher>,
+    ) -> Option<Self> {
+        // State and guidance are recorded for datasets, but a slow or frozen subscriber must
+        // never hold up the comm thread (and with it every session's forces): they drop
+        // rather than block, and keep the last RECORDED_HISTORY samples for recorders to
+        // recover what they missed (zenoh-ext advanced publisher: cache, sample-miss
+        // detection with a heartbeat, publisher detection).
+        let recorded = |leaf: &str, history: usize| {
+            session
+                .declare_publisher(key(leaf))
+                .encoding(encoding(leaf))
+                .congestion_control(CongestionControl::Drop)
+                .priority(Priority::DataHigh)
+                .cache(CacheConfig::default().max_samples(history))
+                .sample_miss_detection(MissDetectionConfig::default().heartbeat(RECORDED_HEARTBEAT))
+                .publisher_detection()
+                .wait()
+                .ok()
+        };
+        // The screens' copies.
+        let view = |leaf: &str| ViewStream::declare(session, key(leaf), encoding(leaf.trim_start_matches("view/")));
+        Some(Outlet {
+            generation,
+            force,
+            guidance: recorded("guidance", RECORDED_HISTORY)?,
+            state: recorded("state", RECORDED_HISTORY)?,
+            ticks: recorded("ticks", TICKS_HISTORY)?,
+            batch: TickBatch::with_capacity(TICKS_PER_BATCH),
+            batch_since: Instant::now(),
+            window: VecDeque::with_capacity(WINDOW_RECORDS),
+            window_seq: 0,
+            pose_time_ns: 0,
+            view_force: view("view/force")?,
+            view_pose: view("view/pose")?,
+            view: None,
+            view_sent: Instant::now(),
+        })
+    }
+
+    /// Adds a session's newest record to its model window (the last [`WINDOW_RECORDS`]).
+    pub(super) fn add_record(&mut self, features: [f32; FEATURE_COUNT]) {
+        if self.window.len() == WINDOW_RECORDS {
+            self.window.pop_front();
+        }
+        self.window.push_back(features);
+        self.window_seq = self.window_seq.wrapping_add(1);
+    }
+
+    /// Adds a tick to the batch for the recorders; a full batch leaves.
+    pub(super) fn add_tick(&mut self, msg: &protocol::ForceMsg, pose: Option<&Pose>) {
+        if self.batch.is_empty() {
+            self.batch_since = Instant::now();
+        }
+        let mut row = protocol::TickRow {
+            tick: msg.tick,
+            pose_seq: if pose.is_some() { msg.pose_seq } else { 0 }, // after a reset: none yet
+            flags: msg.flags,
+            force_n: msg.force_n,
+            guidance_n: msg.guidance_n,
+            ..Default::default()
+        };
+        if let Some(p) = pose {
+            let q = p.orientation.quaternion();
+            row.position_m = p.position_m.coords.into();
+            row.orientation_wxyz = [q.w, q.i, q.j, q.k];
+            row.spindle_rpm = p.spindle_rpm;
+        }
+        self.batch.push(&row);
+        if self.batch.len() >= TICKS_PER_BATCH {
+            self.publish_ticks();
+        }
+    }
+
+    /// Puts the newest force and pose on the view streams, if they are new and the last went
+    /// out at least 1 / [`VIEW_HZ`] ago.
+    pub(super) fn publish_view(&mut self, now: Instant) {
+        if now.saturating_duration_since(self.view_sent).as_secs_f64() * VIEW_HZ < 1.0 {
+            return;
+        }
+        let (force, pose_too) = (self.view_force.watched(), self.view_pose.watched());
+        if !force && !pose_too {
+            return; // no screen: the newest waits for one
+        }
+        let Some((msg, pose)) = self.view.take() else { return };
+        self.view_sent = now;
+        if force {
+            let _ = self.view_force.publisher.put(protocol::encode_force(&msg).to_vec()).wait();
+        }
+        if let (Some(pose), true) = (pose, pose_too) {
+            let m = protocol::PoseMsg { seq: msg.pose_seq, client_time_ns: msg.pose_client_time_ns, pose };
+            let _ = self.view_pose.publisher.put(protocol::encode_pose(&m).to_vec()).wait();
+        }
+    }
+
+    /// Publishes the batch of ticks, if it has any.
+    pub(super) fn publish_ticks(&mut self) {
+        if !self.batch.is_empty() {
+            let _ = self.ticks.put(self.batch.take()).wait();
+        }
+    }
+
+    /// Publishes the batch of ticks if its first is older than [`BATCH_MAX_AGE`] (a silent or
+    /// ended session's).
+    pub(super) fn publish_stale_ticks(&mut self) {
+        if !self.batch.is_empty() && self.batch_since.elapsed() >= BATCH_MAX_AGE {
+            self.publish_ticks();
+        }
+    }
+}
+
+/// Declares a session's force publisher (`key`: its `force` key): express, at real-time priority,
+/// dropped rather than queued.
+pub(super) fn declare_force(session: &zenoh::Session, key: String, generation: u32) -> Option<Arc<ForcePublisher>> {
+    let publisher = session
+        .declare_publisher(key)
+        .encoding(encoding("force"))
+        .congestion_control(CongestionControl::Drop)
+        .priority(Priority::RealTime)
+        .express(true)
+        .wait()
+        .ok()?;
+    Some(Arc::new(ForcePublisher { generation, publisher }))
+}
+
+/// One of a session's view streams: its publisher, and whether a subscriber in another Zenoh session
+/// (a screen) matches it, kept by Zenoh's matching listener. A stream nobody watches is not put
+/// (`docs/decisions/0025-view-streams.md`).
+struct ViewStream {
+    publisher: zenoh::pubsub::Publisher<'static>,
+    watched: Arc<AtomicBool>,
+}
+
+impl ViewStream {
+    /// Declares the stream on `key`: the newest, a frame's worth, dropped rather than queued, and
+    /// only for other sessions (the engine's own catch-all subscriber, which counts puts on
+    /// unknown keys, would otherwise always match it). `None` if Zenoh refuses the publisher.
+    fn declare(session: &zenoh::Session, key: String, encoding: Encoding) -> Option<Self> {
+        let publisher = session
+            .declare_publisher(key)
+            .encoding(encoding)
+            .congestion_control(CongestionControl::Drop)
+            .priority(Priority::DataLow)
+            .allowed_destination(Locality::Remote)
+            .wait()
+            .ok()?;
+        let watched = Arc::new(AtomicBool::new(false));
+        let flag = watched.clone();
+        let listening = publisher
+            .matching_listener()
+            .callback(move |status| flag.store(status.matching(), Ordering::Relaxed))
+            .background()
+            .wait()
+            .is_ok();
+        // Without a listener (it could not be declared), put always, as before; with one, also
+        // the status as it is now, in case the listener reports only changes.
+        let now = publisher.matching_status().wait().map_or(true, |m| m.matching());
+        watched.fetch_or(now || !listening, Ordering::Relaxed);
+        Some(Self { publisher, watched })
+    }
+
+    fn watched(&self) -> bool {
+        self.watched.load(Ordering::Relaxed)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::thread;
+
+    use super::*;
+
+    /// Waits up to 10 s for `done`.
+    fn wait_for(what: &str, done: impl Fn() -> bool) {
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while !done() {
+            assert!(Instant::now() < deadline, "waited 10 s for {what}");
+            thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    #[test]
+    fn a_view_stream_is_watched_only_while_another_session_subscribes_to_it() {
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let open = |side: &str| {
+            let conf = format!(
+                r#"{{"mode": "peer", "{side}": {{"endpoints": ["tcp/127.0.0.1:{port}"]}}, "scouting": {{"multicast": {{"enabled": false}}, "gossip": {{"enabled": false}}}}}}"#
+            );
+            zenoh::open(zenoh::Config::from_json5(&conf).unwrap()).wait().unwrap()
+        };
+        let server = open("listen");
+        // The engine's own catch-all subscriber (`control::declare`) is no screen.
+        server
+            .declare_subscriber("t/**")
+            .allowed_origin(Locality::Remote)
+            .callback(|_| {})
+            .background()
+            .wait()
+            .unwrap();
+        let view = ViewStream::declare(&server, "t/session/a/view/force".into(), encoding("force")).unwrap();
+        assert!(!view.watched(), "watched with no screen");
+        let screen = open("connect");
+        for _ in 0..2 {
+            let sub = screen.declare_subscriber("t/session/*/view/**").callback(|_| {}).wait().unwrap();
+            wait_for("the screen to be seen", || view.watched());
+            sub.undeclare().wait().unwrap();
+            wait_for("the screen's leaving to be seen", || !view.watched());
+        }
+    }
+}
