@@ -192,8 +192,11 @@ pub struct ForceMsg {
     pub breakthroughs: u16,
 }
 
-/// Encodes a force message.
+/// Encodes a force message. Inlined where it is called: every pose's thread encodes its force
+/// (`transport::comm::put_force`), so the call stays out of the 1 kHz path whatever module the
+/// caller is in.
 #[must_use]
+#[inline]
 pub fn encode_force(m: &ForceMsg) -> [u8; FORCE.size] {
     let mut buf = [0u8; FORCE.size];
     let mut w = Writer(&mut buf);
