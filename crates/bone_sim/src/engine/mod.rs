@@ -16,7 +16,7 @@
 //! Why: `docs/decisions/0023-tick-on-the-pose-thread.md`.
 //!
 //! When a slot ticks, locked to its client's poses, and how ticks without a pose run:
-//! [`schedule`].
+//! `engine/schedule.rs` (its items are re-exported here).
 //!
 //! A pose that cannot tick on its own thread (early, or its slot claimed) wakes the tick thread,
 //! and so does every command ([`CommandSender`]): the tick thread sleeps until the earliest time
@@ -25,7 +25,7 @@
 
 pub mod handoff;
 pub mod realtime;
-pub mod schedule;
+mod schedule;
 mod slot;
 pub mod stats;
 mod tick_thread;
@@ -573,8 +573,8 @@ impl TickCore {
         self.applied
     }
 
-    /// Applies waiting commands, then ticks every active slot that is due at `now` (see the
-    /// module docs). A slot another thread holds (a pose ticking it) is passed over and looked
+    /// Applies waiting commands, then ticks every active slot that is due at `now` (see
+    /// `engine/schedule.rs`). A slot another thread holds (a pose ticking it) is passed over and looked
     /// at again within [`CLAIM_RETRY`]. Returns the number of slot ticks and when to look again:
     /// when a waiting pose may tick, or [`HOLD_LOOK_PERIODS`] after a slot's next tick without a
     /// pose (at most [`IDLE_WAKE`] away: commands wake the thread).

@@ -79,7 +79,7 @@ pub const FAST_CLIENT_POSES_PER_TICK: f64 = 1.2;
 const POSE_RATE_WEIGHT: f64 = 0.02;
 /// Longest (in periods) a fresh pose waits for its slot's budget. Past it the slot is out of
 /// phase with its client, and it re-locks by waiting for the client's next pose (see
-/// [`TickCore::tick_due`]) instead of ticking every pose late while the 2 % catch up.
+/// [`SlotState::pose_tick`]) instead of ticking every pose late while the 2 % catch up.
 ///
 /// Why this value: `docs/decisions/0001-grace-period.md` and `docs/decisions/0006-relock-after-a-stall.md`.
 pub const MAX_POSE_WAIT_PERIODS: f64 = 0.5;
@@ -124,34 +124,6 @@ fn due_periods(streaming: bool) -> f64 {
 /// Periods from now until a slot ticks without a fresh pose (see [`due_periods`]).
 fn timer_until(streaming: bool, tokens: f64, elapsed: f64) -> f64 {
     due_periods(streaming) - (tokens + elapsed)
-}
-
-/// The record grid's period (ns): one record period of ticks.
-const RECORD_GRID_NS: u128 = TICK_PERIOD.as_nanos() * RECORD_PERIOD_TICKS as u128;
-
-/// Ticks from `now` to a session's first record, so that it falls on the engine's 100 ms record
-/// grid (which starts at `grid`): 1 to [`RECORD_PERIOD_TICKS`]. A session activated or reset at
-/// `now` ticks its first tick about then and one a period after, so every session's records, and
-/// with them its model queries, come within a tick or two of the others', and the model service
-/// answers them in one batched forward pass instead of one pass each. Why:
-/// `docs/decisions/0028-records-on-one-grid.md`.
-#[must_use]
-pub fn ticks_to_grid(grid: Instant, now: Instant) -> u64 {
-    let into = now.saturating_duration_since(grid).as_nanos() % RECORD_GRID_NS;
-    // The first tick is about now, tick k k - 1 periods later: the one nearest the next mark.
-    let tick_ns = TICK_PERIOD.as_nanos();
-    let periods_left = ((RECORD_GRID_NS - into + tick_ns / 2) / tick_ns) as u64 % RECORD_PERIOD_TICKS;
-    periods_left + 1
-}
-
-/// How far `now` is past the nearest mark of the record grid that starts at `grid` (ms, −50 to 50;
-/// negative: before it).
-#[must_use]
-pub fn off_grid_ms(grid: Instant, now: Instant) -> f64 {
-    let into = (now.saturating_duration_since(grid).as_nanos() % RECORD_GRID_NS) as f64;
-    let period = RECORD_GRID_NS as f64;
-    let past = if into * 2.0 < period { into } else { into - period };
-    past * 1e-6
 }
 
 /// `seconds` rounded up to whole microseconds (waking a hair early would find nothing due).
@@ -346,4 +318,32 @@ impl SlotState {
         sched.streaming = true;
         (true, look(timer_until(sched.streaming, clock.tokens, 0.0)))
     }
+}
+
+/// The record grid's period (ns): one record period of ticks.
+const RECORD_GRID_NS: u128 = TICK_PERIOD.as_nanos() * RECORD_PERIOD_TICKS as u128;
+
+/// Ticks from `now` to a session's first record, so that it falls on the engine's 100 ms record
+/// grid (which starts at `grid`): 1 to [`RECORD_PERIOD_TICKS`]. A session activated or reset at
+/// `now` ticks its first tick about then and one a period after, so every session's records, and
+/// with them its model queries, come within a tick or two of the others', and the model service
+/// answers them in one batched forward pass instead of one pass each. Why:
+/// `docs/decisions/0028-records-on-one-grid.md`.
+#[must_use]
+pub fn ticks_to_grid(grid: Instant, now: Instant) -> u64 {
+    let into = now.saturating_duration_since(grid).as_nanos() % RECORD_GRID_NS;
+    // The first tick is about now, tick k k - 1 periods later: the one nearest the next mark.
+    let tick_ns = TICK_PERIOD.as_nanos();
+    let periods_left = ((RECORD_GRID_NS - into + tick_ns / 2) / tick_ns) as u64 % RECORD_PERIOD_TICKS;
+    periods_left + 1
+}
+
+/// How far `now` is past the nearest mark of the record grid that starts at `grid` (ms, −50 to 50;
+/// negative: before it).
+#[must_use]
+pub fn off_grid_ms(grid: Instant, now: Instant) -> f64 {
+    let into = (now.saturating_duration_since(grid).as_nanos() % RECORD_GRID_NS) as f64;
+    let period = RECORD_GRID_NS as f64;
+    let past = if into * 2.0 < period { into } else { into - period };
+    past * 1e-6
 }

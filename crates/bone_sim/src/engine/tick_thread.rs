@@ -1,6 +1,5 @@
 //! The tick thread: runs a [`TickCore`] on its own thread, sleeping (or spinning) until the
-//! next slot is due, or a pose or a command wakes it (see the schedule in the module docs of
-//! [`crate::engine`]).
+//! next slot is due, or a pose or a command wakes it (when a slot is due: `engine/schedule.rs`).
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -19,7 +18,7 @@ pub struct TickThread {
 }
 
 impl TickThread {
-    /// Starts ticking `core` (see the module docs for the schedule); `notify` is unparked after
+    /// Starts ticking `core` (see `engine/schedule.rs` for when a slot is due); `notify` is unparked after
     /// every wake-up that ticked a slot or applied a command (the comm thread, so outputs leave
     /// without polling delay). The core's [`TickWaker`] wakes it: every command pushed does, and a
     /// pose its own thread could not tick should (`PoseTicker::wake_tick_thread`). With

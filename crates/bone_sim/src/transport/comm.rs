@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 use zenoh::Wait;
 
 use super::history::sample;
-use super::model_query::{model_window, ModelQueries};
-use super::outlet::{declare_force, Outlet};
+use super::model_query::ModelQueries;
+use super::outlet::Outlet;
 use super::registry::ForcePublisher;
 use super::{lock, Shared, ZENOH_IO_THREADS};
 use crate::engine::handoff::Output;
@@ -36,10 +36,10 @@ struct Comm {
 
 impl Comm {
     /// The outlet of the session in `slot` as of `generation`, declared on its first output;
-    /// `None` if the slot has moved on (or Zenoh refused a publisher).
+    /// `None` if the slot has moved on, holds no session, or Zenoh refused a publisher.
     fn outlet(&mut self, slot: u16, generation: u32) -> Option<&mut Outlet> {
         let i = slot as usize;
-        let stale = self.outlets[i].as_ref().is_none_or(|o| o.generation != generation);
+        let stale = self.outlets[i].as_ref().is_none_or(|o| o.generation() != generation);
         if stale {
             if let Some(mut old) = self.outlets[i].take() {
                 old.publish_ticks();
@@ -53,7 +53,7 @@ impl Comm {
                 info.id.clone()?
             };
             let key = |leaf: &str| format!("{}/session/{id}/{leaf}", self.shared.prefix);
-            let force = declare_force(&self.session, key("force"), generation)?;
+            let force = Outlet::declare_force(&self.session, key("force"), generation)?;
             // From now on the session's poses put their own forces (if they tick it).
             match lock(&self.shared.registry).slots.get_mut(i) {
                 Some(info) if info.generation == generation => info.force = Some(force.clone()),
@@ -70,12 +70,10 @@ impl Comm {
             Output::Force { slot, generation, msg, pose, received, order, published } => {
                 let shared = self.shared.clone();
                 if let Some(o) = self.outlet(slot, generation) {
-                    o.pose_time_ns = msg.pose_client_time_ns;
                     if !published {
-                        put_force(&shared, &o.force, slot, &msg, received, order);
+                        put_force(&shared, o.force(), slot, &msg, received, order);
                     }
-                    o.add_tick(&msg, pose.as_ref());
-                    o.view = Some((msg, pose));
+                    o.add_force(msg, pose);
                 } else {
                     // Of a session that ended: let go, so that the slot's next forces may leave
                     // from their poses' threads.
@@ -87,9 +85,7 @@ impl Comm {
             }
             Output::State { slot, generation, record, msg } => {
                 let Some(o) = self.outlet(slot, generation) else { return };
-                let _ = o.state.put(protocol::encode_state(&msg).to_vec()).wait();
-                o.add_record(record.features.map(|x| x as f32));
-                let (window_seq, pose_time_ns, window) = (o.window_seq, o.pose_time_ns, model_window(&o.window));
+                let (window, window_seq, pose_time_ns) = o.add_state(&msg, record.features.map(|x| x as f32));
                 if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
                     if info.generation == generation {
                         info.metrics.add_state(&msg, &info.path);
@@ -99,7 +95,7 @@ impl Comm {
             }
             Output::Guidance { slot, generation, msg } => {
                 if let Some(o) = self.outlet(slot, generation) {
-                    let _ = o.guidance.put(protocol::encode_guidance(&msg).to_vec()).wait();
+                    o.publish_guidance(&msg);
                 }
                 if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
                     if info.generation == generation {
@@ -144,7 +140,7 @@ impl Comm {
                 std::hint::spin_loop();
             } else {
                 // A tick unparks this thread when it queued output to publish; a burst's query
-                // leaves at most BURST_WAIT after its first window.
+                // leaves at most `model_query::BURST_WAIT` after its first window.
                 let nap = self.model.deadline().map_or(IDLE_WAKE, |due| due.saturating_duration_since(Instant::now()));
                 thread::park_timeout(nap);
             }
@@ -185,6 +181,7 @@ fn drain_forces_first(outputs: &OutputQueue, later: &mut VecDeque<Output>, mut h
         handle(out);
     }
 }
+
 /// Puts a session's force (from the comm thread, or from the thread its pose arrived on), unless
 /// a newer force of the slot is already out (`order`: the slot's tick count), and records the
 /// pose → put time.
@@ -230,6 +227,7 @@ pub(crate) fn spawn(
 mod tests {
     use super::*;
     use crate::protocol::ForceMsg;
+
     fn force(slot: u16) -> Output {
         Output::Force {
             slot,

@@ -1,7 +1,7 @@
 //! The engine on Zenoh: its own Zenoh session, subscribers and queryables whose callbacks hand
 //! data to the tick thread through the lock-free [`crate::engine::handoff`]
-//! structures, and a comm thread ([`comm`]) that owns each session's publishers ([`outlet`]) and
-//! sends the model queries ([`model_query`]).
+//! structures, and a comm thread (`comm`) that owns each session's publishers (`outlet`), sends the
+//! model queries (`model_query`) and keeps the health report's per-second history (`history`).
 //!
 //! Key expressions (under a configurable prefix, `dhg` by default; payloads in
 //! `docs/protocol.md`):
@@ -270,6 +270,11 @@ pub struct Shared {
     pub(crate) started: Instant,
     /// The pristine bone, for the planned layers a session's info reports.
     pub(crate) volume: Arc<Volume>,
+}
+
+/// A payload's encoding: bytes, with the layout's name and protocol version as its schema.
+pub(crate) fn encoding(name: &str) -> zenoh::bytes::Encoding {
+    zenoh::bytes::Encoding::APPLICATION_OCTET_STREAM.with_schema(format!("dhg.{name}.v{}", crate::protocol::VERSION))
 }
 
 /// Locks a mutex, recovering the data if a panicking thread poisoned it (every update here keeps

@@ -4,7 +4,6 @@
 //! thread; replies come on Zenoh's threads. Why one query a burst:
 //! `docs/decisions/0032-one-query-a-burst.md`.
 
-use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -13,9 +12,8 @@ use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::sample::SampleKind;
 use zenoh::Wait;
 
-use super::outlet::encoding;
 use super::pool::Outcome;
-use super::{lock, Shared};
+use super::{encoding, lock, Shared};
 use crate::engine::handoff::Command;
 use crate::engine::{GRACE_PERIODS, HOLD_LOOK_PERIODS, TICK_PERIOD};
 use crate::error::{SimError, SimResult};
@@ -32,7 +30,7 @@ const LATENCIES_KEPT: usize = 2000;
 /// and, for a session whose record falls on a tick without a pose, that tick's grace and the
 /// tick thread's late look for it (decision 0034): 6 ms. With 2 ms, 16 clients on 2 cores sent
 /// 1.4–1.5 queries a grid mark, and the model as many forward passes (decision 0035).
-pub(crate) const BURST_WAIT: Duration =
+const BURST_WAIT: Duration =
     Duration::from_micros(((1.0 + GRACE_PERIODS + HOLD_LOOK_PERIODS) * TICK_PERIOD.as_micros() as f64) as u64);
 const _: () = assert!(MAX_QUERY_WINDOWS <= 64, "a query's answered windows are bits of a u64");
 
@@ -235,20 +233,6 @@ impl ModelQueries {
     }
 }
 
-/// The model's input from a session's last records (oldest first, at least one): the last
-/// `WINDOW_RECORDS`; until that many exist, padded at the front with copies of the first record
-/// (`docs/protocol.md`, predict).
-pub(super) fn model_window(records: &VecDeque<[f32; FEATURE_COUNT]>) -> [[f32; FEATURE_COUNT]; WINDOW_RECORDS] {
-    let mut window = [[0f32; FEATURE_COUNT]; WINDOW_RECORDS];
-    let n = records.len().min(WINDOW_RECORDS);
-    let skip = records.len() - n;
-    let pad = WINDOW_RECORDS - n;
-    for (r, row) in window.iter_mut().enumerate() {
-        *row = records[skip + r.saturating_sub(pad)];
-    }
-    window
-}
-
 /// Whether window sequence number `a` comes after `b` (they wrap at 2³²).
 fn seq_after(a: u32, b: u32) -> bool {
     (a.wrapping_sub(b) as i32) > 0
@@ -377,26 +361,6 @@ fn follow_workers(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResult<(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn record(k: usize) -> [f32; FEATURE_COUNT] {
-        [k as f32; FEATURE_COUNT]
-    }
-
-    #[test]
-    fn the_model_window_is_the_last_records_padded_at_the_front_with_the_first() {
-        let first: Vec<f32> = model_window(&VecDeque::from([record(7)])).iter().map(|r| r[0]).collect();
-        assert_eq!(first, vec![7.0; WINDOW_RECORDS]);
-        let three: VecDeque<_> = (1..=3).map(record).collect();
-        let w = model_window(&three);
-        let col: Vec<f32> = w.iter().map(|r| r[0]).collect();
-        let mut expected = vec![1.0; WINDOW_RECORDS - 3];
-        expected.extend([1.0, 2.0, 3.0]);
-        assert_eq!(col, expected);
-        let full: VecDeque<_> = (1..=WINDOW_RECORDS + 5).map(record).collect();
-        let col: Vec<f32> = model_window(&full).iter().map(|r| r[8]).collect();
-        let expected: Vec<f32> = (6..=WINDOW_RECORDS + 5).map(|k| k as f32).collect();
-        assert_eq!(col, expected, "the newest WINDOW_RECORDS, oldest first");
-    }
 
     fn asked(slot: u16, window_seq: u32) -> Asked {
         Asked { slot, generation: 1, window_seq, pose_time_ns: 0, at: Instant::now() }

@@ -12,6 +12,7 @@ use zenoh::sample::Locality;
 use zenoh::Wait;
 use zenoh_ext::{AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
 
+use super::encoding;
 use super::registry::ForcePublisher;
 use crate::protocol::{self, TickBatch, WINDOW_RECORDS};
 use crate::record::{FEATURE_COUNT, RECORD_PERIOD_TICKS};
@@ -37,36 +38,47 @@ const BATCH_MAX_AGE: Duration = Duration::from_millis(200);
 /// recorder notices a lost last sample too.
 const RECORDED_HEARTBEAT: Duration = Duration::from_millis(500);
 
-/// A payload's encoding: bytes, with the layout's name and protocol version as its schema.
-pub(super) fn encoding(name: &str) -> Encoding {
-    Encoding::APPLICATION_OCTET_STREAM.with_schema(format!("dhg.{name}.v{}", protocol::VERSION))
-}
-
 /// A session's publishers and model window.
 pub(super) struct Outlet {
-    pub(super) generation: u32,
-    pub(super) force: Arc<ForcePublisher>,
-    pub(super) guidance: AdvancedPublisher<'static>,
-    pub(super) state: AdvancedPublisher<'static>,
+    generation: u32,
+    force: Arc<ForcePublisher>,
+    guidance: AdvancedPublisher<'static>,
+    state: AdvancedPublisher<'static>,
     ticks: AdvancedPublisher<'static>,
     /// The ticks since the last batch was published, and when its first arrived.
     batch: TickBatch,
     batch_since: Instant,
     /// The session's last [`WINDOW_RECORDS`] records (the model's window, oldest first), the
     /// newest's number, and the client time of the pose its last force used.
-    pub(super) window: VecDeque<[f32; FEATURE_COUNT]>,
-    pub(super) window_seq: u32,
-    pub(super) pose_time_ns: u64,
+    window: VecDeque<[f32; FEATURE_COUNT]>,
+    window_seq: u32,
+    pose_time_ns: u64,
     /// The screens' streams (`view/force`, `view/pose`): the newest force and pose at most
     /// [`VIEW_HZ`] times a second.
     view_force: ViewStream,
     view_pose: ViewStream,
     /// The newest force and the pose it used, not yet on the view streams.
-    pub(super) view: Option<(protocol::ForceMsg, Option<Pose>)>,
+    view: Option<(protocol::ForceMsg, Option<Pose>)>,
     view_sent: Instant,
 }
 
 impl Outlet {
+    /// Declares a session's force publisher (`key`: its `force` key): express, at real-time
+    /// priority, dropped rather than queued. The comm thread declares it before the outlet
+    /// and hands it to the registry at once: from then on the session's poses put their own
+    /// forces, while the outlet's other publishers are declared.
+    pub(super) fn declare_force(session: &zenoh::Session, key: String, generation: u32) -> Option<Arc<ForcePublisher>> {
+        let publisher = session
+            .declare_publisher(key)
+            .encoding(encoding("force"))
+            .congestion_control(CongestionControl::Drop)
+            .priority(Priority::RealTime)
+            .express(true)
+            .wait()
+            .ok()?;
+        Some(Arc::new(ForcePublisher { generation, publisher }))
+    }
+
     /// Declares a session's publishers but the force's (`key` gives a leaf's key): the recorded
     /// streams and the screens' copies. `None` if Zenoh refuses one.
     pub(super) fn declare(
@@ -112,17 +124,48 @@ impl Outlet {
         })
     }
 
-    /// Adds a session's newest record to its model window (the last [`WINDOW_RECORDS`]).
-    pub(super) fn add_record(&mut self, features: [f32; FEATURE_COUNT]) {
+    /// The session generation whose outlet this is.
+    pub(super) fn generation(&self) -> u32 {
+        self.generation
+    }
+
+    /// The session's force publisher (a pose's thread puts with it too).
+    pub(super) fn force(&self) -> &ForcePublisher {
+        &self.force
+    }
+
+    /// Takes a tick's force (and the pose it used): into the recorders' batch, and the newest for
+    /// the view streams.
+    pub(super) fn add_force(&mut self, msg: protocol::ForceMsg, pose: Option<Pose>) {
+        self.pose_time_ns = msg.pose_client_time_ns;
+        self.add_tick(&msg, pose.as_ref());
+        self.view = Some((msg, pose));
+    }
+
+    /// Publishes a 10 Hz state and adds its record to the model window (the last
+    /// [`WINDOW_RECORDS`]). Returns what the model is asked: the window (oldest first, see
+    /// [`model_window`]), its number and the client time of the pose the session's last force used.
+    pub(super) fn add_state(
+        &mut self,
+        msg: &protocol::StateMsg,
+        features: [f32; FEATURE_COUNT],
+    ) -> ([[f32; FEATURE_COUNT]; WINDOW_RECORDS], u32, u64) {
+        let _ = self.state.put(protocol::encode_state(msg).to_vec()).wait();
         if self.window.len() == WINDOW_RECORDS {
             self.window.pop_front();
         }
         self.window.push_back(features);
         self.window_seq = self.window_seq.wrapping_add(1);
+        (model_window(&self.window), self.window_seq, self.pose_time_ns)
+    }
+
+    /// Publishes a 10 Hz guidance message.
+    pub(super) fn publish_guidance(&mut self, msg: &protocol::GuidanceMsg) {
+        let _ = self.guidance.put(protocol::encode_guidance(msg).to_vec()).wait();
     }
 
     /// Adds a tick to the batch for the recorders; a full batch leaves.
-    pub(super) fn add_tick(&mut self, msg: &protocol::ForceMsg, pose: Option<&Pose>) {
+    fn add_tick(&mut self, msg: &protocol::ForceMsg, pose: Option<&Pose>) {
         if self.batch.is_empty() {
             self.batch_since = Instant::now();
         }
@@ -183,20 +226,6 @@ impl Outlet {
     }
 }
 
-/// Declares a session's force publisher (`key`: its `force` key): express, at real-time priority,
-/// dropped rather than queued.
-pub(super) fn declare_force(session: &zenoh::Session, key: String, generation: u32) -> Option<Arc<ForcePublisher>> {
-    let publisher = session
-        .declare_publisher(key)
-        .encoding(encoding("force"))
-        .congestion_control(CongestionControl::Drop)
-        .priority(Priority::RealTime)
-        .express(true)
-        .wait()
-        .ok()?;
-    Some(Arc::new(ForcePublisher { generation, publisher }))
-}
-
 /// One of a session's view streams: its publisher, and whether a subscriber in another Zenoh session
 /// (a screen) matches it, kept by Zenoh's matching listener. A stream nobody watches is not put
 /// (`docs/decisions/0025-view-streams.md`).
@@ -238,11 +267,29 @@ impl ViewStream {
     }
 }
 
+/// The model's input from a session's last records (oldest first, at least one): the last
+/// `WINDOW_RECORDS`; until that many exist, padded at the front with copies of the first record
+/// (`docs/protocol.md`, predict).
+fn model_window(records: &VecDeque<[f32; FEATURE_COUNT]>) -> [[f32; FEATURE_COUNT]; WINDOW_RECORDS] {
+    let mut window = [[0f32; FEATURE_COUNT]; WINDOW_RECORDS];
+    let n = records.len().min(WINDOW_RECORDS);
+    let skip = records.len() - n;
+    let pad = WINDOW_RECORDS - n;
+    for (r, row) in window.iter_mut().enumerate() {
+        *row = records[skip + r.saturating_sub(pad)];
+    }
+    window
+}
+
 #[cfg(test)]
 mod tests {
     use std::thread;
 
     use super::*;
+
+    fn record(k: usize) -> [f32; FEATURE_COUNT] {
+        [k as f32; FEATURE_COUNT]
+    }
 
     /// Waits up to 10 s for `done`.
     fn wait_for(what: &str, done: impl Fn() -> bool) {
@@ -280,5 +327,21 @@ mod tests {
             sub.undeclare().wait().unwrap();
             wait_for("the screen's leaving to be seen", || !view.watched());
         }
+    }
+
+    #[test]
+    fn the_model_window_is_the_last_records_padded_at_the_front_with_the_first() {
+        let first: Vec<f32> = model_window(&VecDeque::from([record(7)])).iter().map(|r| r[0]).collect();
+        assert_eq!(first, vec![7.0; WINDOW_RECORDS]);
+        let three: VecDeque<_> = (1..=3).map(record).collect();
+        let w = model_window(&three);
+        let col: Vec<f32> = w.iter().map(|r| r[0]).collect();
+        let mut expected = vec![1.0; WINDOW_RECORDS - 3];
+        expected.extend([1.0, 2.0, 3.0]);
+        assert_eq!(col, expected);
+        let full: VecDeque<_> = (1..=WINDOW_RECORDS + 5).map(record).collect();
+        let col: Vec<f32> = model_window(&full).iter().map(|r| r[8]).collect();
+        let expected: Vec<f32> = (6..=WINDOW_RECORDS + 5).map(|k| k as f32).collect();
+        assert_eq!(col, expected, "the newest WINDOW_RECORDS, oldest first");
     }
 }
