@@ -20,6 +20,7 @@ __all__ = [
     "PageWatcher",
     "canvas_pixels",
     "chromium",
+    "dismiss_notifications",
     "drawn_canvas",
     "find_chromium",
     "screenshot_session",
@@ -177,6 +178,24 @@ def drawn_canvas(driver: Any, share: float = 0.02) -> np.ndarray | None:
     return px if float(np.mean(np.any(px < 235, axis=2))) > share else None
 
 
+_NOTIFICATIONS_JS = """
+const open = () => Array.from(document.querySelectorAll('.mantine-Notification-root'));
+for (const n of open()) {
+    const close = n.querySelector('.mantine-Notification-closeButton, button');
+    if (close) close.click();
+}
+return open().length;
+"""
+
+
+def dismiss_notifications(driver: Any, timeout_s: float = 5.0) -> None:
+    """Closes the notifications the page's client raises by itself, as a person does once they have
+    read them: viser warns, for one, that WebGL is drawn in software (a lab PC without a GPU, and
+    this module's Chromium), over the top left of the scene. Waits up to ``timeout_s`` for them to
+    go; raises :class:`TimeoutError` if one stays."""
+    wait_for(lambda: driver.execute_script(_NOTIFICATIONS_JS) == 0, timeout_s, "the page's notifications closed")
+
+
 def screenshot_session(instructor_url: str, session_id: str, out: str | Path, timeout_s: float = 120.0) -> Path:
     """Opens the instructor's page, follows its link to ``session_id``'s page as a person would,
     waits for the bone and the numbers, and saves a screenshot of the whole page to ``out``."""
@@ -193,5 +212,9 @@ def screenshot_session(instructor_url: str, session_id: str, out: str | Path, ti
         driver.get(link)
         wait_for(lambda: drawn_canvas(driver), timeout_s, "the bone drawn")
         wait_for(lambda: driver.find_elements(By.ID, "dhg-removed"), timeout_s, "the numbers")
+        try:
+            dismiss_notifications(driver)
+        except TimeoutError:
+            pass  # the picture with a notice over its corner is still the picture
         driver.save_screenshot(str(out))
     return out
