@@ -81,14 +81,15 @@ def test_the_trainee_page_draws_the_bone_follows_the_drill_and_shows_xrays(serve
         try:
             hand.move(np.array([a - d * 3e-3]))  # outside the bone, before A
             browser.get(viewer.url)
-            start = wait_for(lambda: drawn_canvas(browser), 90, "the bone drawn on the canvas")
-            wait_for(lambda: browser.find_elements(By.ID, "dhg-removed"), 60, "the numbers panel")
             # viser's notice that WebGL draws in software (SwiftShader here) covers the scene's
-            # corner; the screenshots close it, as a person would.
+            # corner; it is closed, as a person would, before the first picture of the canvas
+            # (which the drilled one is compared with).
             notices = "return document.querySelectorAll('.mantine-Notification-root').length"
-            wait_for(lambda: browser.execute_script(notices), 30, "viser's software-WebGL notice")
+            wait_for(lambda: browser.execute_script(notices), 90, "viser's software-WebGL notice")
             dismiss_notifications(browser, timeout_s=30)
             assert browser.execute_script(notices) == 0
+            start = wait_for(lambda: drawn_canvas(browser), 90, "the bone drawn on the canvas")
+            wait_for(lambda: browser.find_elements(By.ID, "dhg-removed"), 60, "the numbers panel")
             _do("the canvas before", lambda: canvas_pixels(browser, shots / "trainee-before.png"))
             removed_before = _number(browser, "dhg-removed")
             depth_before = _number(browser, "dhg-depth")
