@@ -272,3 +272,89 @@ def test_sessions_started_apart_share_the_models_forward_passes():
         for c in clients:
             c.close()
         assert proc.stop() == 0
+
+
+def test_a_reset_starts_the_models_windows_afresh_and_its_late_replies_are_not_applied():
+    """After a ``reset`` the model is asked about the new attempt alone, as it was trained (no
+    training window straddles two episodes) and as the offline studies ask it: the new attempt's
+    first windows are padded with its own first record, never filled with the records of the
+    attempt before. A reply that comes after the reset for a window of the attempt before (here
+    held back and answered with a force the worker gives no other window) is not applied, is
+    counted as ignored, and does not count against the worker, which answered in time."""
+    proc, endpoint = serve("--role", "sim", "--idle-timeout", "600")
+    z = _peer(endpoint)
+    lock = threading.Lock()
+    windows: list[tuple[int, np.ndarray]] = []  # (window_seq, window) of every query, in order
+    held: list = []  # queries held back, not yet answered
+    holding = threading.Event()
+    fresh_n, stale_n = (0.0, 0.0, 0.5), (0.0, 0.0, 2.0)
+
+    def answer(q, force_n) -> None:
+        seqs, _ = protocol.decode_predict(q.payload.to_bytes())
+        reply = b"".join(protocol.encode_prediction(int(s), force_n, 0.001, "w", entry=i) for i, s in enumerate(seqs))
+        q.reply(q.key_expr, reply)
+        q.drop()
+
+    def on_query(q) -> None:
+        seqs, ws = protocol.decode_predict(q.payload.to_bytes())
+        with lock:
+            windows.extend(zip((int(s) for s in seqs), ws, strict=True))
+            if holding.is_set():
+                held.append(q)
+                return
+        answer(q, fresh_n)
+
+    queryable = z.declare_queryable("dhg/model/workers/w1/predict", on_query, complete=True)
+    token = z.liveliness().declare_token("dhg/model/workers/w1")
+    stylus = None
+    try:
+        with TraineeClient(endpoint, "reset-windows") as c:
+            wait_until(lambda: set(_workers(c)) == {"w1"}, 20.0, "the worker in the pool")
+            a, d, q = entry(c)
+            stylus = Stylus(c, q)
+            stylus.move(a + d * np.linspace(-3e-3, 4e-3, 3000)[:, None])  # 3 s into the cortex
+            wait_until(lambda: stylus.idle() and len(c.states) >= 25, 30.0, "an attempt of 25 records")
+            holding.set()
+            wait_until(lambda: len(held) >= 1, 5.0, "a query of the attempt held back")
+            with lock:  # every query held so far asked about the attempt before the reset
+                stale = list(held)
+                held.clear()
+                holding.clear()
+            n_before = len(c.states)
+            ignored0 = c.health(1.0)["model"]["ignored"]
+            c.control("reset")
+            for sq in stale:  # answered now, after the reset, within the query's 0.25 s
+                answer(sq, stale_n)
+            # The new attempt: the stylus drawn back out of the bone, slowly (its records differ).
+            stylus.move(a - d * np.linspace(2e-3, 6e-3, 1500)[:, None])
+            wait_until(lambda: any(s["record_seq"] >= 6 for s in list(c.states)[n_before:]), 30.0, "6 new records")
+            after = list(c.states)[n_before:]
+            first = next(i for i, s in enumerate(after) if s["record_seq"] == 1)
+            new = after[first : first + 6]
+            wait_until(lambda: _workers(c)["w1"]["in_flight"] == 0, 5.0, "no query in flight")
+            guidance = list(c.guidance)
+            health = c.health(1.0)["model"]
+            worker = _workers(c)["w1"]
+            stylus.stop()  # before its client closes
+    finally:
+        if stylus is not None:
+            stylus.stop()
+        token.undeclare()
+        queryable.undeclare()
+        z.close()
+        assert proc.stop() == 0
+    assert [s["record_seq"] for s in new] == [1, 2, 3, 4, 5, 6], [s["record_seq"] for s in after]
+    feats = [np.asarray(s["features"], np.float32) for s in new]
+    with lock:
+        asked = list(windows)
+    for k in range(1, 7):  # the window of the new attempt's k-th record
+        found = [w for _, w in asked if np.array_equal(w[-1], feats[k - 1])]
+        assert found, f"no window ends with the new attempt's record {k}"
+        expected = np.stack([feats[0]] * (protocol.WINDOW_RECORDS - k) + feats[:k])
+        for w in found:
+            np.testing.assert_array_equal(w, expected, err_msg=f"record {k}'s window reaches into the attempt before")
+    predicted = np.array([g["predicted_force_n"] for g in guidance])
+    assert np.any(np.isclose(predicted[:, 2], fresh_n[2])), "no prediction applied at all"
+    assert not np.any(np.isclose(predicted[:, 2], stale_n[2])), "a reply to the attempt before was applied"
+    assert health["ignored"] - ignored0 >= len(stale), (health, len(stale))
+    assert worker["failed"] == 0 and worker["left_out"] is False, worker

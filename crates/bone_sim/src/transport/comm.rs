@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 use zenoh::Wait;
 
 use super::history::sample;
+use super::metrics::SessionMetrics;
 use super::model_query::ModelQueries;
 use super::outlet::Outlet;
 use super::registry::ForcePublisher;
@@ -85,13 +86,20 @@ impl Comm {
             }
             Output::State { slot, generation, record, msg } => {
                 let Some(o) = self.outlet(slot, generation) else { return };
-                let (window, window_seq, pose_time_ns) = o.add_state(&msg, record.features.map(|x| x as f32));
+                let (asked, pose_time_ns) = o.add_state(&msg, record.features.map(|x| x as f32));
                 if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
                     if info.generation == generation {
+                        if asked.first_of_attempt {
+                            // The attempt's own from here: a record of the one before that came
+                            // after the reset leaves its metrics, and replies to its windows
+                            // are not applied.
+                            info.metrics = SessionMetrics::default();
+                            info.attempt_first_window = Some(asked.seq);
+                        }
                         info.metrics.add_state(&msg, &info.path);
                     }
                 }
-                self.model.ask(slot, generation, window_seq, pose_time_ns, &window);
+                self.model.ask(slot, generation, asked.seq, pose_time_ns, &asked.window);
             }
             Output::Guidance { slot, generation, msg } => {
                 if let Some(o) = self.outlet(slot, generation) {

@@ -347,6 +347,8 @@ fn reset(reg: &mut super::registry::Registry, slot: u16) -> SimResult<()> {
         _ => None,
     };
     info.metrics = super::metrics::SessionMetrics::default();
+    // Until the new attempt's first record, any reply is to a window of the attempt that ended.
+    info.attempt_first_window = None;
     match next_gain {
         Some(gain) => set_guidance(reg, slot, None, Some(gain)),
         None => Ok(()),

@@ -175,6 +175,9 @@ impl ModelQueries {
                 let Some(info) = reg.slots.get_mut(usize::from(a.slot)).filter(|i| i.generation == a.generation) else {
                     return Verdict::Gone;
                 };
+                if info.attempt_first_window.is_none_or(|first| seq_after(first, a.window_seq)) {
+                    return Verdict::Retired;
+                }
                 if info.applied_window_seq.is_some_and(|newest| !seq_after(a.window_seq, newest)) {
                     return Verdict::Older;
                 }
@@ -247,6 +250,9 @@ enum Verdict {
     Older,
     /// Not applied: its session ended (or the engine could not take it).
     Gone,
+    /// Not applied: its window is of an attempt its session has ended (a reset). The worker
+    /// answered in time, so the query counts as answered for it.
+    Retired,
 }
 
 /// What one reply held, beyond the predictions applied.
@@ -255,8 +261,8 @@ struct Tally {
     /// Predictions refused by the decoder (the first ends the reply), for a window the query does
     /// not have, or with another window's `window_seq`.
     errors: u64,
-    /// Valid predictions not applied: a second one for a window, or one for a window older than
-    /// its session's newest applied.
+    /// Valid predictions not applied: a second one for a window, one for a window older than its
+    /// session's newest applied, or one for a window of an attempt its session has ended.
     ignored: u64,
     /// The model id of the last prediction taken.
     model_id: Option<String>,
@@ -268,7 +274,8 @@ struct Answers {
     asked: Vec<Asked>,
     /// Bit `entry` of each window a valid prediction came for.
     answered: AtomicU64,
-    /// Bit `entry` of each window whose prediction was applied.
+    /// Bit `entry` of each window whose prediction was applied, or came in time for a window of
+    /// an attempt that has ended since ([`Verdict::Retired`]).
     applied: AtomicU64,
 }
 
@@ -297,6 +304,10 @@ impl Answers {
                     self.applied.fetch_or(bit, Ordering::AcqRel);
                 }
                 Verdict::Older => tally.ignored += 1,
+                Verdict::Retired => {
+                    self.applied.fetch_or(bit, Ordering::AcqRel);
+                    tally.ignored += 1;
+                }
                 Verdict::Gone => {}
             }
             tally.model_id = Some(p.model_id);
@@ -412,6 +423,11 @@ mod tests {
         let answers = Answers::new(vec![asked(0, 1)]);
         let t = answers.take(&prediction(0, 1, 1.0), |_, _| Verdict::Older);
         assert_eq!((t.ignored, answers.outcome()), (1, (Outcome::Failed, 0)));
+        // In time, but for an attempt its session has ended since (a reset): not applied,
+        // ignored, and the worker answered.
+        let answers = Answers::new(vec![asked(0, 1)]);
+        let t = answers.take(&prediction(0, 1, 1.0), |_, _| Verdict::Retired);
+        assert_eq!((t.ignored, answers.outcome()), (1, (Outcome::Answered, 0)));
         // A refused prediction ends the reply; nothing after it is read.
         let answers = Answers::new(vec![asked(0, 1), asked(1, 2)]);
         let mut bad = prediction(0, 1, f32::NAN);

@@ -48,10 +48,9 @@ pub(super) struct Outlet {
     /// The ticks since the last batch was published, and when its first arrived.
     batch: TickBatch,
     batch_since: Instant,
-    /// The session's last [`WINDOW_RECORDS`] records (the model's window, oldest first), the
-    /// newest's number, and the client time of the pose its last force used.
-    window: VecDeque<[f32; FEATURE_COUNT]>,
-    window_seq: u32,
+    /// The model's window of the session's records, and the client time of the pose its last
+    /// force used.
+    window: ModelWindow,
     pose_time_ns: u64,
     /// The screens' streams (`view/force`, `view/pose`): the newest force and pose at most
     /// [`VIEW_HZ`] times a second.
@@ -114,8 +113,7 @@ impl Outlet {
             ticks: recorded("ticks", TICKS_HISTORY)?,
             batch: TickBatch::with_capacity(TICKS_PER_BATCH),
             batch_since: Instant::now(),
-            window: VecDeque::with_capacity(WINDOW_RECORDS),
-            window_seq: 0,
+            window: ModelWindow::default(),
             pose_time_ns: 0,
             view_force: view("view/force")?,
             view_pose: view("view/pose")?,
@@ -142,21 +140,12 @@ impl Outlet {
         self.view = Some((msg, pose));
     }
 
-    /// Publishes a 10 Hz state and adds its record to the model window (the last
-    /// [`WINDOW_RECORDS`]). Returns what the model is asked: the window (oldest first, see
-    /// [`model_window`]), its number and the client time of the pose the session's last force used.
-    pub(super) fn add_state(
-        &mut self,
-        msg: &protocol::StateMsg,
-        features: [f32; FEATURE_COUNT],
-    ) -> ([[f32; FEATURE_COUNT]; WINDOW_RECORDS], u32, u64) {
+    /// Publishes a 10 Hz state and adds its record to the model window (see [`ModelWindow`]).
+    /// Returns what the model is asked and the client time of the pose the session's last force
+    /// used.
+    pub(super) fn add_state(&mut self, msg: &protocol::StateMsg, features: [f32; FEATURE_COUNT]) -> (Windowed, u64) {
         let _ = self.state.put(protocol::encode_state(msg).to_vec()).wait();
-        if self.window.len() == WINDOW_RECORDS {
-            self.window.pop_front();
-        }
-        self.window.push_back(features);
-        self.window_seq = self.window_seq.wrapping_add(1);
-        (model_window(&self.window), self.window_seq, self.pose_time_ns)
+        (self.window.push(msg.record_seq, features), self.pose_time_ns)
     }
 
     /// Publishes a 10 Hz guidance message.
@@ -267,6 +256,51 @@ impl ViewStream {
     }
 }
 
+/// The records of a session's current attempt that the model is asked about: the newest
+/// [`WINDOW_RECORDS`], numbered across attempts. A window never reaches back into the attempt
+/// before a reset, as no training window straddles two episodes and the offline studies pad each
+/// attempt's first windows with its own first record (`dhg.operators.episodes.drill_episode`).
+#[derive(Debug, Default)]
+pub(super) struct ModelWindow {
+    records: VecDeque<[f32; FEATURE_COUNT]>,
+    /// The newest window's number (per session, wrapping; never restarts, so replies can be told
+    /// apart across attempts).
+    seq: u32,
+    /// The `record_seq` of the newest record (0: none yet).
+    record_seq: u32,
+}
+
+/// A window for the model (see [`ModelWindow::push`]).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Windowed {
+    /// The records, oldest first (see [`model_window`]).
+    pub window: [[f32; FEATURE_COUNT]; WINDOW_RECORDS],
+    /// Its number.
+    pub seq: u32,
+    /// Whether its record is the first its attempt gave here: `record_seq` 1, or, should the
+    /// first have been lost on the way, any number not after the one before (`record_seq`
+    /// restarts at a reset).
+    pub first_of_attempt: bool,
+}
+
+impl ModelWindow {
+    /// Adds the record numbered `record_seq` in its attempt; a new attempt's first record starts
+    /// the window afresh. Returns the window to ask about.
+    pub(super) fn push(&mut self, record_seq: u32, features: [f32; FEATURE_COUNT]) -> Windowed {
+        let first_of_attempt = record_seq == 1 || record_seq <= self.record_seq;
+        if first_of_attempt {
+            self.records.clear();
+        }
+        self.record_seq = record_seq;
+        if self.records.len() == WINDOW_RECORDS {
+            self.records.pop_front();
+        }
+        self.records.push_back(features);
+        self.seq = self.seq.wrapping_add(1);
+        Windowed { window: model_window(&self.records), seq: self.seq, first_of_attempt }
+    }
+}
+
 /// The model's input from a session's last records (oldest first, at least one): the last
 /// `WINDOW_RECORDS`; until that many exist, padded at the front with copies of the first record
 /// (`docs/protocol.md`, predict).
@@ -343,5 +377,34 @@ mod tests {
         let col: Vec<f32> = model_window(&full).iter().map(|r| r[8]).collect();
         let expected: Vec<f32> = (6..=WINDOW_RECORDS + 5).map(|k| k as f32).collect();
         assert_eq!(col, expected, "the newest WINDOW_RECORDS, oldest first");
+    }
+
+    #[test]
+    fn a_reset_starts_the_model_window_afresh_and_its_numbers_go_on() {
+        let mut w = ModelWindow::default();
+        let first = w.push(1, record(1));
+        assert!(first.first_of_attempt && first.seq == 1);
+        for k in 2..=30 {
+            let got = w.push(k, record(k as usize));
+            assert!(!got.first_of_attempt && got.seq == k);
+        }
+        // A reset: record_seq restarts, the window holds the new attempt's record alone.
+        let after = w.push(1, record(100));
+        assert!(after.first_of_attempt);
+        assert_eq!(after.seq, 31, "window numbers never restart");
+        assert_eq!(after.window, [record(100); WINDOW_RECORDS], "no record of the attempt before");
+        let next = w.push(2, record(101));
+        assert!(!next.first_of_attempt);
+        let col: Vec<f32> = next.window.iter().map(|r| r[0]).collect();
+        let mut expected = vec![100.0; WINDOW_RECORDS - 1];
+        expected.push(101.0);
+        assert_eq!(col, expected);
+        // The new attempt's first record lost on the way: its second still starts afresh.
+        for k in 3..=8 {
+            w.push(k, record(101 + k as usize));
+        }
+        let lost_first = w.push(2, record(300));
+        assert!(lost_first.first_of_attempt);
+        assert_eq!(lost_first.window, [record(300); WINDOW_RECORDS]);
     }
 }

@@ -109,6 +109,10 @@ pub struct SlotInfo {
     /// The window sequence number of the newest model reply applied in this assignment: a reply
     /// to an older window (however late it comes) is ignored.
     pub applied_window_seq: Option<u32>,
+    /// The number of the current attempt's first model window (`None`: the attempt has not
+    /// recorded yet: a reset or the session's start). A reply to an earlier window is of the
+    /// attempt before, and is not applied.
+    pub attempt_first_window: Option<u32>,
     /// The session's force publisher, once the comm thread has declared it.
     pub force: Option<std::sync::Arc<ForcePublisher>>,
 }
@@ -180,6 +184,7 @@ impl Registry {
                 fading: None,
                 attempt_first_pose: 0,
                 applied_window_seq: None,
+                attempt_first_window: None,
                 last_pose_at: None,
                 force: None,
             })
@@ -254,6 +259,7 @@ impl Registry {
         info.fading = None;
         info.attempt_first_pose = 0;
         info.applied_window_seq = None;
+        info.attempt_first_window = None;
         info.last_pose_at = None;
         info.force = None;
         self.by_id.insert(id.to_owned(), slot as u16);
