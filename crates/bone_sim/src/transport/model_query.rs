@@ -248,7 +248,8 @@ enum Verdict {
     Applied,
     /// Not applied: its session has applied a newer window's (a late reply).
     Older,
-    /// Not applied: its session ended (or the engine could not take it).
+    /// Not applied: its session ended (or the engine could not take it). The query counts as
+    /// answered for the worker.
     Gone,
     /// Not applied: its window is of an attempt its session has ended (a reset). The worker
     /// answered in time, so the query counts as answered for it.
@@ -275,7 +276,7 @@ struct Answers {
     /// Bit `entry` of each window a valid prediction came for.
     answered: AtomicU64,
     /// Bit `entry` of each window whose prediction was applied, or came in time for a window of
-    /// an attempt that has ended since ([`Verdict::Retired`]).
+    /// an attempt or a session that has ended since ([`Verdict::Retired`], [`Verdict::Gone`]).
     applied: AtomicU64,
 }
 
@@ -300,7 +301,8 @@ impl Answers {
                 continue;
             }
             match apply(&a, &p) {
-                Verdict::Applied => {
+                // A session gone is not the worker's doing: its answer counts for it.
+                Verdict::Applied | Verdict::Gone => {
                     self.applied.fetch_or(bit, Ordering::AcqRel);
                 }
                 Verdict::Older => tally.ignored += 1,
@@ -308,7 +310,6 @@ impl Answers {
                     self.applied.fetch_or(bit, Ordering::AcqRel);
                     tally.ignored += 1;
                 }
-                Verdict::Gone => {}
             }
             tally.model_id = Some(p.model_id);
         }
@@ -428,6 +429,16 @@ mod tests {
         let answers = Answers::new(vec![asked(0, 1)]);
         let t = answers.take(&prediction(0, 1, 1.0), |_, _| Verdict::Retired);
         assert_eq!((t.ignored, answers.outcome()), (1, (Outcome::Answered, 0)));
+        // For a session that has ended since: not counted, and the worker answered.
+        let answers = Answers::new(vec![asked(0, 1), asked(1, 1)]);
+        let t = answers.take(&[prediction(0, 1, 1.0), prediction(1, 1, 1.0)].concat(), |a, _| {
+            if a.slot == 0 {
+                Verdict::Gone
+            } else {
+                Verdict::Applied
+            }
+        });
+        assert_eq!((t.ignored, t.errors, answers.outcome()), (0, 0, (Outcome::Answered, 0)));
         // A refused prediction ends the reply; nothing after it is read.
         let answers = Answers::new(vec![asked(0, 1), asked(1, 2)]);
         let mut bad = prediction(0, 1, f32::NAN);
