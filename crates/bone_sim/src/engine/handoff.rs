@@ -142,6 +142,9 @@ pub enum Output {
         slot: u16,
         /// Slot generation.
         generation: u32,
+        /// The session's attempt, counted up at its start and each reset (wrapping): which
+        /// records belong together, even where some were lost on the way.
+        attempt: u32,
         /// The record (model features).
         record: Record,
         /// The state message.

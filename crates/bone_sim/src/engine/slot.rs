@@ -25,6 +25,8 @@ pub(crate) struct Slot {
     pose_seq: u32,
     pose_time_ns: u64,
     record_seq: u32,
+    /// The attempt the records belong to: counted up (wrapping) at each activation and reset.
+    attempt: u32,
     /// Ticks since the engine started, over every session the slot held (never reset).
     order: u64,
     voxel_m3: f64,
@@ -82,6 +84,7 @@ impl Slot {
             pose_seq: 0,
             pose_time_ns: 0,
             record_seq: 0,
+            attempt: 0,
             order: 0,
             voxel_m3,
             default_burr_m,
@@ -137,6 +140,7 @@ impl Slot {
         self.generation = generation;
         self.active = true;
         (self.pose_seq, self.pose_time_ns, self.record_seq) = (0, 0, 0);
+        self.attempt = self.attempt.wrapping_add(1);
         self.first_record_on_grid(now);
     }
 
@@ -144,6 +148,7 @@ impl Slot {
     pub(crate) fn reset(&mut self, now: Option<Instant>) {
         self.session.reset();
         self.record_seq = 0;
+        self.attempt = self.attempt.wrapping_add(1);
         self.first_record_on_grid(now);
     }
 
@@ -275,6 +280,7 @@ impl Slot {
             emit(Output::State {
                 slot: idx,
                 generation: self.generation,
+                attempt: self.attempt,
                 record,
                 msg: StateMsg {
                     flags: fl,

@@ -84,9 +84,9 @@ impl Comm {
                     }
                 }
             }
-            Output::State { slot, generation, record, msg } => {
+            Output::State { slot, generation, attempt, record, msg } => {
                 let Some(o) = self.outlet(slot, generation) else { return };
-                let (asked, pose_time_ns) = o.add_state(&msg, record.features.map(|x| x as f32));
+                let (asked, pose_time_ns) = o.add_state(&msg, attempt, record.features.map(|x| x as f32));
                 if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
                     if info.generation == generation {
                         if asked.first_of_attempt {

@@ -143,9 +143,14 @@ impl Outlet {
     /// Publishes a 10 Hz state and adds its record to the model window (see [`ModelWindow`]).
     /// Returns what the model is asked and the client time of the pose the session's last force
     /// used.
-    pub(super) fn add_state(&mut self, msg: &protocol::StateMsg, features: [f32; FEATURE_COUNT]) -> (Windowed, u64) {
+    pub(super) fn add_state(
+        &mut self,
+        msg: &protocol::StateMsg,
+        attempt: u32,
+        features: [f32; FEATURE_COUNT],
+    ) -> (Windowed, u64) {
         let _ = self.state.put(protocol::encode_state(msg).to_vec()).wait();
-        (self.window.push(msg.record_seq, features), self.pose_time_ns)
+        (self.window.push(attempt, features), self.pose_time_ns)
     }
 
     /// Publishes a 10 Hz guidance message.
@@ -266,8 +271,8 @@ pub(super) struct ModelWindow {
     /// The newest window's number (per session, wrapping; never restarts, so replies can be told
     /// apart across attempts).
     seq: u32,
-    /// The `record_seq` of the newest record (0: none yet).
-    record_seq: u32,
+    /// The attempt of the newest record (`None`: none yet).
+    attempt: Option<u32>,
 }
 
 /// A window for the model (see [`ModelWindow::push`]).
@@ -277,21 +282,20 @@ pub(super) struct Windowed {
     pub window: [[f32; FEATURE_COUNT]; WINDOW_RECORDS],
     /// Its number.
     pub seq: u32,
-    /// Whether its record is the first its attempt gave here: `record_seq` 1, or, should the
-    /// first have been lost on the way, any number not after the one before (`record_seq`
-    /// restarts at a reset).
+    /// Whether its record is the first of its attempt to come here (the attempt's first, or
+    /// its first not lost on the way).
     pub first_of_attempt: bool,
 }
 
 impl ModelWindow {
-    /// Adds the record numbered `record_seq` in its attempt; a new attempt's first record starts
-    /// the window afresh. Returns the window to ask about.
-    pub(super) fn push(&mut self, record_seq: u32, features: [f32; FEATURE_COUNT]) -> Windowed {
-        let first_of_attempt = record_seq == 1 || record_seq <= self.record_seq;
+    /// Adds a record of `attempt` (the engine's count of the session's attempts); a new
+    /// attempt's first record starts the window afresh. Returns the window to ask about.
+    pub(super) fn push(&mut self, attempt: u32, features: [f32; FEATURE_COUNT]) -> Windowed {
+        let first_of_attempt = self.attempt != Some(attempt);
         if first_of_attempt {
             self.records.clear();
+            self.attempt = Some(attempt);
         }
-        self.record_seq = record_seq;
         if self.records.len() == WINDOW_RECORDS {
             self.records.pop_front();
         }
@@ -385,11 +389,11 @@ mod tests {
         let first = w.push(1, record(1));
         assert!(first.first_of_attempt && first.seq == 1);
         for k in 2..=30 {
-            let got = w.push(k, record(k as usize));
-            assert!(!got.first_of_attempt && got.seq == k);
+            let got = w.push(1, record(k));
+            assert!(!got.first_of_attempt && got.seq == k as u32);
         }
-        // A reset: record_seq restarts, the window holds the new attempt's record alone.
-        let after = w.push(1, record(100));
+        // A reset: the next attempt's first record, alone in the window.
+        let after = w.push(2, record(100));
         assert!(after.first_of_attempt);
         assert_eq!(after.seq, 31, "window numbers never restart");
         assert_eq!(after.window, [record(100); WINDOW_RECORDS], "no record of the attempt before");
@@ -399,11 +403,8 @@ mod tests {
         let mut expected = vec![100.0; WINDOW_RECORDS - 1];
         expected.push(101.0);
         assert_eq!(col, expected);
-        // The new attempt's first record lost on the way: its second still starts afresh.
-        for k in 3..=8 {
-            w.push(k, record(101 + k as usize));
-        }
-        let lost_first = w.push(2, record(300));
+        // Another reset whose first record was lost on the way: its second starts afresh.
+        let lost_first = w.push(3, record(300));
         assert!(lost_first.first_of_attempt);
         assert_eq!(lost_first.window, [record(300); WINDOW_RECORDS]);
     }
