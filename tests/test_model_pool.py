@@ -354,11 +354,11 @@ def test_a_reset_starts_the_models_windows_afresh_and_its_late_replies_are_not_a
         asked = list(windows)
     new_seqs = set()
     for k in range(1, 7):  # the window of the new attempt's k-th record
-        new_seqs |= {seq for seq, w in asked if np.array_equal(w[-1], feats[k - 1])}
-        found = [w for _, w in asked if np.array_equal(w[-1], feats[k - 1])]
+        found = [(seq, w) for seq, w in asked if np.array_equal(w[-1], feats[k - 1])]
         assert found, f"no window ends with the new attempt's record {k}"
+        new_seqs |= {seq for seq, _ in found}
         expected = np.stack([feats[0]] * (protocol.WINDOW_RECORDS - k) + feats[:k])
-        for w in found:
+        for _, w in found:
             np.testing.assert_array_equal(w, expected, err_msg=f"record {k}'s window reaches into the attempt before")
     predicted = np.array([g["predicted_force_n"] for g in guidance])
     applied_new = [g for g in guidance if g["window_seq"] in new_seqs]

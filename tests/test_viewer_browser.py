@@ -17,7 +17,15 @@ import pytest
 from dhg.live.client import TraineeClient
 from dhg.live.process import free_port
 from dhg.view import Viewer
-from dhg.view.browser import PageWatcher, canvas_pixels, chromium, dismiss_notifications, drawn_canvas, wait_for
+from dhg.view.browser import (
+    NOTIFICATIONS,
+    PageWatcher,
+    canvas_pixels,
+    chromium,
+    dismiss_notifications,
+    drawn_canvas,
+    wait_for,
+)
 from support import Stylus, entry, stops_cleanly
 
 SHOTS = Path(os.environ.get("DHG_SCREENSHOTS", Path(__file__).resolve().parents[1] / "out" / "test-screenshots"))
@@ -84,7 +92,7 @@ def test_the_trainee_page_draws_the_bone_follows_the_drill_and_shows_xrays(serve
             # viser's notice that WebGL draws in software (SwiftShader here) covers the scene's
             # corner; it is closed, as a person would, before the first picture of the canvas
             # (which the drilled one is compared with).
-            notices = "return document.querySelectorAll('.mantine-Notification-root').length"
+            notices = f"return document.querySelectorAll('{NOTIFICATIONS}').length"
             wait_for(lambda: browser.execute_script(notices), 90, "viser's software-WebGL notice")
             dismiss_notifications(browser, timeout_s=30)
             assert browser.execute_script(notices) == 0

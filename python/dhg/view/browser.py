@@ -20,6 +20,7 @@ __all__ = [
     "PageWatcher",
     "canvas_pixels",
     "chromium",
+    "NOTIFICATIONS",
     "dismiss_notifications",
     "drawn_canvas",
     "find_chromium",
@@ -178,8 +179,12 @@ def drawn_canvas(driver: Any, share: float = 0.02) -> np.ndarray | None:
     return px if float(np.mean(np.any(px < 235, axis=2))) > share else None
 
 
+NOTIFICATIONS = ".mantine-Notification-root"
+"""CSS selector of the notifications the page's client raises (viser's, Mantine's component)."""
+
 _NOTIFICATIONS_JS = """
-const open = () => Array.from(document.querySelectorAll('.mantine-Notification-root'));
+const selector = arguments[0];
+const open = () => Array.from(document.querySelectorAll(selector));
 for (const n of open()) {
     const close = n.querySelector('.mantine-Notification-closeButton, button');
     if (close) close.click();
@@ -193,7 +198,11 @@ def dismiss_notifications(driver: Any, timeout_s: float = 5.0) -> None:
     read them: viser warns, for one, that WebGL is drawn in software (a lab PC without a GPU, and
     this module's Chromium), over the top left of the scene. Waits up to ``timeout_s`` for them to
     go; raises :class:`TimeoutError` if one stays."""
-    wait_for(lambda: driver.execute_script(_NOTIFICATIONS_JS) == 0, timeout_s, "the page's notifications closed")
+    wait_for(
+        lambda: driver.execute_script(_NOTIFICATIONS_JS, NOTIFICATIONS) == 0,
+        timeout_s,
+        "the page's notifications closed",
+    )
 
 
 def screenshot_session(instructor_url: str, session_id: str, out: str | Path, timeout_s: float = 120.0) -> Path:

@@ -275,14 +275,14 @@ struct Answers {
     asked: Vec<Asked>,
     /// Bit `entry` of each window a valid prediction came for.
     answered: AtomicU64,
-    /// Bit `entry` of each window whose prediction was applied, or came in time for a window of
-    /// an attempt or a session that has ended since ([`Verdict::Retired`], [`Verdict::Gone`]).
-    applied: AtomicU64,
+    /// Bit `entry` of each window whose prediction served: applied, or in time for a window of an
+    /// attempt or a session that has ended since ([`Verdict::Retired`], [`Verdict::Gone`]).
+    served: AtomicU64,
 }
 
 impl Answers {
     fn new(asked: Vec<Asked>) -> Self {
-        Answers { asked, answered: AtomicU64::new(0), applied: AtomicU64::new(0) }
+        Answers { asked, answered: AtomicU64::new(0), served: AtomicU64::new(0) }
     }
 
     /// Takes one reply: each prediction is matched to its window by `entry` and `window_seq`,
@@ -300,30 +300,28 @@ impl Answers {
                 tally.ignored += 1;
                 continue;
             }
-            match apply(&a, &p) {
-                // A session gone is not the worker's doing: its answer counts for it.
-                Verdict::Applied | Verdict::Gone => {
-                    self.applied.fetch_or(bit, Ordering::AcqRel);
-                }
-                Verdict::Older => tally.ignored += 1,
-                Verdict::Retired => {
-                    self.applied.fetch_or(bit, Ordering::AcqRel);
-                    tally.ignored += 1;
-                }
+            let verdict = apply(&a, &p);
+            // Only a late answer counts against the worker: a session gone or an attempt ended
+            // meanwhile is not its doing.
+            if verdict != Verdict::Older {
+                self.served.fetch_or(bit, Ordering::AcqRel);
+            }
+            if matches!(verdict, Verdict::Older | Verdict::Retired) {
+                tally.ignored += 1;
             }
             tally.model_id = Some(p.model_id);
         }
         tally
     }
 
-    /// How the query did, once it has ended: answered when most of its windows' predictions were
-    /// applied (a worker that answers the first window of each query alone fails), and how many
+    /// How the query did, once it has ended: answered when most of its windows' predictions
+    /// served (a worker that answers the first window of each query alone fails), and how many
     /// windows no valid prediction came for.
     fn outcome(&self) -> (Outcome, u64) {
         let n = self.asked.len() as u64;
-        let applied = u64::from(self.applied.load(Ordering::Acquire).count_ones());
+        let served = u64::from(self.served.load(Ordering::Acquire).count_ones());
         let unanswered = n - u64::from(self.answered.load(Ordering::Acquire).count_ones());
-        (if 2 * applied > n { Outcome::Answered } else { Outcome::Failed }, unanswered)
+        (if 2 * served > n { Outcome::Answered } else { Outcome::Failed }, unanswered)
     }
 }
 
