@@ -234,3 +234,18 @@ def thread_nices(pid: int) -> set[int]:
         except OSError:  # the thread ended meanwhile
             continue
     return nices
+
+
+def column_encodings(path: str | Path) -> dict[str, tuple[set[str], set[str]]]:
+    """Each column's compressions and Parquet encodings, over every row group of the file."""
+    import pyarrow.parquet as pq
+
+    md = pq.ParquetFile(path).metadata
+    out: dict[str, tuple[set[str], set[str]]] = {}
+    for g in range(md.num_row_groups):
+        for c in range(md.num_columns):
+            col = md.row_group(g).column(c)
+            compressions, encodings = out.setdefault(col.path_in_schema, (set(), set()))
+            compressions.add(col.compression)
+            encodings.update(col.encodings)
+    return out

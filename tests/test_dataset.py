@@ -9,10 +9,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from dhg.core.features import FEATURE_NAMES, FEATURE_UNITS
+from dhg.core.features import FEATURE_NAMES, FEATURE_UNITS, POSE_COLUMNS
 from dhg.data.dataset import DatasetError, load_dataset, load_raw, records_schema, write_dataset
 from dhg.data.synth import synthesize
-from support import rewrite_dataset_file
+from support import column_encodings, rewrite_dataset_file
 
 
 @pytest.fixture(scope="module")
@@ -247,6 +247,29 @@ def test_experts_beat_novices_on_every_metric(phantom):
     novice_plunge = np.mean([m["plunge_depth_m"] for m in novices])
     assert 3.5e-3 < expert_plunge < 7e-3, expert_plunge
     assert 5e-3 < novice_plunge < 11e-3, novice_plunge
+
+
+def test_the_raw_stream_is_stored_split_and_delta_encoded_and_reads_back_exactly(small):
+    """Decision 0037: the 1 kHz stream's floats byte-stream-split, its integers delta-encoded, zstd;
+    records.parquet keeps pyarrow's defaults, so that the same records give the same SHA-256."""
+    out, episodes = small
+    raw = pq.read_table(out / "raw.parquet")
+    for name, (compressions, encodings) in column_encodings(out / "raw.parquet").items():
+        kind = raw.schema.field(name).type
+        expected = "BYTE_STREAM_SPLIT" if pa.types.is_floating(kind) else "DELTA_BINARY_PACKED"
+        assert compressions == {"ZSTD"} and expected in encodings, (name, compressions, encodings)
+        assert "RLE_DICTIONARY" not in encodings and "PLAIN_DICTIONARY" not in encodings, name
+    for name, (compressions, encodings) in column_encodings(out / "records.parquet").items():
+        assert compressions == {"SNAPPY"} and "BYTE_STREAM_SPLIT" not in encodings, (name, compressions)
+    got = load_raw(out)
+    ids = got.column("episode_id").to_numpy()
+    for eid, ep in enumerate(episodes):
+        mine = ids == eid
+        pose = np.column_stack([got.column(c).to_numpy()[mine] for c in POSE_COLUMNS])
+        force = np.column_stack([got.column(c).to_numpy()[mine] for c in ("force_x_n", "force_y_n", "force_z_n")])
+        np.testing.assert_array_equal(pose, np.asarray(ep.raw_poses))
+        np.testing.assert_array_equal(force, np.asarray(ep.raw_forces_n))
+        np.testing.assert_array_equal(got.column("tick").to_numpy()[mine], np.arange(len(ep.raw_poses)))
 
 
 def test_a_raw_file_from_before_the_guidance_columns_reads_with_zero_guidance(small, tmp_path):

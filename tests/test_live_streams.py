@@ -10,7 +10,7 @@ import pytest
 
 from dhg.data.dataset import DatasetError, EpisodeInput, load_dataset, load_raw, write_dataset
 from dhg.live.streams import RAW_COLUMNS, EpisodeSplitter, RawParts, RecordingEpisode, force_jerk
-from support import rewrite_dataset_file
+from support import column_encodings, rewrite_dataset_file
 
 
 def _ids(split: EpisodeSplitter, stream: str, ticks: list[int]) -> list[int]:
@@ -109,6 +109,9 @@ def test_raw_parts_are_linked_once_closed_and_joined_at_the_end(tmp_path):
     assert sorted(card["files"]) == ["raw.parquet", "records.parquet"]
     t2 = load_raw(out)
     assert t2.equals(t)
+    for name, (compressions, encodings) in column_encodings(out / "raw.parquet").items():  # decision 0037
+        expected = "DELTA_BINARY_PACKED" if name in ("episode_id", "tick") else "BYTE_STREAM_SPLIT"
+        assert compressions == {"ZSTD"} and expected in encodings and "RLE_DICTIONARY" not in encodings, name
     np.testing.assert_array_equal(t2.column("force_z_n").to_numpy(), [1.0] * 6 + [2.0] * 4)
 
 

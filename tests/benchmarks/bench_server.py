@@ -39,16 +39,21 @@ from typing import Any
 
 from dhg.live.process import ServerProcess, free_port
 
+CACHE = Path(os.environ.get("DHG_CACHE", Path.home() / ".cache/dhg"))
+"""Where ``make`` keeps the build (the Makefile's ``DHG_CACHE``, which the environment may set)."""
+EXAMPLES = Path(os.environ.get("CARGO_TARGET_DIR", CACHE / "target")) / "release/examples"
+"""The load tool and the echo, as ``cargo build --release -p bone_sim --example load --example echo``
+builds them (the Makefile's ``CARGO_TARGET_DIR``, unless the environment names another)."""
+
 # The `transport` section of Zenoh's low-latency mode (it excludes QoS; both ends must ask for it).
 LOWLATENCY = {"unicast": {"lowlatency": True, "qos": {"enabled": False}}}
 
 
 def main() -> None:
-    target = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/dhg/target"))
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--clients", default="1,16,64")
-    p.add_argument("--load", default=str(target / "release/examples/load"), help="the load tool binary")
+    p.add_argument("--load", default=str(EXAMPLES / "load"), help="the load tool binary")
     p.add_argument("--out", help="also append the JSON lines to this file")
     p.add_argument("--wait", default="sleep", choices=("sleep", "spin"), help="dhg-serve --wait (default sleep)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="dhg-serve --device (default auto)")
@@ -65,7 +70,7 @@ def main() -> None:
     p.add_argument("--record-all", action="store_true", help="record every session with its 1 kHz stream meanwhile")
     p.add_argument("--against-echo", action="store_true", help="alternate dhg-serve with the bare echo; print ratios")
     p.add_argument("--rounds", type=int, default=2, help="with --against-echo: rounds of each (default 2)")
-    p.add_argument("--echo", default=str(target / "release/examples/echo"), help="the echo binary")
+    p.add_argument("--echo", default=str(EXAMPLES / "echo"), help="the echo binary")
     p.add_argument(
         "--variants",
         default="dhg,dhg-thread,dhg-sim,echo",

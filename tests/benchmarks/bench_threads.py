@@ -32,11 +32,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench_server import _wait_for_echo, serve_from  # this folder: the echo's start; a server of either build
+from bench_server import EXAMPLES, _wait_for_echo, serve_from  # this folder: the echo's start; a server of either build
 
 from dhg.live.process import free_port
-
-TARGET = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/dhg/target")) / "release/examples"
 
 
 def threads(pid: int) -> dict[str, tuple[str, float, int]]:
@@ -65,7 +63,7 @@ def one(
     if variant.startswith("echo"):
         work = ["--work-us", f"{work_us:g}"] if variant == "echo-work" else []
         work += ["--mode", "router"] if variant == "echo-router" else []
-        cmd = [str(TARGET / "echo"), "--listen", endpoint, *work]
+        cmd = [str(EXAMPLES / "echo"), "--listen", endpoint, *work]
         server: Any = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
         try:
             _wait_for_echo(server)
@@ -82,7 +80,7 @@ def one(
         # Python's threads carry the process's name: with the model service, its worker's.
         own = Path(f"/proc/{pid}/comm").read_text().strip() if role == "all" else None
         load = subprocess.Popen(
-            [str(TARGET / "load"), "--connect", endpoint, "--clients", str(n), "--seconds", f"{seconds:g}",
+            [str(EXAMPLES / "load"), "--connect", endpoint, "--clients", str(n), "--seconds", f"{seconds:g}",
              "--server-pid", str(pid)],
             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
         )  # fmt: skip

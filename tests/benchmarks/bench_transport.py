@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from bench_server import LOWLATENCY, RUNTIMES, _context_switches, _wait_for_echo, _zenoh_runtime
+from bench_server import CACHE, EXAMPLES, LOWLATENCY, RUNTIMES, _context_switches, _wait_for_echo, _zenoh_runtime
 
 from dhg.live.process import free_port
 
@@ -52,17 +52,15 @@ assert all(tag in ("", *RUNTIMES) for _, _, tag in VARIANTS.values())
 
 
 def main() -> None:
-    cache = Path.home() / ".cache/dhg"
-    target = Path(os.environ.get("CARGO_TARGET_DIR", cache / "target"))
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--clients", default="1,4,16")
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--variants", default=",".join(VARIANTS), help=f"alternated in this order; of {', '.join(VARIANTS)}")
-    p.add_argument("--build", default=str(target / "release/examples"), help="folder of the load and echo binaries")
+    p.add_argument("--build", default=str(EXAMPLES), help="folder of the load and echo binaries")
     p.add_argument(
         "--shm-build",
-        default=str(cache / "shm-target/release/examples"),
+        default=str(CACHE / "shm-target/release/examples"),
         help="folder of the load and echo binaries built with --features shm",
     )
     p.add_argument("--out", help="also append the JSON lines to this file")

@@ -3,8 +3,10 @@ server's CPU with ``dhg view`` attached (the instructor's page and the trainee's
 session) and without, alternated over fresh servers, and the drill updates a second the trainee
 page sent. The viewer is its own process, as ``dhg-serve --view`` runs it.
 
-    cargo build --release -p bone_sim --example load
+    CARGO_TARGET_DIR=~/.cache/dhg/target cargo build --release -p bone_sim --example load
     python tests/benchmarks/bench_viewer.py --seconds 20 --rounds 3 [--browser]
+
+(the Makefile's target folder, where the script looks for the load tool; ``--load`` names another)
 
 A page draws only while someone watches it, so each run holds the instructor's page and the first
 trainee page open with a :class:`dhg.view.browser.PageWatcher` (a WebSocket client that reads what
@@ -34,6 +36,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench_server import EXAMPLES  # this folder: where make builds the load tool
+
 from dhg.live.process import ServerProcess, free_port
 
 
@@ -43,8 +47,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--clients", type=int, default=1, help="load-tool trainees (default 1); the viewer shows the first")
     ap.add_argument("--browser", action="store_true")
-    target = os.environ.get("CARGO_TARGET_DIR", "target")
-    ap.add_argument("--load", default=str(Path(target) / "release" / "examples" / "load"))
+    ap.add_argument("--load", default=str(EXAMPLES / "load"), help="the load tool binary")
     ap.add_argument("--device", choices=("auto", "cpu", "cuda"), help="dhg-serve --device (default auto)")
     ap.add_argument("--viewer-nice", type=int, metavar="N", help="also a viewer at nice N (dhg view --nice N)")
     ap.add_argument("--other", metavar="PYTHONPATH", help="also dhg view from the build this python/ folder holds")

@@ -137,7 +137,7 @@ def _add_record(sub: Any, epilog: str) -> None:
         "asked for sends nothing (default 5; 0: quiet)",
     )
     p.add_argument(
-        "--raw", action="store_true", help="also keep the 1 kHz pose/force stream (raw.parquet, about 4 MB a minute)"
+        "--raw", action="store_true", help="also keep the 1 kHz pose/force stream (raw.parquet, about 2 MB a minute)"
     )
     p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (TLS, credentials, ...)")

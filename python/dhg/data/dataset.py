@@ -49,7 +49,8 @@ __all__ = [
     "RawPart",
     "load_dataset",
     "load_raw",
-    "parquet_bytes",
+    "raw_parquet_bytes",
+    "raw_parquet_options",
     "raw_schema",
     "records_schema",
     "EpisodeInput",
@@ -206,6 +207,8 @@ def write_dataset(
     os.umask(umask)
     os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the dataset should not be
     try:
+        # pyarrow's defaults: the file's SHA-256 names a model's training data (dhg train), so the
+        # same records must keep giving the same bytes with the pinned pyarrow (docs/model.md).
         pq.write_table(table, tmp / RECORDS_FILE)
         files = {RECORDS_FILE: {"rows": table.num_rows, "sha256": _sha256(tmp / RECORDS_FILE)}}
         for part in raw_parts:
@@ -213,7 +216,7 @@ def write_dataset(
             files[part.name] = {"rows": part.rows, "sha256": part.sha256}
         if any(ep.raw_poses is not None for ep in episodes):
             raw_table = _raw_table(episodes)
-            pq.write_table(raw_table, tmp / RAW_FILE)
+            pq.write_table(raw_table, tmp / RAW_FILE, **raw_parquet_options(raw_table.schema))
             files[RAW_FILE] = {"rows": raw_table.num_rows, "sha256": _sha256(tmp / RAW_FILE)}
         card = {
             "format": DATASET_FORMAT,
@@ -318,12 +321,31 @@ def _place_part(part: RawPart, out: Path, tmp: Path) -> None:
         shutil.copyfile(src, dest)
 
 
-def parquet_bytes(table: Any) -> bytes:
-    """``table`` as the bytes of a Parquet file."""
+def raw_parquet_options(schema: Any) -> dict[str, Any]:
+    """How the 1 kHz stream's Parquet files are written (``pyarrow.parquet.write_table`` keywords):
+    zstd, each float column ``BYTE_STREAM_SPLIT`` (the bytes of its values regrouped by position,
+    so that the repeating sign, exponent and high mantissa bytes of a smooth signal compress) and
+    each integer column ``DELTA_BINARY_PACKED`` (consecutive ticks cost a few bits). Both are
+    lossless standard Parquet encodings (pyarrow reads them; another reader needs the two); other
+    columns are plain. Against pyarrow's defaults (snappy, dictionaries) the stream takes 43 % of
+    the bytes and is written 4× faster (decision 0037). ``records.parquet`` keeps the defaults
+    (its SHA-256 names a model's training data)."""
+    pa = _pa()
+    encoding = {}
+    for f in schema:
+        if pa.types.is_floating(f.type):
+            encoding[f.name] = "BYTE_STREAM_SPLIT"
+        elif pa.types.is_integer(f.type):
+            encoding[f.name] = "DELTA_BINARY_PACKED"
+    return {"compression": "zstd", "use_dictionary": False, "column_encoding": encoding}
+
+
+def raw_parquet_bytes(table: Any) -> bytes:
+    """A table of the 1 kHz stream as the bytes of a Parquet file (:func:`raw_parquet_options`)."""
     import pyarrow.parquet as pq
 
     sink = _pa().BufferOutputStream()
-    pq.write_table(table, sink)
+    pq.write_table(table, sink, **raw_parquet_options(table.schema))
     return bytes(sink.getvalue().to_pybytes())
 
 

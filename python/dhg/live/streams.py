@@ -22,7 +22,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from dhg.data.dataset import RAW_FILE, RAW_PART_FILE, RawPart, parquet_bytes, raw_schema
+from dhg.data.dataset import RAW_FILE, RAW_PART_FILE, RawPart, raw_parquet_bytes, raw_schema
 
 __all__ = ["RAW_COLUMNS", "RecordingEpisode", "EpisodeSplitter", "RawParts", "force_jerk"]
 
@@ -172,5 +172,5 @@ class RawParts:
 def _part(name: str, table: Any) -> RawPart:
     import hashlib
 
-    data = parquet_bytes(table)
+    data = raw_parquet_bytes(table)
     return RawPart(name, table.num_rows, hashlib.sha256(data).hexdigest(), data)
