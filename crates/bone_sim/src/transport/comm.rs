@@ -13,7 +13,6 @@ use std::time::{Duration, Instant};
 use zenoh::Wait;
 
 use super::history::sample;
-use super::metrics::SessionMetrics;
 use super::model_query::ModelQueries;
 use super::outlet::Outlet;
 use super::registry::ForcePublisher;
@@ -87,19 +86,17 @@ impl Comm {
             Output::State { slot, generation, attempt, record, msg } => {
                 let Some(o) = self.outlet(slot, generation) else { return };
                 let (asked, pose_time_ns) = o.add_state(&msg, attempt, record.features.map(|x| x as f32));
-                if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
-                    if info.generation == generation {
-                        if asked.first_of_attempt {
-                            // The attempt's own from here: a record of the one before that came
-                            // after the reset leaves its metrics, and replies to its windows
-                            // are not applied.
-                            info.metrics = SessionMetrics::default();
-                            info.attempt_first_window = Some(asked.seq);
-                        }
-                        info.metrics.add_state(&msg, &info.path);
-                    }
+                // A record of the session's current attempt is counted, and the model asked about
+                // its window; a straggler of an attempt a reset ended is neither (a reply to it
+                // would not be applied).
+                let current = lock(&self.shared.registry)
+                    .slots
+                    .get_mut(slot as usize)
+                    .filter(|info| info.generation == generation)
+                    .is_some_and(|info| info.add_record(&msg, attempt, asked.seq));
+                if current {
+                    self.model.ask(slot, generation, asked.seq, pose_time_ns, &asked.window);
                 }
-                self.model.ask(slot, generation, asked.seq, pose_time_ns, &asked.window);
             }
             Output::Guidance { slot, generation, msg } => {
                 if let Some(o) = self.outlet(slot, generation) {
@@ -107,7 +104,7 @@ impl Comm {
                 }
                 if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
                     if info.generation == generation {
-                        info.metrics.add_guidance(&msg);
+                        info.add_guidance(&msg);
                     }
                 }
             }

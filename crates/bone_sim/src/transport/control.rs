@@ -338,7 +338,6 @@ fn reset(reg: &mut super::registry::Registry, slot: u16) -> SimResult<()> {
     reg.send(Command::Reset { slot })?;
     let info = &mut reg.slots[slot as usize];
     let drilled = info.poses_received > info.attempt_first_pose && info.metrics.records() > 0;
-    info.attempt_first_pose = info.poses_received;
     let next_gain = match info.fading.as_mut() {
         Some(f) if drilled => {
             let (plunge_m, deviation_m) = info.metrics.worst_m(&info.path);
@@ -346,9 +345,7 @@ fn reset(reg: &mut super::registry::Registry, slot: u16) -> SimResult<()> {
         }
         _ => None,
     };
-    info.metrics = super::metrics::SessionMetrics::default();
-    // Until the new attempt's first record, any reply is to a window of the attempt that ended.
-    info.attempt_first_window = None;
+    info.new_attempt();
     match next_gain {
         Some(gain) => set_guidance(reg, slot, None, Some(gain)),
         None => Ok(()),
@@ -603,6 +600,73 @@ pub(crate) fn declare(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResu
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The registry counts a slot's attempts as the engine does, so that the records of an attempt
+    /// a reset ended, still on their way to the comm thread when it came, count in no later
+    /// attempt: not in its metrics, and not as drilled when a second reset comes before the new
+    /// attempt's first record (which would finish a fading attempt on them).
+    #[test]
+    fn records_of_an_ended_attempt_count_in_no_later_one() {
+        use super::super::registry::{Owners, Registry};
+        use crate::engine::{build, EngineConfig, OutputQueue, TickCore};
+        use crate::protocol::{PoseMsg, StateMsg};
+        use crate::session::Pose;
+        use crate::volume::{layer::Layer, test_support::uniform_block};
+        use nalgebra::{Point3, UnitQuaternion};
+
+        /// `n` ticks with the burr held 1 mm into the block; the states the engine emitted.
+        fn drill(core: &mut TickCore, outputs: &OutputQueue, reg: &mut Registry, n: u32) -> Vec<(u32, StateMsg)> {
+            let pose = Pose {
+                position_m: Point3::new(6e-3, 6e-3, 3e-3),
+                orientation: UnitQuaternion::identity(),
+                drill_on: true,
+                spindle_rpm: 1250.0,
+            };
+            let mut states = Vec::new();
+            for _ in 0..n {
+                let seq = u32::try_from(reg.slots[0].poses_received).unwrap() + 1;
+                reg.pose(0, &PoseMsg { seq, client_time_ns: 0, pose }, Instant::now());
+                core.tick();
+                while let Some(out) = outputs.pop() {
+                    if let Output::State { attempt, msg, .. } = out {
+                        states.push((attempt, msg));
+                    }
+                }
+            }
+            states
+        }
+
+        let vol = Arc::new(uniform_block(24, 0.5e-3, Layer::Cortical, 1500.0, 4));
+        let path = PlannedPath::new(Point3::new(6e-3, 6e-3, 1e-3), Point3::new(6e-3, 6e-3, 10e-3)).unwrap();
+        let mut cfg = EngineConfig::new(path.clone());
+        (cfg.max_sessions, cfg.reserve_bricks) = (1, 64);
+        let (mut core, link) = build(&vol, &cfg).unwrap();
+        let outputs = link.outputs;
+        let mut reg =
+            Registry::new(link.commands, link.poses, path, (GuidanceMode::default(), 1.0), 1.25e-3, Owners::default());
+        reg.open("s", None).unwrap();
+        set_fading(&mut reg, 0, Some(FadingParams::default())).unwrap();
+
+        // The first attempt records twice; the comm thread has not taken its records yet.
+        let first = drill(&mut core, &outputs, &mut reg, 250);
+        assert_eq!(first.len(), 2);
+        reset(&mut reg, 0).unwrap();
+        for (k, (attempt, msg)) in first.iter().enumerate() {
+            assert!(!reg.slots[0].add_record(msg, *attempt, k as u32 + 1), "a record of the ended attempt");
+        }
+        assert_eq!(reg.slots[0].metrics.records(), 0);
+        // Poses of the new attempt, but no record yet: a second reset finds nothing drilled.
+        assert!(drill(&mut core, &outputs, &mut reg, 50).is_empty());
+        reset(&mut reg, 0).unwrap();
+        assert_eq!(reg.slots[0].fading.as_ref().map(Fading::attempts), Some(0), "no attempt finished on stragglers");
+        // The third attempt's records are its own.
+        let third = drill(&mut core, &outputs, &mut reg, 150);
+        assert_eq!(third.len(), 1);
+        let (attempt, msg) = third[0];
+        assert_eq!(attempt, reg.slots[0].attempt, "the registry's count is the engine's");
+        assert!(reg.slots[0].add_record(&msg, attempt, 3));
+        assert_eq!((reg.slots[0].metrics.records(), reg.slots[0].attempt_first_window), (1, Some(3)));
+    }
 
     #[allow(clippy::needless_pass_by_value)] // the tests read better with json!(...) by value
     fn parse(v: Value) -> SimResult<ControlRequest> {

@@ -282,17 +282,13 @@ pub(super) struct Windowed {
     pub window: [[f32; FEATURE_COUNT]; WINDOW_RECORDS],
     /// Its number.
     pub seq: u32,
-    /// Whether its record is the first of its attempt to come here (the attempt's first, or
-    /// its first not lost on the way).
-    pub first_of_attempt: bool,
 }
 
 impl ModelWindow {
     /// Adds a record of `attempt` (the engine's count of the session's attempts); a new
     /// attempt's first record starts the window afresh. Returns the window to ask about.
     pub(super) fn push(&mut self, attempt: u32, features: [f32; FEATURE_COUNT]) -> Windowed {
-        let first_of_attempt = self.attempt != Some(attempt);
-        if first_of_attempt {
+        if self.attempt != Some(attempt) {
             self.records.clear();
             self.attempt = Some(attempt);
         }
@@ -301,7 +297,7 @@ impl ModelWindow {
         }
         self.records.push_back(features);
         self.seq = self.seq.wrapping_add(1);
-        Windowed { window: model_window(&self.records), seq: self.seq, first_of_attempt }
+        Windowed { window: model_window(&self.records), seq: self.seq }
     }
 }
 
@@ -387,25 +383,22 @@ mod tests {
     fn a_reset_starts_the_model_window_afresh_and_its_numbers_go_on() {
         let mut w = ModelWindow::default();
         let first = w.push(1, record(1));
-        assert!(first.first_of_attempt && first.seq == 1);
+        assert_eq!((first.seq, first.window), (1, [record(1); WINDOW_RECORDS]));
         for k in 2..=30 {
             let got = w.push(1, record(k));
-            assert!(!got.first_of_attempt && got.seq == k as u32);
+            assert_eq!((got.seq, got.window[WINDOW_RECORDS - 1]), (k as u32, record(k)));
         }
         // A reset: the next attempt's first record, alone in the window.
         let after = w.push(2, record(100));
-        assert!(after.first_of_attempt);
         assert_eq!(after.seq, 31, "window numbers never restart");
         assert_eq!(after.window, [record(100); WINDOW_RECORDS], "no record of the attempt before");
         let next = w.push(2, record(101));
-        assert!(!next.first_of_attempt);
         let col: Vec<f32> = next.window.iter().map(|r| r[0]).collect();
         let mut expected = vec![100.0; WINDOW_RECORDS - 1];
         expected.push(101.0);
         assert_eq!(col, expected);
         // Another reset whose first record was lost on the way: its second starts afresh.
         let lost_first = w.push(3, record(300));
-        assert!(lost_first.first_of_attempt);
         assert_eq!(lost_first.window, [record(300); WINDOW_RECORDS]);
     }
 }

@@ -10,7 +10,7 @@ use crate::engine::CommandSender;
 use crate::error::{SimError, SimResult};
 use crate::guidance::{Fading, GuidanceMode};
 use crate::path::PlannedPath;
-use crate::protocol::PoseMsg;
+use crate::protocol::{GuidanceMsg, PoseMsg, StateMsg};
 
 use super::metrics::SessionMetrics;
 
@@ -102,6 +102,11 @@ pub struct SlotInfo {
     pub metrics: SessionMetrics,
     /// The gain schedule over attempts, if fading.
     pub fading: Option<Fading>,
+    /// The engine's count of this slot's attempts (the `attempt` its states carry): counted up
+    /// (wrapping) with each `Activate` and `Reset` this registry sends, which the engine applies
+    /// in order and counts the same way, so the two agree. A state of another attempt is a
+    /// straggler of one that ended.
+    pub attempt: u32,
     /// `poses_received` when the current attempt began (a reset or the session's start).
     pub attempt_first_pose: u64,
     /// When the last pose arrived (None: none yet in this assignment).
@@ -115,6 +120,44 @@ pub struct SlotInfo {
     pub attempt_first_window: Option<u32>,
     /// The session's force publisher, once the comm thread has declared it.
     pub force: Option<std::sync::Arc<ForcePublisher>>,
+}
+
+impl SlotInfo {
+    /// The engine was sent `Activate` or `Reset` for this slot: a new attempt, with no metrics
+    /// and no record yet.
+    pub fn new_attempt(&mut self) {
+        self.attempt = self.attempt.wrapping_add(1);
+        self.metrics = SessionMetrics::default();
+        self.attempt_first_pose = self.poses_received;
+        // Until the attempt's first record, any model reply is to a window of the one before.
+        self.attempt_first_window = None;
+    }
+
+    /// A 10 Hz record of `attempt` reached the comm thread and was asked about as model window
+    /// `window_seq`. A record of the current attempt is counted in its metrics, and the first to
+    /// come starts its windows (replies to earlier ones are not applied). A record of another
+    /// attempt is a straggler of one that ended, still in the output queue at the reset: it is
+    /// left out (counted, a second reset would finish a fading attempt on it). Returns whether
+    /// the record was counted.
+    pub fn add_record(&mut self, msg: &StateMsg, attempt: u32, window_seq: u32) -> bool {
+        if attempt != self.attempt {
+            return false;
+        }
+        self.attempt_first_window.get_or_insert(window_seq);
+        self.metrics.add_state(msg, &self.path);
+        true
+    }
+
+    /// Guidance the engine applied: counted in the attempt's metrics once the attempt has
+    /// recorded (before, after a reset, it was applied in the attempt that ended). Returns whether
+    /// it was counted.
+    pub fn add_guidance(&mut self, msg: &GuidanceMsg) -> bool {
+        if self.attempt_first_window.is_none() {
+            return false;
+        }
+        self.metrics.add_guidance(msg);
+        true
+    }
 }
 
 /// The slot table plus the command producer.
@@ -182,6 +225,7 @@ impl Registry {
                 burr_radius_m: default_burr_m,
                 metrics: SessionMetrics::default(),
                 fading: None,
+                attempt: 0,
                 attempt_first_pose: 0,
                 applied_window_seq: None,
                 attempt_first_window: None,
@@ -255,11 +299,9 @@ impl Registry {
         info.mode = mode;
         info.gain = gain;
         info.burr_radius_m = self.default_burr_m;
-        info.metrics = SessionMetrics::default();
         info.fading = None;
-        info.attempt_first_pose = 0;
+        info.new_attempt();
         info.applied_window_seq = None;
-        info.attempt_first_window = None;
         info.last_pose_at = None;
         info.force = None;
         self.by_id.insert(id.to_owned(), slot as u16);
