@@ -12,9 +12,12 @@ import time
 import numpy as np
 import pytest
 
+import dhg
 from dhg.core import protocol
 from dhg.core.errors import InvalidInputError
+from dhg.core.path import TaskRules
 from dhg.live.client import TraineeClient
+from dhg.live.session_recorder import SESSION_INFO_KEYS
 from support import ctrl_c, read_until, readline_within, record_process, stops_cleanly
 from support import entry as _entry
 from support import serve as _serve
@@ -134,10 +137,12 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
     rec = record_process(endpoint, "--all", "--raw", "--out", str(root))
     try:
         read_until(rec, "recording every session")  # earlier tests' sessions may be listed first
+        infos = {}
         for session_id in ("class-a", "class-b"):
             with TraineeClient(endpoint, session_id) as c:
                 a, d, q = _entry(c)
                 _stream(c, a + d * np.linspace(-2e-3, 1e-3, 1200)[:, None], q)
+                infos[session_id] = c.control("info")
         output = ctrl_c(rec)
     finally:
         if rec.poll() is None:
@@ -152,6 +157,21 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
         raw = load_raw(ds)
         assert raw.num_rows >= 0.95 * 1200 and ds.card["generator"]["session"] == session_id
         assert ds.card["generator"]["raw"]["lost_batches"] == 0, ds.card["generator"]["raw"]
+        # What the recording was drilled with (dataset.md, card): the version, the rules, the session.
+        assert ds.card["generator"]["dhg_version"] == dhg.__version__
+        assert ds.card["task_rules"] == TaskRules().to_dict()
+        info = infos[session_id]
+        assert ds.card["session"] == {k: info[k] for k in SESSION_INFO_KEYS}
+        assert ds.card["session"]["path_layers"], "the planned path's layers, to judge the plunge by"
+        # dataset.md: the record at time_s t follows tick round(1000 t) - 1, and its force is that
+        # tick's device force less its guidance share.
+        col = {name: raw.column(name).to_numpy() for name in raw.column_names}
+        at = {int(t): k for k, t in enumerate(col["tick"])}
+        pairs = [(k, at[round(1000 * t) - 1]) for k, t in enumerate(ep.times_s) if round(1000 * t) - 1 in at]
+        assert len(pairs) >= 0.9 * len(ep.times_s), (len(pairs), len(ep.times_s))
+        kept, rows = (list(x) for x in zip(*pairs, strict=True))
+        device = np.column_stack([col[f"force_{a}_n"] - col[f"guidance_{a}_n"] for a in "xyz"])[rows]
+        np.testing.assert_allclose(ep.features[kept, 0:3], device, atol=1e-6)
 
 
 def test_record_all_keeps_the_start_of_a_session_the_server_is_slow_to_confirm(server, tmp_path, monkeypatch):

@@ -29,6 +29,14 @@ class TaskRules:
     max_duration_s: float = _RULES["max_duration_s"]
     """The attempt must finish within this time (s)."""
 
+    def to_dict(self) -> dict[str, float]:
+        """The rules as a dataset card's ``task_rules`` holds them (m, m, s)."""
+        return {
+            "max_target_distance_m": self.max_target_distance_m,
+            "max_deviation_m": self.max_deviation_m,
+            "max_duration_s": self.max_duration_s,
+        }
+
 
 @dataclass(frozen=True)
 class PlannedPath:

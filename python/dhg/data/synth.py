@@ -97,11 +97,7 @@ def synthesize(
         "volume": {k: v for k, v in volume.meta.items() if k != "planned_path"}
         | {"shape_zyx": list(volume.shape), "spacing_m": list(volume.spacing_m)},
         "planned_path": path.to_dict(),
-        "task_rules": {
-            "max_target_distance_m": rules.max_target_distance_m,
-            "max_deviation_m": rules.max_deviation_m,
-            "max_duration_s": rules.max_duration_s,
-        },
+        "task_rules": rules.to_dict(),
         "session_config": session.config.to_flat_dict(),
     }
     return episodes, card

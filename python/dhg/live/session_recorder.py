@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from dhg import __version__
 from dhg.core import protocol
 from dhg.core.features import FEATURE_NAMES
 from dhg.core.layers import Layer
@@ -79,6 +80,18 @@ def valid_message(name: str, m: dict[str, Any]) -> bool:
         return True
     layer = m["features"][_LAYER_FEATURE]
     return 0.0 <= m["time_s"] <= MAX_SESSION_TIME_S and layer in _LAYER_IDS
+
+
+SESSION_INFO_KEYS = (
+    "guidance_mode",
+    "burr_radius_m",
+    "planned_breakthrough_depth_m",
+    "path_layer_step_m",
+    "path_layers",
+)
+"""The fields of the server's ``info`` reply a recording's card keeps (``session``): the
+guidance mode and burr it was drilled with, and the planned path's layers (the gain can change
+per attempt: each episode's metrics hold it as ``guidance_gain``)."""
 
 
 class FlushLoop:
@@ -176,6 +189,9 @@ class SessionRecorder(FlushLoop):
         self.raw_rows_without_records = 0
         """Raw rows of an attempt too short for a record (no 10 Hz state): left out."""
         self.path: PlannedPath | None = None
+        self.session_info: dict[str, Any] | None = None
+        """What the server's ``info`` reply said of the session when the recorder first reached
+        it (its settings and the planned path's layers, docs/protocol.md); ``None`` until then."""
         self._subs = []
         self.lost_states = 0
         """States the server published that never reached the recorder, even after recovery."""
@@ -265,8 +281,9 @@ class SessionRecorder(FlushLoop):
         return 0 if self._parts is None else self._parts.rows
 
     def _fetch_path(self) -> None:
-        """The session's planned path (for the skill metrics), asked once it answers. Best effort:
-        without it the records are still written, with empty metrics."""
+        """The session's planned path (for the skill metrics) and settings (for the card), asked
+        once it answers. Best effort: without it the records are still written, with empty
+        metrics."""
         if self.path is not None:
             return
         try:
@@ -274,6 +291,7 @@ class SessionRecorder(FlushLoop):
                 if r.ok is not None:
                     info = json.loads(r.ok.payload.to_bytes())
                     self.path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))
+                    self.session_info = {k: info[k] for k in SESSION_INFO_KEYS if k in info}
         except Exception:  # zenoh errors, a closed session or a malformed reply: try again next flush
             pass
 
@@ -358,10 +376,14 @@ class SessionRecorder(FlushLoop):
         card: dict[str, Any] = {
             "generator": {
                 "name": "dhg record (live session)",
+                "dhg_version": __version__,
                 "session": self.session_id,
                 "flushed_at_unix_s": time.time(),
             },
+            "task_rules": rules.to_dict(),
         }
+        if self.session_info is not None:
+            card["session"] = self.session_info
         parts = []
         if self._parts is not None:
             parts = self._parts.joined(self.out_dir) if final else self._parts.parts()
