@@ -13,6 +13,7 @@ import time
 import numpy as np
 import pytest
 
+import dhg
 from dhg.core import protocol
 from dhg.core.errors import InvalidInputError, TransportError
 from dhg.live.client import TraineeClient
@@ -175,12 +176,15 @@ def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_pat
                     s1._json("dhg/session/station-2/control", {"op": op}, timeout_s=1.0)
             for entity in (rogue_q, rogue_pool_q, rogue_token):
                 entity.undeclare()
+            # A station may ask what the server runs (a recording's card takes it).
+            assert s1._json("dhg/server/about")["volume"]["spacing_m"] == [1e-3] * 3
         # The instructor reads every session.
         with _client(root, endpoint, "teacher", "teacher-view") as teacher:
             health = teacher.health(1.0)
             assert {"station-1", "station-2"} <= set(health["session_ids"])
             metrics = teacher._json("dhg/session/station-1/metrics")
             assert metrics["records"] > 0
+            assert teacher._json("dhg/server/about")["dhg_version"] == dhg.__version__
     finally:
         if worker is not None:
             worker.stop()

@@ -16,6 +16,7 @@ import dhg
 from dhg.core import protocol
 from dhg.core.errors import InvalidInputError
 from dhg.core.path import TaskRules
+from dhg.core.session import SessionConfig
 from dhg.live.client import TraineeClient
 from dhg.live.session_recorder import SESSION_INFO_KEYS
 from support import ctrl_c, read_until, readline_within, record_process, stops_cleanly
@@ -160,6 +161,10 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
         # What the recording was drilled with (dataset.md, card): the version, the rules, the session.
         assert ds.card["generator"]["dhg_version"] == dhg.__version__
         assert ds.card["task_rules"] == TaskRules().to_dict()
+        # ...and what the server ran: its version, volume and session configuration (server/about).
+        assert ds.card["generator"]["server_dhg_version"] == dhg.__version__
+        assert ds.card["session_config"] == SessionConfig().to_flat_dict()
+        assert len(ds.card["volume"]["shape_zyx"]) == 3 and ds.card["volume"]["spacing_m"] == [1e-3] * 3
         info = infos[session_id]
         assert ds.card["session"] == {k: info[k] for k in SESSION_INFO_KEYS}
         assert ds.card["session"]["path_layers"], "the planned path's layers, to judge the plunge by"

@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pytest
 
+import dhg
 from dhg.core import protocol
 from dhg.core.errors import EngineError, InvalidInputError
 from dhg.live.client import TraineeClient
@@ -543,6 +544,24 @@ def test_the_bone_and_volume_queries_give_what_a_viewer_meshes(server):
                 SessionFeed(c._z, "nobody").bricks()
         finally:
             feed.close()
+
+
+def test_about_says_what_the_server_runs(server):
+    """``<p>/server/about`` (docs/protocol.md): the version, the volume as a dataset card has it,
+    every session's configuration, and new sessions' planned path."""
+    from dhg.bone.phantom import default_phantom
+    from dhg.core.session import SessionConfig
+    from dhg.data.synth import volume_card
+
+    _, endpoint = server
+    with TraineeClient(endpoint, "about-1") as c:
+        about = c._json(c.keys["about"])
+        phantom = default_phantom(0, 1e-3)  # the server's: the 1 mm phantom
+        assert about["dhg_version"] == dhg.__version__
+        assert about["volume"] == json.loads(json.dumps(volume_card(phantom.volume)))
+        assert about["session_config"] == SessionConfig().to_flat_dict()
+        info = c.create()  # with no path given: the server's default
+        assert about["planned_path"] == {"entry_m": info["entry_m"], "target_m": info["target_m"]}
 
 
 def test_the_shared_server_stops_cleanly_after_serving_the_module(server):

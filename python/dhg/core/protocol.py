@@ -117,6 +117,7 @@ def keys(prefix: str, session_id: str) -> dict[str, str]:
         )
     } | {
         "health": f"{prefix}/server/health",
+        "about": f"{prefix}/server/about",
         "predict": f"{prefix}/model/predict",
     }
 

@@ -21,7 +21,16 @@ from dhg.data.dataset import EpisodeInput
 from dhg.operators.episodes import Episode, run_episode
 from dhg.operators.styles import sample_style
 
-__all__ = ["attempt_score", "synthesize"]
+__all__ = ["attempt_score", "synthesize", "volume_card"]
+
+
+def volume_card(volume: Volume) -> dict[str, Any]:
+    """A dataset card's ``volume``: where the volume came from (its ``meta``: phantom seed and
+    voxel size, or the CT file), its shape (z, y, x) and its spacing (m)."""
+    return {k: v for k, v in volume.meta.items() if k != "planned_path"} | {
+        "shape_zyx": list(volume.shape),
+        "spacing_m": list(volume.spacing_m),
+    }
 
 
 def attempt_score(metrics: dict[str, Any]) -> float:
@@ -94,8 +103,7 @@ def synthesize(
             "novices": int(novices),
             "attempts": int(attempts),
         },
-        "volume": {k: v for k, v in volume.meta.items() if k != "planned_path"}
-        | {"shape_zyx": list(volume.shape), "spacing_m": list(volume.spacing_m)},
+        "volume": volume_card(volume),
         "planned_path": path.to_dict(),
         "task_rules": rules.to_dict(),
         "session_config": session.config.to_flat_dict(),

@@ -166,9 +166,9 @@ def _rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> d
     return {"id": rid, "messages": messages, "flows": flows, "permission": "allow", "key_exprs": keys}
 
 
-def _station_rules(p: str, n: str, health: str, volume: str) -> list[dict[str, Any]]:
+def _station_rules(p: str, n: str, server: list[str]) -> list[dict[str, Any]]:
     """Station ``n``'s rules under prefix ``p``: it drives and reads only its own sessions (``n``
-    and ``n-*``), and asks the server's health and volume."""
+    and ``n-*``), and asks the server's keys ``server`` (health, volume, about)."""
     own = [f"{p}/session/{n}", f"{p}/session/{n}-$*"]
     return [
         _rule(f"{n}:pose", ["put"], ["ingress"], [f"{s}/pose" for s in own]),
@@ -176,9 +176,9 @@ def _station_rules(p: str, n: str, health: str, volume: str) -> list[dict[str, A
             f"{n}:ask",
             ["query"],
             ["ingress"],
-            [health, volume] + [f"{s}/{leaf}" for s in own for leaf in ("control", "metrics", "xray/*", "bone")],
+            server + [f"{s}/{leaf}" for s in own for leaf in ("control", "metrics", "xray/*", "bone")],
         ),
-        _rule(f"{n}:replies", ["reply"], ["egress"], [health, volume] + [f"{s}/**" for s in own]),
+        _rule(f"{n}:replies", ["reply"], ["egress"], server + [f"{s}/**" for s in own]),
         _rule(
             f"{n}:hear",
             ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
@@ -213,11 +213,11 @@ def _instructor_rules(p: str) -> list[dict[str, Any]]:
     ]
 
 
-def _worker_rules(p: str, n: str, volume: str) -> list[dict[str, Any]]:
+def _worker_rules(p: str, n: str, served: list[str]) -> list[dict[str, Any]]:
     """Model worker ``n``'s rules under prefix ``p`` (the server's own identity also serves the
-    X-rays, the bone and the volume)."""
+    X-rays, the bone, and the server's Python keys ``served``: the volume and about)."""
     own = f"{p}/model/workers/{n}"
-    extra = [f"{p}/session/*/xray/*", f"{p}/session/*/bone", volume] if n == SERVER_IDENTITY else []
+    extra = [f"{p}/session/*/xray/*", f"{p}/session/*/bone", *served] if n == SERVER_IDENTITY else []
     return [
         _rule(
             f"{n}:serve",
@@ -242,16 +242,16 @@ def acl(lab: Lab) -> dict[str, Any]:
         rules.extend(granted)
         policies.append({"rules": [r["id"] for r in granted], "subjects": [who]})
 
-    health, volume = f"{p}/server/health", f"{p}/server/volume"
+    health, served = f"{p}/server/health", [f"{p}/server/volume", f"{p}/server/about"]
     for st in lab.of("station"):
-        grant(f"station:{st.name}", [st.name], *_station_rules(p, st.name, health, volume))
+        grant(f"station:{st.name}", [st.name], *_station_rules(p, st.name, [health, *served]))
     instructors = [i.name for i in lab.of("instructor")]
     if instructors:
         grant("instructors", instructors, *_instructor_rules(p))
     # A model worker joins the engine's pool under its own name only (its token and its
     # queryable), and may serve the shared key the engine queries while the pool is empty.
     for n in [i.name for i in lab.of("model_worker")] + [SERVER_IDENTITY]:
-        grant(f"worker:{n}", [n], *_worker_rules(p, n, volume))
+        grant(f"worker:{n}", [n], *_worker_rules(p, n, served))
     return {
         "enabled": True,
         "default_permission": "deny",

@@ -25,7 +25,8 @@ from typing import Any
 
 from dhg.core.errors import InvalidInputError, TransportError
 from dhg.core.server import Server, ServerSettings, start_engine
-from dhg.live.services import MODEL_NICE, BoneService, ModelService, XRayService
+from dhg.core.session import SessionConfig
+from dhg.live.services import MODEL_NICE, AboutService, BoneService, ModelService, XRayService
 from dhg.live.zenoh_config import (
     SERVER_MAX_MESSAGE_BYTES,
     open_zenoh,
@@ -127,6 +128,7 @@ class RunningServer:
         self.model_service: ModelService | None = None
         self.xray_service: XRayService | None = None
         self.bone_service: BoneService | None = None
+        self.about_service: AboutService | None = None
         self.endpoints: list[str] = []
         self.started = time.monotonic()
 
@@ -172,10 +174,10 @@ class RunningServer:
     def close(self) -> None:
         """Stops the services, closes the Python Zenoh session, then stops the engine (which closes
         its sessions and its own Zenoh session). Safe to call twice."""
-        for svc in (self.bone_service, self.xray_service, self.model_service):
+        for svc in (self.about_service, self.bone_service, self.xray_service, self.model_service):
             if svc is not None:
                 svc.close()
-        self.bone_service = self.xray_service = self.model_service = None
+        self.about_service = self.bone_service = self.xray_service = self.model_service = None
         if self.zenoh is not None:
             try:
                 self.zenoh.close()
@@ -223,6 +225,7 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
     run = RunningServer(options)
     try:
         engine_role = options.role in ("all", "sim")
+        session_config = SessionConfig()  # what every session runs with, as the engine and the card see it
         if engine_role:
             if volume is None or path is None:
                 raise InvalidInputError("the engine needs a volume and a planned path")
@@ -233,7 +236,7 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
                 listen, options.connect, options.zenoh_config, mode="router", max_message_bytes=SERVER_MAX_MESSAGE_BYTES
             )
             try:
-                run.engine = start_engine(volume, path, conf, options.settings, options.prefix)
+                run.engine = start_engine(volume, path, conf, options.settings, options.prefix, session_config)
             except TransportError as exc:
                 raise _friendly(exc, listen) from None
             py_conf = _without_access_control(
@@ -269,6 +272,7 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
         if engine_role:
             run.xray_service = XRayService(run.zenoh, run.engine, volume, options.prefix)
             run.bone_service = BoneService(run.zenoh, run.engine, volume, options.prefix)
+            run.about_service = AboutService(run.zenoh, volume, path, session_config, options.prefix)
     except BaseException:
         run.close()
         raise

@@ -24,6 +24,7 @@ __all__ = [
     "BURST_MEMORY_S",
     "BURST_WAIT_S",
     "MODEL_NICE",
+    "AboutService",
     "BoneService",
     "ModelService",
     "XRayService",
@@ -300,6 +301,42 @@ class ModelService:
             except Exception:  # the session may already be closed
                 pass
         self._worker.join(timeout=2.0)
+
+
+class AboutService:
+    """Where a live session's data comes from, for a recording's dataset card: the key
+    ``<prefix>/server/about`` answers (JSON) with ``dhg_version``, ``volume`` (as a card's:
+    :func:`dhg.data.synth.volume_card`), ``session_config`` (what every session of this server
+    runs with, flat: :meth:`dhg.core.session.SessionConfig.to_flat_dict`) and ``planned_path``
+    (new sessions' default A and B, m). The reply is made once, at start."""
+
+    def __init__(self, session: Any, volume: Any, path: Any, config: Any, prefix: str = "dhg"):
+        from dhg import __version__
+        from dhg.data.synth import volume_card
+
+        self.key = f"{prefix}/server/about"
+        self.reply = json.dumps(
+            {
+                "dhg_version": __version__,
+                "volume": volume_card(volume),
+                "session_config": config.to_flat_dict(),
+                "planned_path": path.to_dict(),
+            }
+        )
+        self._queryable = session.declare_queryable(self.key, self._on_query)
+
+    def _on_query(self, query: Any) -> None:
+        try:
+            query.reply(self.key, self.reply, encoding="application/json")
+        except Exception:  # a session closing: the asker times out, as for any lost reply
+            log.debug("server/about reply failed", exc_info=True)
+
+    def close(self) -> None:
+        """Undeclares the queryable."""
+        try:
+            self._queryable.undeclare()
+        except Exception:
+            pass
 
 
 class XRayService:

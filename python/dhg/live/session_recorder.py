@@ -82,6 +82,10 @@ def valid_message(name: str, m: dict[str, Any]) -> bool:
     return 0.0 <= m["time_s"] <= MAX_SESSION_TIME_S and layer in _LAYER_IDS
 
 
+ABOUT_ASKS = 3
+"""Flushes at which a recorder asks the server's ``about`` before it gives up (each ask waits up
+to 1 s for a server that does not answer it)."""
+
 SESSION_INFO_KEYS = (
     "guidance_mode",
     "burr_radius_m",
@@ -189,6 +193,11 @@ class SessionRecorder(FlushLoop):
         self.raw_rows_without_records = 0
         """Raw rows of an attempt too short for a record (no 10 Hz state): left out."""
         self.path: PlannedPath | None = None
+        self.about: dict[str, Any] | None = None
+        """The server's ``about`` reply (its version, volume and session configuration,
+        docs/protocol.md); ``None`` until it answered (a server before it never does: it is asked
+        at :data:`ABOUT_ASKS` flushes at most)."""
+        self._about_asks = 0
         self.session_info: dict[str, Any] | None = None
         """What the server's ``info`` reply said of the session when the recorder first reached
         it (its settings and the planned path's layers, docs/protocol.md); ``None`` until then."""
@@ -281,9 +290,18 @@ class SessionRecorder(FlushLoop):
         return 0 if self._parts is None else self._parts.rows
 
     def _fetch_path(self) -> None:
-        """The session's planned path (for the skill metrics) and settings (for the card), asked
-        once it answers. Best effort: without it the records are still written, with empty
-        metrics."""
+        """The server's ``about`` and the session's planned path (for the skill metrics) and
+        settings (for the card), asked until they answer. Best effort: without the path the
+        records are still written, with empty metrics; without ``about`` the card lacks the
+        volume and session configuration."""
+        if self.about is None and self._about_asks < ABOUT_ASKS:
+            self._about_asks += 1
+            try:
+                for r in self._z.get(self.keys["about"], timeout=1.0):
+                    if r.ok is not None:
+                        self.about = json.loads(r.ok.payload.to_bytes())
+            except Exception:  # as below: try again next flush
+                pass
         if self.path is not None:
             return
         try:
@@ -384,6 +402,11 @@ class SessionRecorder(FlushLoop):
         }
         if self.session_info is not None:
             card["session"] = self.session_info
+        if self.about is not None:
+            card["generator"]["server_dhg_version"] = self.about.get("dhg_version")
+            for key in ("volume", "session_config"):
+                if key in self.about:
+                    card[key] = self.about[key]
         parts = []
         if self._parts is not None:
             parts = self._parts.joined(self.out_dir) if final else self._parts.parts()
