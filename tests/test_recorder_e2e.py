@@ -142,7 +142,10 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
         for session_id in ("class-a", "class-b"):
             with TraineeClient(endpoint, session_id) as c:
                 a, d, q = _entry(c)
-                _stream(c, a + d * np.linspace(-2e-3, 1e-3, 1200)[:, None], q)
+                # class-b drills 1 mm off the line, where the corridor guides it back.
+                off = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+                off *= 1e-3 / np.linalg.norm(off) if session_id == "class-b" else 0.0
+                _stream(c, a + off + d * np.linspace(-2e-3, 1e-3, 1200)[:, None], q)
                 infos[session_id] = c.control("info")
         output = ctrl_c(rec)
     finally:
@@ -166,8 +169,8 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
         assert ds.card["session_config"] == SessionConfig().to_flat_dict()
         assert len(ds.card["volume"]["shape_zyx"]) == 3 and ds.card["volume"]["spacing_m"] == [1e-3] * 3
         info = infos[session_id]
-        assert ds.card["session"] == {k: info[k] for k in SESSION_INFO_KEYS}
-        assert ds.card["session"]["path_layers"], "the planned path's layers, to judge the plunge by"
+        assert ds.card["session_info"] == {k: info[k] for k in SESSION_INFO_KEYS}
+        assert ds.card["session_info"]["path_layers"], "the planned path's layers, to judge the plunge by"
         # dataset.md: the record at time_s t follows tick round(1000 t) - 1, and its force is that
         # tick's device force less its guidance share.
         col = {name: raw.column(name).to_numpy() for name in raw.column_names}
@@ -175,8 +178,11 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
         pairs = [(k, at[round(1000 * t) - 1]) for k, t in enumerate(ep.times_s) if round(1000 * t) - 1 in at]
         assert len(pairs) >= 0.9 * len(ep.times_s), (len(pairs), len(ep.times_s))
         kept, rows = (list(x) for x in zip(*pairs, strict=True))
-        device = np.column_stack([col[f"force_{a}_n"] - col[f"guidance_{a}_n"] for a in "xyz"])[rows]
+        guidance = np.column_stack([col[f"guidance_{a}_n"] for a in "xyz"])[rows]
+        device = np.column_stack([col[f"force_{a}_n"] for a in "xyz"])[rows] - guidance
         np.testing.assert_allclose(ep.features[kept, 0:3], device, atol=1e-6)
+        if session_id == "class-b":  # so the check tells the feedback force from the device's
+            assert np.abs(guidance).max() > 0.05, np.abs(guidance).max()
 
 
 def test_record_all_keeps_the_start_of_a_session_the_server_is_slow_to_confirm(server, tmp_path, monkeypatch):

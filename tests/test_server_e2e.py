@@ -551,7 +551,7 @@ def test_about_says_what_the_server_runs(server):
     every session's configuration, and new sessions' planned path."""
     from dhg.bone.phantom import default_phantom
     from dhg.core.session import SessionConfig
-    from dhg.data.synth import volume_card
+    from dhg.data.dataset import volume_card
 
     _, endpoint = server
     with TraineeClient(endpoint, "about-1") as c:
@@ -560,8 +560,9 @@ def test_about_says_what_the_server_runs(server):
         assert about["dhg_version"] == dhg.__version__
         assert about["volume"] == json.loads(json.dumps(volume_card(phantom.volume)))
         assert about["session_config"] == SessionConfig().to_flat_dict()
-        info = c.create()  # with no path given: the server's default
+        info = c.create()  # with no path or burr given: the server's defaults
         assert about["planned_path"] == {"entry_m": info["entry_m"], "target_m": info["target_m"]}
+        assert about["session_config"]["burr_radius_m"] == info["burr_radius_m"], "what the engine runs"
 
 
 def test_the_shared_server_stops_cleanly_after_serving_the_module(server):

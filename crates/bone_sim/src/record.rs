@@ -19,9 +19,9 @@ pub const FEATURE_COUNT: usize = 9;
 
 /// The features in record order (Fekri et al. 2021, section 2.2).
 pub const FEATURES: [Feature; FEATURE_COUNT] = [
-    Feature { name: "force_x_n", unit: "N", description: "rendered force on the device, world x" },
-    Feature { name: "force_y_n", unit: "N", description: "rendered force on the device, world y" },
-    Feature { name: "force_z_n", unit: "N", description: "rendered force on the device, world z" },
+    Feature { name: "force_x_n", unit: "N", description: "feedback force on the device (guidance excluded), world x" },
+    Feature { name: "force_y_n", unit: "N", description: "feedback force on the device (guidance excluded), world y" },
+    Feature { name: "force_z_n", unit: "N", description: "feedback force on the device (guidance excluded), world z" },
     Feature { name: "tip_x_m", unit: "m", description: "drill tip (burr centre, proxy), world x" },
     Feature { name: "tip_y_m", unit: "m", description: "drill tip (burr centre, proxy), world y" },
     Feature { name: "tip_z_m", unit: "m", description: "drill tip (burr centre, proxy), world z" },

@@ -4,7 +4,7 @@ it is defined once: ``crates/bone_sim/src/record.rs``). See ``docs/frames.md``.
 =====  ===============  ====  ===============================================
 index  name             unit  meaning
 =====  ===============  ====  ===============================================
-0-2    force_{x,y,z}_n  N     rendered force on the device, world frame
+0-2    force_{x,y,z}_n  N     feedback force on the device (guidance excluded), world frame
 3-5    tip_{x,y,z}_m    m     drill tip (burr centre, proxy), world frame
 6      layer            1     anatomical layer id at the burr's front point
 7      depth_m          m     penetration depth along A→B, from A

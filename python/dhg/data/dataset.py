@@ -53,6 +53,7 @@ __all__ = [
     "raw_parquet_options",
     "raw_schema",
     "records_schema",
+    "volume_card",
     "EpisodeInput",
     "write_dataset",
 ]
@@ -319,6 +320,15 @@ def _place_part(part: RawPart, out: Path, tmp: Path) -> None:
         os.link(src, dest)
     except OSError:  # a file system without hard links: copy it
         shutil.copyfile(src, dest)
+
+
+def volume_card(volume: Any) -> dict[str, Any]:
+    """A dataset card's ``volume`` (a :class:`dhg.core.volume.Volume`): where it came from (its
+    ``meta``: phantom seed and voxel size, or the CT file), its shape (z, y, x) and spacing (m)."""
+    return {k: v for k, v in volume.meta.items() if k != "planned_path"} | {
+        "shape_zyx": list(volume.shape),
+        "spacing_m": list(volume.spacing_m),
+    }
 
 
 def raw_parquet_options(schema: Any) -> dict[str, Any]:

@@ -17,20 +17,11 @@ from dhg import __version__
 from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.session import DrillingSession, SessionConfig
 from dhg.core.volume import Volume
-from dhg.data.dataset import EpisodeInput
+from dhg.data.dataset import EpisodeInput, volume_card
 from dhg.operators.episodes import Episode, run_episode
 from dhg.operators.styles import sample_style
 
-__all__ = ["attempt_score", "synthesize", "volume_card"]
-
-
-def volume_card(volume: Volume) -> dict[str, Any]:
-    """A dataset card's ``volume``: where the volume came from (its ``meta``: phantom seed and
-    voxel size, or the CT file), its shape (z, y, x) and its spacing (m)."""
-    return {k: v for k, v in volume.meta.items() if k != "planned_path"} | {
-        "shape_zyx": list(volume.shape),
-        "spacing_m": list(volume.spacing_m),
-    }
+__all__ = ["attempt_score", "synthesize"]
 
 
 def attempt_score(metrics: dict[str, Any]) -> float:

@@ -10,15 +10,16 @@ a Zenoh configuration that
 * and gives the server an access-control list (deny by default) in which
 
   - a **station** may publish only its own poses, query only its own control, metrics and
-    X-rays (and the server's health), and hear only its own outputs. Its sessions are named
+    X-rays (and the server's health, volume and about), and hear only its own outputs. Its sessions are named
     ``<station>`` or ``<station>-<anything>``;
   - an **instructor** may read every session (subscribe to every output, query every session and
     the server's health, recover the recorded streams) and publish nothing;
   - a **model worker** may join the engine's worker pool under its own name (the liveliness
     token ``<prefix>/model/workers/<name>`` and the queryable below it), serve the shared
     ``<prefix>/model/predict``, and nothing else;
-  - the **server** identity (its own model and X-ray services, which connect to its engine over
-    loopback) does the same as worker ``dhg-server`` and serves X-rays;
+  - the **server** identity (its own model, X-ray, bone and about services, which connect to its
+    engine over loopback) does the same as worker ``dhg-server`` and serves X-rays, the bone, the
+    volume and ``about``;
   - nobody but the engine publishes a force, guidance, state or ticks: no client rule allows it.
 
 The lab file (TOML)::

@@ -306,19 +306,25 @@ class ModelService:
 class AboutService:
     """Where a live session's data comes from, for a recording's dataset card: the key
     ``<prefix>/server/about`` answers (JSON) with ``dhg_version``, ``volume`` (as a card's:
-    :func:`dhg.data.synth.volume_card`), ``session_config`` (what every session of this server
-    runs with, flat: :meth:`dhg.core.session.SessionConfig.to_flat_dict`) and ``planned_path``
-    (new sessions' default A and B, m). The reply is made once, at start."""
+    :func:`dhg.data.dataset.volume_card`, a CT's ``source`` by its file name only, since every
+    station may ask and folder names can carry a patient's), ``session_config`` (what a new
+    session starts with, flat: :meth:`dhg.core.session.SessionConfig.to_flat_dict`) and
+    ``planned_path`` (new sessions' default A and B, m). The reply is made once, at start."""
 
     def __init__(self, session: Any, volume: Any, path: Any, config: Any, prefix: str = "dhg"):
+        from pathlib import Path
+
         from dhg import __version__
-        from dhg.data.synth import volume_card
+        from dhg.data.dataset import volume_card
 
         self.key = f"{prefix}/server/about"
+        described = volume_card(volume)
+        if "source" in described:  # every station may ask: a CT by its file name, not its folders
+            described["source"] = Path(str(described["source"])).name
         self.reply = json.dumps(
             {
                 "dhg_version": __version__,
-                "volume": volume_card(volume),
+                "volume": described,
                 "session_config": config.to_flat_dict(),
                 "planned_path": path.to_dict(),
             }

@@ -93,7 +93,7 @@ SESSION_INFO_KEYS = (
     "path_layer_step_m",
     "path_layers",
 )
-"""The fields of the server's ``info`` reply a recording's card keeps (``session``): the
+"""The fields of the server's ``info`` reply a recording's card keeps (``session_info``): the
 guidance mode and burr it was drilled with, and the planned path's layers (the gain can change
 per attempt: each episode's metrics hold it as ``guidance_gain``)."""
 
@@ -299,7 +299,9 @@ class SessionRecorder(FlushLoop):
             try:
                 for r in self._z.get(self.keys["about"], timeout=1.0):
                     if r.ok is not None:
-                        self.about = json.loads(r.ok.payload.to_bytes())
+                        about = json.loads(r.ok.payload.to_bytes())
+                        if isinstance(about, dict):  # in the open mode any peer may answer
+                            self.about = about
             except Exception:  # as below: try again next flush
                 pass
         if self.path is not None:
@@ -401,11 +403,11 @@ class SessionRecorder(FlushLoop):
             "task_rules": rules.to_dict(),
         }
         if self.session_info is not None:
-            card["session"] = self.session_info
+            card["session_info"] = self.session_info
         if self.about is not None:
             card["generator"]["server_dhg_version"] = self.about.get("dhg_version")
             for key in ("volume", "session_config"):
-                if key in self.about:
+                if isinstance(self.about.get(key), dict):
                     card[key] = self.about[key]
         parts = []
         if self._parts is not None:
