@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -35,12 +34,14 @@ def main() -> None:
             stylus = Stylus(c, q)
             stylus.move(a + d * np.linspace(-3e-3, 5e-3, 4000)[:, None])
             wait_until(lambda: stylus.idle() and len(c.guidance) >= 30, 60, "the first attempt drilled")
-            time.sleep(0.5)  # the workload: half a second more of the stylus held in the bone
+            held = len(c.guidance)  # the workload: five replies more (0.5 s) with the stylus held in the bone
+            wait_until(lambda: len(c.guidance) >= held + 5, 60, "the stylus held in the bone")
             n = len(c.guidance)
             c.control("reset")
             stylus.move(np.repeat((a - 3e-3 * d)[None, :], 3000, axis=0))
             wait_until(stylus.idle, 60, "3 s before the entry point")
-            time.sleep(0.3)  # the replies to the last windows
+            last = len(c.guidance)  # the replies to the last windows: three more, the stylus held
+            wait_until(lambda: len(c.guidance) >= last + 3, 60, "the replies to the last windows")
             after = list(c.guidance)[n:]
             stylus.stop()
     finally:

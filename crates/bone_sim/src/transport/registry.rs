@@ -149,14 +149,11 @@ impl SlotInfo {
     }
 
     /// Guidance the engine applied: counted in the attempt's metrics once the attempt has
-    /// recorded (before, after a reset, it was applied in the attempt that ended). Returns whether
-    /// it was counted.
-    pub fn add_guidance(&mut self, msg: &GuidanceMsg) -> bool {
-        if self.attempt_first_window.is_none() {
-            return false;
+    /// recorded (before, after a reset, it was applied in the attempt that ended).
+    pub fn add_guidance(&mut self, msg: &GuidanceMsg) {
+        if self.attempt_first_window.is_some() {
+            self.metrics.add_guidance(msg);
         }
-        self.metrics.add_guidance(msg);
-        true
     }
 }
 
