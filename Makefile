@@ -75,7 +75,7 @@ FUZZ_SECONDS ?= 20
 fuzz: ## build the libFuzzer targets on stable Rust and run each FUZZ_SECONDS (20) from its seed corpus
 	FUZZ_TARGET_DIR=$(DHG_CACHE)/fuzz-target fuzz/run.sh $(FUZZ_SECONDS)
 
-lint: build ## clippy, rustfmt, ruff, stubtest, and both lock files up to date
+lint: build ## clippy, rustfmt, ruff, mypy (the package), stubtest, and both lock files up to date
 	cargo metadata --locked --format-version 1 > /dev/null
 	cd fuzz && cargo metadata --locked --format-version 1 > /dev/null
 	cargo clippy --workspace --all-targets -q -- -D warnings
@@ -83,6 +83,7 @@ lint: build ## clippy, rustfmt, ruff, stubtest, and both lock files up to date
 	cargo fmt --all --check
 	$(VENV)/bin/ruff check python tests
 	$(VENV)/bin/ruff format --check python tests
+	$(VPY) -m mypy python/dhg
 	$(VPY) -m mypy.stubtest dhg._bone_sim
 
 bench: build ## criterion benches and the Python benchmarks (figures go in docs/benchmarks.md)

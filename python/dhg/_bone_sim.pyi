@@ -59,7 +59,7 @@ BRICK_EDGE: Final[int]
 MAX_BURR_RADIUS_M: Final[float]
 MIN_BURR_RADIUS_M: Final[float]
 MAX_SPINDLE_RPM: Final[float]
-GUIDANCE_MODES: Final[list[str]]
+GUIDANCE_MODES: Final[list[_GuidanceMode]]
 MAX_POSITION_M: Final[float]
 PROTOCOL_VERSION: Final[int]
 WINDOW_RECORDS: Final[int]
@@ -122,7 +122,7 @@ class DrilledVolume:
         spindle_rpm: float,
         dt_s: float,
         contact: float = 1.0,
-    ) -> dict[str, float]: ...
+    ) -> dict[str, Any]: ...
     def remove_along(
         self,
         centers_m: npt.NDArray[np.float64],
@@ -130,7 +130,7 @@ class DrilledVolume:
         spindle_rpm: float,
         dt_s: float,
         contact: float = 1.0,
-    ) -> dict[str, float]: ...
+    ) -> dict[str, Any]: ...
     def material_at(
         self, points_m: npt.NDArray[np.float64], interp: _Interp = "nearest"
     ) -> npt.NDArray[np.float64]: ...

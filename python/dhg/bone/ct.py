@@ -128,10 +128,13 @@ def load_nifti(path: str | os.PathLike[str]) -> CTImage:
     """Reads a NIfTI CT (values taken as HU after the file's scaling). The RAS affine is converted
     to LPS; a left-handed voxel order is flipped so the orientation is a proper rotation."""
     import nibabel as nib
+    from nibabel.spatialimages import SpatialImage
 
     p = Path(path)
     try:
         img = nib.load(str(p))
+        if not isinstance(img, SpatialImage):
+            raise TypeError(f"a {type(img).__name__} has no voxel grid")
         data = np.asarray(img.get_fdata(dtype=np.float32))
         affine = np.asarray(img.affine, dtype=np.float64)
     except FileNotFoundError:
@@ -155,7 +158,8 @@ def load_nifti(path: str | os.PathLike[str]) -> CTImage:
         data = data[::-1]
     hu = np.ascontiguousarray(np.transpose(data, (2, 1, 0)), dtype=np.float32)  # (i,j,k) → [z,y,x]
     mm_to_m = 1e-3
-    return CTImage(hu, tuple(float(s) * mm_to_m for s in spacing), origin * mm_to_m, direction, str(p))
+    sx, sy, sz = (float(s) * mm_to_m for s in spacing)
+    return CTImage(hu, (sx, sy, sz), origin * mm_to_m, direction, str(p))
 
 
 def load(path: str | os.PathLike[str]) -> CTImage:
@@ -200,7 +204,9 @@ def crop(ct: CTImage, lo_m: npt.ArrayLike, hi_m: npt.ArrayLike) -> CTImage:
         raise InvalidInputError("crop needs an axis-aligned image; call resample_isotropic first")
     lo, hi = np.asarray(lo_m, float), np.asarray(hi_m, float)
     if lo.shape != (3,) or hi.shape != (3,) or np.any(hi <= lo) or not np.all(np.isfinite([lo, hi])):
-        raise InvalidInputError(f"crop box must be two finite 3-D corners with lo < hi, got {lo_m} and {hi_m}")
+        raise InvalidInputError(
+            f"crop box must be two finite 3-D corners with lo < hi, got {lo.tolist()} and {hi.tolist()}"
+        )
     sp = np.asarray(ct.spacing_m)
     start = np.maximum(0, np.ceil((lo - ct.origin_m) / sp - 1e-9)).astype(int)
     stop = np.minimum(np.array(ct.hu.shape[::-1]), np.floor((hi - ct.origin_m) / sp + 1e-9).astype(int) + 1)

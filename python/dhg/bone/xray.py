@@ -96,9 +96,9 @@ def render_views(
             # Dotted every 3 mm, so a drilled tunnel under it stays visible.
             for cx, cy in px(path.point_at(np.arange(0.0, path.length_m, 3e-3))):
                 draw.point([(cx, cy)], fill=_PATH_RGB)
+            ring = 2 * scale
             for (cx, cy), rgb in ((a, _PATH_RGB), (b, _TARGET_RGB)):
-                r = 2 * scale
-                draw.ellipse([cx - r, cy - r, cx + r, cy + r], outline=rgb, width=max(1, scale // 2))
+                draw.ellipse([cx - ring, cy - ring, cx + ring, cy + ring], outline=rgb, width=max(1, scale // 2))
         if tip_m is not None:
             ((cx, cy),) = px(np.asarray(tip_m, dtype=float).reshape(1, 3))
             r = 1.5 * scale

@@ -47,7 +47,7 @@ __all__ = [
 
 
 GuidanceMode = Literal["paper", "corridor", "brake", "shaped"]
-GUIDANCE_MODES: tuple[str, ...] = tuple(_bone_sim.GUIDANCE_MODES)
+GUIDANCE_MODES: tuple[GuidanceMode, ...] = tuple(_bone_sim.GUIDANCE_MODES)
 """The guidance modes, as the core defines them (``crates/bone_sim/src/guidance/``)."""
 
 MAX_SPINDLE_RPM: float = float(_bone_sim.MAX_SPINDLE_RPM)
@@ -222,7 +222,7 @@ class SessionState:
     def from_dict(cls, d: dict[str, Any]) -> SessionState:
         """From the native state dict."""
         vec = {"device_m", "tip_m", "axis", "force_n", "registration_offset_m", "guidance_n", "feedback_n"}
-        values = {k: (np.asarray(v, dtype=float) if k in vec else v) for k, v in d.items()}
+        values: dict[str, Any] = {k: (np.asarray(v, dtype=float) if k in vec else v) for k, v in d.items()}
         values["layer"] = Layer(int(values["layer"]))
         return cls(**values)
 
@@ -390,7 +390,7 @@ class DrillingSession:
         p = np.asarray(predicted_n, dtype=np.float64).reshape(-1)
         if p.shape != (3,):
             raise ShapeError(f"predicted_n must be a force (3,), got shape {np.shape(predicted_n)}")
-        return self._s.set_prediction(tuple(float(v) for v in p))
+        return self._s.set_prediction((float(p[0]), float(p[1]), float(p[2])))
 
     @property
     def planned_breakthrough_depth_m(self) -> float | None:

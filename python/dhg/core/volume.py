@@ -105,7 +105,7 @@ class XRayViews:
         return {"top": self.top, "front": self.front, "side": self.side}
 
 
-def _triple(value: Sequence[float] | npt.ArrayLike, what: str) -> tuple[float, float, float]:
+def _triple(value: npt.ArrayLike, what: str) -> tuple[float, float, float]:
     arr = np.asarray(value, dtype=np.float64)
     if arr.shape != (3,):
         raise ShapeError(f"{what} must have 3 components, got shape {arr.shape}")
@@ -162,8 +162,8 @@ class Volume:
     def from_hu(
         cls,
         hu: npt.ArrayLike,
-        spacing_m: Sequence[float],
-        origin_m: Sequence[float] = (0.0, 0.0, 0.0),
+        spacing_m: npt.ArrayLike,
+        origin_m: npt.ArrayLike = (0.0, 0.0, 0.0),
         direction: npt.ArrayLike | None = None,
         labels: npt.ArrayLike | None = None,
         mapping: HuMapping | None = None,

@@ -267,15 +267,15 @@ def _records_table(episodes: Sequence[EpisodeInput]) -> Any:
         blocks.append(r)
     r = np.concatenate(blocks) if blocks else np.zeros((0, 11))
     counts = [len(b) for b in blocks]
-    eid = np.repeat(np.arange(len(blocks), dtype=np.int32), counts)
+    episode_of_row = np.repeat(np.arange(len(blocks), dtype=np.int32), counts)
 
     def per_episode(values: list[Any], kind: Any) -> Any:
         # One value per episode, taken for each of its records.
-        return pa.array(values, kind).take(pa.array(eid))
+        return pa.array(values, kind).take(pa.array(episode_of_row))
 
     schema = records_schema()
     cols = [
-        pa.array(eid, pa.int32()),
+        pa.array(episode_of_row, pa.int32()),
         per_episode([ep.subject_id for ep in episodes], pa.string()),
         per_episode([ep.skill for ep in episodes], pa.string()),
         pa.array(np.repeat(np.array([int(ep.attempt) for ep in episodes], dtype=np.int32), counts), pa.int32()),
@@ -292,12 +292,16 @@ def _raw_table(episodes: Sequence[EpisodeInput]) -> Any:
     """The episodes' 1 kHz streams (``raw_poses``, ``raw_forces_n``) as one Arrow table of
     :func:`raw_schema`, from numpy columns; a virtual surgeon drills without guidance (zeros)."""
     pa = _pa()
-    kept = [(eid, ep) for eid, ep in enumerate(episodes) if ep.raw_poses is not None and ep.raw_forces_n is not None]
-    poses = np.concatenate([np.zeros((0, len(POSE_COLUMNS)))] + [np.asarray(ep.raw_poses) for _, ep in kept])
-    forces = np.concatenate([np.zeros((0, len(FORCE_COLUMNS)))] + [np.asarray(ep.raw_forces_n) for _, ep in kept])
-    counts = [len(ep.raw_poses) for _, ep in kept]
+    kept = [
+        (eid, np.asarray(ep.raw_poses), np.asarray(ep.raw_forces_n))
+        for eid, ep in enumerate(episodes)
+        if ep.raw_poses is not None and ep.raw_forces_n is not None
+    ]
+    poses = np.concatenate([np.zeros((0, len(POSE_COLUMNS)))] + [p for _, p, _ in kept])
+    forces = np.concatenate([np.zeros((0, len(FORCE_COLUMNS)))] + [f for _, _, f in kept])
+    counts = [len(p) for _, p, _ in kept]
     cols = [
-        pa.array(np.repeat(np.array([eid for eid, _ in kept], dtype=np.int32), counts), pa.int32()),
+        pa.array(np.repeat(np.array([eid for eid, _, _ in kept], dtype=np.int32), counts), pa.int32()),
         pa.array(np.concatenate([np.zeros(0, np.int32)] + [np.arange(n, dtype=np.int32) for n in counts])),
     ]
     cols += [pa.array(poses[:, i]) for i in range(len(POSE_COLUMNS))]

@@ -14,8 +14,8 @@ tiny               9       3        1       16      for tests
 =================  ======  =======  ======  ======  ======================================
 """
 
-from __future__ import annotations
-
+# No `from __future__ import annotations` here: TorchScript reads the buffers' class annotations
+# (which tell type checkers they are tensors) and cannot resolve them as strings.
 import torch
 from torch import nn
 
@@ -42,12 +42,15 @@ class MinMaxScaler(nn.Module):
     """Min–max scaling of the nine features to [0, 1], fitted on training data only. Held as
     buffers so it travels inside the exported model."""
 
+    lo: torch.Tensor
+    span: torch.Tensor
+
     def __init__(self) -> None:
         super().__init__()
         self.register_buffer("lo", torch.zeros(len(FEATURE_NAMES)))
         self.register_buffer("span", torch.ones(len(FEATURE_NAMES)))
 
-    def fit(self, samples: torch.Tensor) -> MinMaxScaler:
+    def fit(self, samples: torch.Tensor) -> "MinMaxScaler":
         """Fits on (N, 9) samples; a constant feature gets span 1."""
         lo = samples.amin(dim=0)
         span = samples.amax(dim=0) - lo
@@ -62,6 +65,13 @@ class MinMaxScaler(nn.Module):
 class ForcePredictor(nn.Module):
     """What is exported: raw windows (B, T, 9) in the documented SI units → expert force (B, 3) in N,
     with the scaling inside."""
+
+    in_idx: torch.Tensor
+    force_pos: torch.Tensor
+    in_lo: torch.Tensor
+    in_span: torch.Tensor
+    force_lo: torch.Tensor
+    force_span: torch.Tensor
 
     def __init__(self, net: LSTMRegressor, scaler: MinMaxScaler, cfg: ModelConfig) -> None:
         super().__init__()

@@ -82,7 +82,7 @@ class OnnxRunner:
             torch.onnx.export(
                 module,
                 (torch.zeros(2, window, _FEATURES),),
-                buf,
+                buf,  # type: ignore[arg-type]  # a file-like object is documented; the stub says path only
                 dynamo=False,
                 input_names=["windows"],
                 output_names=["force"],

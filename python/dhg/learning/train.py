@@ -156,8 +156,13 @@ class _Ranks:
         (DDP's all-reduce would otherwise wait forever on a rank with one batch more)."""
         from torch.utils.data.distributed import DistributedSampler
 
-        sampler = DistributedSampler(
-            range(n), num_replicas=self.world, rank=self.rank, shuffle=True, seed=seed, drop_last=True
+        sampler: DistributedSampler[int] = DistributedSampler(
+            range(n),  # type: ignore[arg-type]  # any sized sequence: only its length is used
+            num_replicas=self.world,
+            rank=self.rank,
+            shuffle=True,
+            seed=seed,
+            drop_last=True,
         )
         sampler.set_epoch(epoch)
         return torch.tensor(list(sampler), dtype=torch.long)

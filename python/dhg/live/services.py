@@ -56,7 +56,7 @@ MAX_NPZ_BYTES = 12 * 1024 * 1024
 def encode_npz(**arrays: np.ndarray) -> bytes:
     """Arrays as a compressed ``.npz`` (the bone and volume replies' format)."""
     buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
+    np.savez_compressed(buf, allow_pickle=False, **arrays)
     return buf.getvalue()
 
 
@@ -232,7 +232,9 @@ class ModelService:
         if not good:
             return
         stacked = np.concatenate(windows)
-        usable = np.isfinite(stacked).all(axis=(1, 2))  # a window with NaN or inf is not computed
+        usable = np.asarray(
+            np.isfinite(stacked).all(axis=(1, 2)), dtype=np.bool_
+        )  # a window with NaN or inf is not computed
         stacked = np.where(usable[:, None, None], stacked, np.float32(0.0))
         forces = np.empty((len(stacked), 3), dtype=np.float32)
         pass_s = np.empty(len(stacked))

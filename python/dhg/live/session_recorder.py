@@ -63,7 +63,7 @@ def recorded_subscriber(z: Any, key: str, callback: Callable[[Any], None], on_mi
         key,
         callback,
         history=zx.HistoryConfig(detect_late_publishers=True),
-        recovery=zx.RecoveryConfig(heartbeat=True),
+        recovery=zx.RecoveryConfig(periodic_queries=None, heartbeat=True),
     )
     listener = sub.sample_miss_listener(lambda miss: on_miss(int(miss.nb)))
     return sub, listener
@@ -317,7 +317,9 @@ class SessionRecorder(FlushLoop):
 
     def _take(
         self, final: bool
-    ) -> tuple[list[tuple[RecordingEpisode, list[dict[str, Any]]]], list[tuple[RecordingEpisode, list]]]:
+    ) -> tuple[
+        list[tuple[RecordingEpisode, list[dict[str, Any]]]], list[tuple[RecordingEpisode, npt.NDArray[np.float64]]]
+    ]:
         """Under the lock: the episodes with records (and a copy of them), and the raw rows now
         ready to write. Rows of an episode the states passed by without a record are dropped;
         an episode still waiting for its first record holds back its rows and every later one's

@@ -21,7 +21,7 @@ from dhg.bone.planning import breakthrough_depth_from_runs
 from dhg.core.errors import InvalidInputError
 from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.skill import skill_metrics
-from dhg.core.surgeon import SurgeonController
+from dhg.core.surgeon import CueMeaning, SurgeonController
 from dhg.live.client import TraineeClient, feedback_tuple
 from dhg.operators.styles import sample_style
 
@@ -294,7 +294,7 @@ def run_course(
     if cue_follow_per_s is not None:
         style = dataclasses.replace(style, cue_follow_per_s=float(cue_follow_per_s))
     # Told what the cue means: match the expert's force (the paper's cue) or yield to it (the others).
-    cue = "match" if mode == "paper" else "yield"
+    cue: CueMeaning = "match" if mode == "paper" else "yield"
     learner = Learner()
     runs: list[TraineeRun] = []
     for attempt in range(attempts):

@@ -8,7 +8,7 @@ import math
 from dataclasses import dataclass
 
 from dhg.core.errors import InvalidInputError
-from dhg.core.session import GUIDANCE_MODES
+from dhg.core.session import GUIDANCE_MODES, GuidanceMode
 
 __all__ = ["ARMS", "METRICS", "PHASES", "Arm", "Protocol", "parse_arms"]
 
@@ -19,7 +19,7 @@ class Arm:
     ``fading``: the gain follows the core's assist-as-needed schedule from ``gain``."""
 
     name: str
-    mode: str | None
+    mode: GuidanceMode | None
     gain: float = 1.0
     fading: bool = False
 

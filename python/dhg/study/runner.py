@@ -40,6 +40,7 @@ import numpy as np
 
 from dhg.core.errors import InvalidInputError
 from dhg.core.protocol import WINDOW_RECORDS
+from dhg.core.session import GuidanceMode
 from dhg.operators.models import OPERATORS, Operator
 from dhg.study.design import ARMS, METRICS, PHASES, Arm, Protocol, parse_arms
 from dhg.study.result import Attempt, StudyResult
@@ -53,7 +54,7 @@ Window = np.ndarray
 class _Station(Protocol_):
     """Where a job's attempts are drilled: an in-process session, or a session on a server."""
 
-    def guide(self, mode: str | None, gain: float) -> None: ...
+    def guide(self, mode: GuidanceMode | None, gain: float) -> None: ...
 
     def set_fading(self, params: dict[str, Any] | None) -> None: ...
 
@@ -86,7 +87,7 @@ class _LocalStation:
         if guidance:
             self.session.set_guidance_params(**dict(guidance))
 
-    def guide(self, mode: str | None, gain: float) -> None:
+    def guide(self, mode: GuidanceMode | None, gain: float) -> None:
         self.session.set_guidance(mode or "paper", gain if mode else 0.0)
 
     def set_fading(self, params: dict[str, Any] | None) -> None:
@@ -120,7 +121,7 @@ class _LiveStation:
         self.client = TraineeClient(connect, session_id, zenoh_config_file=zenoh_config_file)
         self.info = self.client.create(burr_radius_m=burr_radius_m)
 
-    def guide(self, mode: str | None, gain: float) -> None:
+    def guide(self, mode: GuidanceMode | None, gain: float) -> None:
         if mode is None:
             self.client.set_guidance(gain=0.0)
         else:
@@ -184,7 +185,9 @@ def _job(
     learner = Learner(**(learned or {}))
     rules = TaskRules(max_duration_s=protocol.duration_s)
 
-    def attempt(index: int, phase: str, mode: str | None, gain: float) -> Generator[Window, np.ndarray, Attempt]:
+    def attempt(
+        index: int, phase: str, mode: GuidanceMode | None, gain: float
+    ) -> Generator[Window, np.ndarray, Attempt]:
         probe = False
         if phase == "train" and arm is not None and arm.fading:
             fading = station.end_attempt()  # ends the last attempt in the schedule

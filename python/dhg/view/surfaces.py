@@ -169,7 +169,7 @@ class LayerSurfaces:
             now[key] = m
             old = self._bricks.get(key)
             if old is None or not np.array_equal(old, m):
-                self._write(key, m.astype(np.float32) / FULL_MATERIAL)
+                self._write(key, np.divide(m, np.float32(FULL_MATERIAL), dtype=np.float32))
                 changed.append(key)
         for key in self._bricks.keys() - now.keys():
             self._write(key, None)
