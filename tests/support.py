@@ -61,6 +61,28 @@ def stream(client: TraineeClient, positions: np.ndarray, q: tuple, drill_on: boo
     return (time.monotonic_ns() - t0) * 1e-9
 
 
+def hold_until(
+    client: TraineeClient,
+    position: np.ndarray,
+    q: tuple,
+    cond: Callable[[dict], object],
+    timeout_s: float,
+    what: str = "condition",
+) -> dict:
+    """Holds the stylus at ``position`` (a pose a millisecond, 100 ms at a time) until the latest
+    force message meets ``cond``; returns that message. For what the model's answers bring: on a
+    loaded machine its first answers come later than on an idle one."""
+    held = np.repeat(np.asarray(position, dtype=float)[None, :], 100, axis=0)
+
+    def met() -> bool:
+        stream(client, held, q)
+        return client.force is not None and bool(cond(client.force))
+
+    wait_until(met, timeout_s, what)
+    assert client.force is not None
+    return client.force
+
+
 def wait_until(cond: Callable[[], object], timeout_s: float, what: str = "condition") -> None:
     """Polls ``cond`` every 5 ms until it is true; fails the test after ``timeout_s`` (a generous
     deadline, not a speed target)."""

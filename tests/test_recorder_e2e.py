@@ -3,6 +3,7 @@ shared ``dhg-serve`` (its own, started for this module), kills, crashes and seve
 
 from __future__ import annotations
 
+import hashlib
 import re
 import signal
 import subprocess
@@ -17,9 +18,10 @@ from dhg.core import protocol
 from dhg.core.errors import InvalidInputError
 from dhg.core.path import TaskRules
 from dhg.core.session import SessionConfig
+from dhg.learning.weights import default_model_path
 from dhg.live.client import TraineeClient
 from dhg.live.session_recorder import SESSION_INFO_KEYS
-from support import ctrl_c, read_until, readline_within, record_process, stops_cleanly
+from support import ctrl_c, hold_until, read_until, readline_within, record_process, stops_cleanly
 from support import entry as _entry
 from support import serve as _serve
 from support import stream as _stream
@@ -146,6 +148,11 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
                 off = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
                 off *= 1e-3 / np.linalg.norm(off) if session_id == "class-b" else 0.0
                 _stream(c, a + off + d * np.linspace(-2e-3, 1e-3, 1200)[:, None], q)
+                if session_id == "class-b":  # held there until the model's answers guide it, 3 records more
+                    end = a + off + 1e-3 * d
+                    guided = lambda m: np.linalg.norm(m["guidance_n"]) > 0.1  # noqa: E731
+                    hold_until(c, end, q, guided, 20.0, "guidance off the line")
+                    _stream(c, np.repeat(end[None, :], 300, axis=0), q)
                 infos[session_id] = c.control("info")
         output = ctrl_c(rec)
     finally:
@@ -168,6 +175,9 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
         assert ds.card["generator"]["server_dhg_version"] == dhg.__version__
         assert ds.card["session_config"] == SessionConfig().to_flat_dict()
         assert len(ds.card["volume"]["shape_zyx"]) == 3 and ds.card["volume"]["spacing_m"] == [1e-3] * 3
+        # ...how it was guided, and by which model.
+        assert ds.card["guidance"]["mode"] == "shaped" and ds.card["guidance"]["params"]["max_n"] == 0.88
+        assert ds.card["model"]["sha256"] == hashlib.sha256(default_model_path().read_bytes()).hexdigest()
         info = infos[session_id]
         assert ds.card["session_info"] == {k: info[k] for k in SESSION_INFO_KEYS}
         assert ds.card["session_info"]["path_layers"], "the planned path's layers, to judge the plunge by"
@@ -175,8 +185,13 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
         # tick's device force less its guidance share.
         col = {name: raw.column(name).to_numpy() for name in raw.column_names}
         at = {int(t): k for k, t in enumerate(col["tick"])}
-        pairs = [(k, at[round(1000 * t) - 1]) for k, t in enumerate(ep.times_s) if round(1000 * t) - 1 in at]
-        assert len(pairs) >= 0.9 * len(ep.times_s), (len(pairs), len(ep.times_s))
+        # Every record within the stream's ticks has its tick. (Before the first: ticks without a
+        # pose yet; after the last: the batch of the session's last 100 ticks leaves after the
+        # session ends, and the recorder may be stopped first.)
+        within = [(k, round(1000 * t) - 1) for k, t in enumerate(ep.times_s)]
+        within = [(k, tick) for k, tick in within if col["tick"][0] <= tick <= col["tick"][-1]]
+        assert len(within) >= 10 and all(tick in at for _, tick in within), (within, col["tick"][[0, -1]])
+        pairs = [(k, at[tick]) for k, tick in within]
         kept, rows = (list(x) for x in zip(*pairs, strict=True))
         guidance = np.column_stack([col[f"guidance_{a}_n"] for a in "xyz"])[rows]
         device = np.column_stack([col[f"force_{a}_n"] for a in "xyz"])[rows] - guidance

@@ -141,6 +141,10 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             pump = threading.Thread(target=hold, daemon=True)
             pump.start()
             _wait(lambda: c.force is not None and c.force["flags"] & protocol.FLAGS["model_available"], 5.0)
+            # The engine says no model of its own guides, and its corridor is the fixed one (the
+            # experts' profile comes with a model: --role all).
+            about = c._json(c.keys["about"])
+            assert about["model"] is None and about["guidance"]["params"]["corridor_profile_n_per_m"] == []
             # ONNX Runtime runs the passes on CPU by default, TorchScript when asked (below).
             assert any("(onnxruntime)" in line for line in worker.lines), worker.lines
             # The worker's forward passes run at nice 19 (decision 0026); its other threads keep 0.

@@ -103,6 +103,14 @@ class Server:
         """Whether the engine runs."""
         return self._native.running
 
+    @property
+    def new_session_guidance(self) -> dict[str, Any]:
+        """How a new session is guided: ``mode``, ``gain``, and ``params``, the guidance laws and
+        limits every session runs (:data:`dhg.core.session.GUIDANCE_DEFAULTS`' keys, with the
+        server's settings applied: ``max_n`` (N), ``max_rate_n_per_s`` (N/s), ``timeout_s`` (s), the
+        corridor's profile, ...)."""
+        return self._native.new_session_guidance
+
 
 def start_engine(
     volume: Any,

@@ -236,9 +236,10 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
                 listen, options.connect, options.zenoh_config, mode="router", max_message_bytes=SERVER_MAX_MESSAGE_BYTES
             )
             try:
-                run.engine = start_engine(volume, path, conf, options.settings, options.prefix, session_config)
+                run.engine = engine = start_engine(volume, path, conf, options.settings, options.prefix, session_config)
             except TransportError as exc:
                 raise _friendly(exc, listen) from None
+            guidance = engine.new_session_guidance
             py_conf = _without_access_control(
                 zenoh_config_json5(
                     (),
@@ -272,7 +273,8 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
         if engine_role:
             run.xray_service = XRayService(run.zenoh, run.engine, volume, options.prefix)
             run.bone_service = BoneService(run.zenoh, run.engine, volume, options.prefix)
-            run.about_service = AboutService(run.zenoh, volume, path, session_config, options.prefix)
+            served = model if options.role == "all" else None  # with --role sim, the workers run theirs
+            run.about_service = AboutService(run.zenoh, volume, path, session_config, guidance, served, options.prefix)
     except BaseException:
         run.close()
         raise

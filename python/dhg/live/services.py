@@ -305,15 +305,49 @@ class ModelService:
         self._worker.join(timeout=2.0)
 
 
+def model_about(model: Any) -> dict[str, Any]:
+    """What identifies a guidance model (a :class:`dhg.learning.torchscript.GuidanceModel`): its
+    file's name and SHA-256, its preset, window and horizon (records), the SHA-256 of the
+    ``records.parquet`` it was trained on (as in that dataset's card) and the DHG version that
+    exported it."""
+    import hashlib
+
+    meta = model.meta
+    data = meta.get("data")
+    with open(model.path, "rb") as f:
+        digest = hashlib.file_digest(f, "sha256").hexdigest()
+    return {
+        "file": model.path.name,
+        "sha256": digest,
+        "preset": meta.get("preset"),
+        "window": model.window,
+        "horizon_records": model.horizon,
+        "records_sha256": data.get("records_sha256") if isinstance(data, dict) else None,
+        "dhg_version": meta.get("dhg_version"),
+    }
+
+
 class AboutService:
     """Where a live session's data comes from, for a recording's dataset card: the key
     ``<prefix>/server/about`` answers (JSON) with ``dhg_version``, ``volume`` (as a card's:
     :func:`dhg.data.dataset.volume_card`, a CT's ``source`` by its file name only, since every
     station may ask and folder names can carry a patient's), ``session_config`` (what a new
-    session starts with, flat: :meth:`dhg.core.session.SessionConfig.to_flat_dict`) and
-    ``planned_path`` (new sessions' default A and B, m). The reply is made once, at start."""
+    session starts with, flat: :meth:`dhg.core.session.SessionConfig.to_flat_dict`),
+    ``planned_path`` (new sessions' default A and B, m), ``guidance`` (how a new session is
+    guided and the laws every session runs: :attr:`dhg.core.server.Server.new_session_guidance`)
+    and ``model`` (:func:`model_about` of the model this process serves; None when the model
+    runs in other processes, ``--role sim``). The reply is made once, at start."""
 
-    def __init__(self, session: Any, volume: Any, path: Any, config: Any, prefix: str = "dhg"):
+    def __init__(
+        self,
+        session: Any,
+        volume: Any,
+        path: Any,
+        config: Any,
+        guidance: dict[str, Any],
+        model: Any = None,
+        prefix: str = "dhg",
+    ):
         from pathlib import Path
 
         from dhg import __version__
@@ -329,6 +363,8 @@ class AboutService:
                 "volume": described,
                 "session_config": config.to_flat_dict(),
                 "planned_path": path.to_dict(),
+                "guidance": guidance,
+                "model": None if model is None else model_about(model),
             }
         )
         self._queryable = session.declare_queryable(self.key, self._on_query)

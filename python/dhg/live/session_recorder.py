@@ -408,7 +408,7 @@ class SessionRecorder(FlushLoop):
             card["session_info"] = self.session_info
         if self.about is not None:
             card["generator"]["server_dhg_version"] = self.about.get("dhg_version")
-            for key in ("volume", "session_config"):
+            for key in ("volume", "session_config", "guidance", "model"):
                 if isinstance(self.about.get(key), dict):
                     card[key] = self.about[key]
         parts = []

@@ -333,7 +333,25 @@ pub struct EngineConfig {
     pub wait: WaitMode,
 }
 
+/// How a new session is guided: its mode and gain, and the guidance laws every session runs
+/// (what a server's `about` reply says, for a recording's dataset card).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct NewSessionGuidance {
+    /// Guidance mode of a new session (`set_guidance` may change a session's).
+    pub mode: GuidanceMode,
+    /// Guidance gain of a new session (a fading schedule or `set_guidance` may change it).
+    pub gain: f64,
+    /// The guidance laws and limits (every session's; the server's settings applied).
+    pub params: GuidanceParams,
+}
+
 impl EngineConfig {
+    /// How a new session is guided.
+    #[must_use]
+    pub fn new_session_guidance(&self) -> NewSessionGuidance {
+        NewSessionGuidance { mode: self.default_mode, gain: self.default_gain, params: self.guidance.clone() }
+    }
+
     /// Default settings for a path.
     #[must_use]
     pub fn new(default_path: PlannedPath) -> Self {

@@ -10,6 +10,7 @@ use super::convert::{detached, from_python, to_python};
 use super::errors::IntoPyResult;
 use super::session::config_from_dict;
 use super::volume::{bricks_arrays, xray_tuple, Bricks, PyVolume, Views};
+use crate::engine::NewSessionGuidance;
 use crate::error::SimError;
 use crate::path::PlannedPath;
 use crate::protocol::LAYOUTS;
@@ -19,6 +20,7 @@ use crate::transport::{Server, ServerSettings};
 #[pyclass(name = "Server", module = "dhg._bone_sim")]
 pub struct PyServer {
     inner: Option<Server>,
+    guidance: NewSessionGuidance,
 }
 
 impl PyServer {
@@ -52,7 +54,7 @@ impl PyServer {
         let (engine, cfg) = settings.configs(path, config_from_dict(session)?, prefix, zenoh_json5).py()?;
         let volume = std::sync::Arc::clone(&volume.get().inner);
         let inner = detached(py, || Server::start(&volume, &engine, cfg)).py()?;
-        Ok(Self { inner: Some(inner) })
+        Ok(Self { inner: Some(inner), guidance: engine.new_session_guidance() })
     }
 
     /// Health report (dict): sessions, tick lateness quantiles over the last `window_s` s, missed
@@ -117,6 +119,13 @@ impl PyServer {
     #[getter]
     fn running(&self) -> bool {
         self.inner.is_some()
+    }
+
+    /// How a new session is guided (dict): `mode`, `gain`, and `params`, the guidance laws every
+    /// session runs (the core's `GuidanceParams`, the server's settings applied).
+    #[getter]
+    fn new_session_guidance<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_python(py, &self.guidance)
     }
 }
 
