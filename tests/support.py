@@ -73,14 +73,17 @@ def hold_until(
     force message meets ``cond``; returns that message. For what the model's answers bring: on a
     loaded machine its first answers come later than on an idle one."""
     held = np.repeat(np.asarray(position, dtype=float)[None, :], 100, axis=0)
+    found: list[dict] = []
 
     def met() -> bool:
         stream(client, held, q)
-        return client.force is not None and bool(cond(client.force))
+        m = client.force
+        if m is not None and cond(m):
+            found.append(m)
+        return bool(found)
 
     wait_until(met, timeout_s, what)
-    assert client.force is not None
-    return client.force
+    return found[0]
 
 
 def wait_until(cond: Callable[[], object], timeout_s: float, what: str = "condition") -> None:

@@ -189,8 +189,9 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
         # pose yet; after the last: the batch of the session's last 100 ticks leaves after the
         # session ends, and the recorder may be stopped first.)
         within = [(k, round(1000 * t) - 1) for k, t in enumerate(ep.times_s)]
-        within = [(k, tick) for k, tick in within if col["tick"][0] <= tick <= col["tick"][-1]]
-        assert len(within) >= 10 and all(tick in at for _, tick in within), (within, col["tick"][[0, -1]])
+        first, last = col["tick"].min(), col["tick"].max()
+        within = [(k, tick) for k, tick in within if first <= tick <= last]
+        assert len(within) >= 10 and all(tick in at for _, tick in within), (within, first, last)
         pairs = [(k, at[tick]) for k, tick in within]
         kept, rows = (list(x) for x in zip(*pairs, strict=True))
         guidance = np.column_stack([col[f"guidance_{a}_n"] for a in "xyz"])[rows]

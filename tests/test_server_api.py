@@ -38,6 +38,42 @@ def engine(coarse_phantom):
     srv.stop()
 
 
+def test_new_sessions_are_guided_as_the_server_settings_say_and_the_server_says_so(coarse_phantom):
+    """``Server.new_session_guidance`` (the ``about`` reply's ``guidance``) is what the engine runs:
+    the settings' mode, gain and limits and corridor profile over the core's other laws."""
+    from dhg.core.session import GUIDANCE_DEFAULTS
+
+    conf = zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
+    settings = ServerSettings(
+        guidance_mode="corridor",
+        guidance_gain=0.5,
+        guidance_max_n=0.6,
+        guidance_max_rate_n_per_s=4.0,
+        guidance_timeout_s=0.3,
+        corridor_profile=(2e-3, (100.0, 250.0)),
+    )
+    srv = start_engine(coarse_phantom.volume, coarse_phantom.path, conf, settings)
+    try:
+        g = srv.new_session_guidance
+        p = g.pop("params")
+        assert g == {"mode": "corridor", "gain": 0.5}
+        assert (p.pop("max_n"), p.pop("max_rate_n_per_s"), p.pop("timeout_s")) == (0.6, 4.0, 0.3)
+        assert (p.pop("corridor_profile_bin_m"), p.pop("corridor_profile_n_per_m")) == (2e-3, [100.0, 250.0])
+        set_by_the_settings = {
+            "max_n",
+            "max_rate_n_per_s",
+            "timeout_s",
+            "corridor_profile_bin_m",
+            "corridor_profile_n_per_m",
+        }
+        others = {k: v for k, v in GUIDANCE_DEFAULTS.items() if k not in set_by_the_settings}
+        assert p == others, "the other laws: the core's"
+        info = srv.control("set-1", {"op": "create"})
+        assert (info["guidance_mode"], info["guidance_gain"]) == ("corridor", 0.5)
+    finally:
+        srv.stop()
+
+
 def test_unknown_server_settings_are_refused_with_the_allowed_keys(coarse_phantom):
     conf = zenoh_config_json5([f"tcp/127.0.0.1:{free_port()}"], mode="router")
     p = coarse_phantom.path

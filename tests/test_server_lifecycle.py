@@ -9,11 +9,15 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dhg.core import protocol
+from dhg.learning.model_file import read_model_meta
+from dhg.learning.profiles import DemoProfiles
+from dhg.learning.weights import default_model_path
 from dhg.live.client import TraineeClient
 from dhg.live.process import free_port
 from support import ctrl_c, read_until, readline_within, record_process, thread_nices
@@ -141,10 +145,15 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             pump = threading.Thread(target=hold, daemon=True)
             pump.start()
             _wait(lambda: c.force is not None and c.force["flags"] & protocol.FLAGS["model_available"], 5.0)
-            # The engine says no model of its own guides, and its corridor is the fixed one (the
-            # experts' profile comes with a model: --role all).
+            # The engine alone guides with the corridor of the bundled model's expert profiles, as
+            # --role all does, read from the file's metadata without loading torch; it names no
+            # model of its own (the workers serve theirs).
             about = c._json(c.keys["about"])
-            assert about["model"] is None and about["guidance"]["params"]["corridor_profile_n_per_m"] == []
+            profiles = DemoProfiles.from_dict(read_model_meta(default_model_path())["profiles"])
+            assert about["guidance"]["params"]["corridor_profile_n_per_m"] == pytest.approx(profiles.corridor_n_per_m)
+            assert about["model"] is None
+            assert "libtorch" not in Path(f"/proc/{engine.proc.pid}/maps").read_text()
+            assert "libtorch" in Path(f"/proc/{worker.proc.pid}/maps").read_text(), "the check can tell"
             # ONNX Runtime runs the passes on CPU by default, TorchScript when asked (below).
             assert any("(onnxruntime)" in line for line in worker.lines), worker.lines
             # The worker's forward passes run at nice 19 (decision 0026); its other threads keep 0.

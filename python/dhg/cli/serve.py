@@ -116,7 +116,12 @@ def _model_args(p: argparse.ArgumentParser, d: Any) -> None:
     from dhg.live.services import MODEL_NICE
 
     g = p.add_argument_group("the model", "the LSTM that predicts the expert's force, and its workers")
-    g.add_argument("--model", metavar="FILE.ts", help="TorchScript model from 'dhg train'; default: the bundled one")
+    g.add_argument(
+        "--model",
+        metavar="FILE.ts",
+        help="TorchScript model from 'dhg train'; default: the bundled one. With --role sim, only its expert "
+        "profiles are read (the corridor's stiffness along the path): give the engine the workers' model",
+    )
     g.add_argument(
         "--device", choices=("auto", "cpu", "cuda"), default="auto", help="where the model runs (default: auto)"
     )
@@ -275,29 +280,60 @@ def _serve_options(args: argparse.Namespace) -> Any:
     )
 
 
+def _model_file(args: argparse.Namespace) -> str:
+    """``--model``, or the bundled model; a missing file is a :class:`ModelFileError`."""
+    from dhg.learning.model_file import ModelFileError
+    from dhg.learning.weights import default_model_path
+
+    model_file = str(args.model or default_model_path())
+    if not os.path.isfile(model_file):
+        raise ModelFileError(f"{model_file}: no such model file (train one with 'dhg train', or omit --model)")
+    return model_file
+
+
 def _load_model(args: argparse.Namespace, options: Any, described: list[str]) -> tuple[Any, Any]:
     """The guidance model (``--model`` or the bundled one) and the options, with the corridor the
     model's expert profiles give when this process also runs the sessions; says what it loaded in
     ``described``."""
     import torch
 
-    from dhg.learning.torchscript import ModelFileError, load_model
-    from dhg.learning.weights import default_model_path
+    from dhg.learning.torchscript import load_model
 
     torch.set_num_threads(args.model_threads or max(1, (os.cpu_count() or 2) // 4))
-    model_file = args.model or default_model_path()
-    if not os.path.isfile(model_file):
-        raise ModelFileError(f"{model_file}: no such model file (train one with 'dhg train', or omit --model)")
+    model_file = _model_file(args)
     model = load_model(model_file, device=args.device, executor=args.executor)
     described.append(f"model {model.meta.get('preset', '?')} from {model_file} on {model.device} ({model.executor})")
-    profiles = model.profiles
-    if profiles is not None and args.role == "all":
-        # The corridor follows the experts' spread along the path (dhg.learning.profiles).
-        profile = (profiles.bin_m, tuple(profiles.corridor_n_per_m))
-        settings = dataclasses.replace(options.settings, corridor_profile=profile)
-        options = dataclasses.replace(options, settings=settings)
-        described.append(f"corridor from {profiles.episodes} expert demonstrations")
+    if args.role == "all":
+        options = _with_corridor(options, model.meta, described)
     return model, options
+
+
+def _corridor_of_model_file(args: argparse.Namespace, options: Any, described: list[str]) -> Any:
+    """The engine alone (``--role sim``): the options with the corridor the expert profiles of
+    ``--model`` (or the bundled model) give, read from its metadata without torch, so that its
+    sessions are guided as ``--role all``'s are. The workers should serve the same model."""
+    from dhg.learning.model_file import read_model_meta
+
+    model_file = _model_file(args)
+    options = _with_corridor(options, read_model_meta(model_file), described)
+    described[-1] += f" (of {model_file}; the model workers serve their own)"
+    return options
+
+
+def _with_corridor(options: Any, meta: dict[str, Any], described: list[str]) -> Any:
+    """The options with the corridor the expert profiles in a model's metadata give (unchanged
+    for a model without them); says which in ``described``."""
+    from dhg.learning.profiles import DemoProfiles
+
+    if meta.get("profiles") is None:
+        described.append("corridor fixed (the model has no expert profiles)")
+        return options
+    # The corridor follows the experts' spread along the path (dhg.learning.profiles).
+    profiles = DemoProfiles.from_dict(meta["profiles"])
+    profile = (profiles.bin_m, tuple(profiles.corridor_n_per_m))
+    settings = dataclasses.replace(options.settings, corridor_profile=profile)
+    described.append(f"corridor from {profiles.episodes} expert demonstrations")
+    return dataclasses.replace(options, settings=settings)
 
 
 def _load_bone(args: argparse.Namespace) -> tuple[Any, Any]:
@@ -331,6 +367,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     described: list[str] = []
     if args.role in ("all", "model"):
         model, options = _load_model(args, options, described)
+    else:
+        options = _corridor_of_model_file(args, options, described)
     if args.role in ("all", "sim"):
         volume, path = _load_bone(args)
         described.append(f"volume {volume}")

@@ -4,7 +4,8 @@ The exported module takes raw windows (batch × window × 9, the features in
 :data:`dhg.core.features.FEATURE_NAMES` order and their SI units) and returns the predicted expert
 force (batch × 3) in newtons, with the scaling inside. Its metadata (feature order, units, window,
 preset, data hash, metrics) is stored as the archive's extra file ``dhg.json``.
-:func:`read_model_meta` reads it with :mod:`zipfile` alone, with no torch needed.
+:func:`read_model_meta` (:mod:`dhg.learning.model_file`) reads it with :mod:`zipfile` alone, with no
+torch needed.
 
 TorchScript is deprecated from torch 2.10 on, in favour of ``torch.export``. The product's
 contract names TorchScript, and TorchScript models still load from C++ (libtorch) without Python.
@@ -18,7 +19,6 @@ import contextlib
 import json
 import os
 import warnings
-import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,19 +29,12 @@ import numpy.typing as npt
 import torch
 
 from dhg import __version__
-from dhg.core.errors import DhgError, InvalidInputError, ShapeError
+from dhg.core.errors import InvalidInputError, ShapeError
 from dhg.core.features import FEATURE_NAMES, FEATURE_UNITS
+from dhg.learning.model_file import META_NAME, MODEL_FORMAT, MODEL_VERSION, ModelFileError, read_model_meta
 from dhg.learning.network import ForcePredictor, ModelConfig
 
 __all__ = ["EXECUTORS", "GuidanceModel", "ModelFileError", "export_model", "load_model", "read_model_meta"]
-
-MODEL_FORMAT = "dhg-model"
-MODEL_VERSION = 1
-META_NAME = "dhg.json"
-
-
-class ModelFileError(DhgError, ValueError):
-    """A model file that is missing, corrupt, or not a DHG model."""
 
 
 @contextlib.contextmanager
@@ -87,30 +80,6 @@ def export_model(
         torch.jit.save(scripted, str(tmp), _extra_files={META_NAME: json.dumps(meta, indent=1)})
     os.replace(tmp, path)
     return path
-
-
-def read_model_meta(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The metadata of an exported model, read with :mod:`zipfile` only."""
-    p = Path(path)
-    try:
-        with zipfile.ZipFile(p) as z:
-            name = next((n for n in z.namelist() if n.endswith(f"/extra/{META_NAME}")), None)
-            if name is None:
-                raise ModelFileError(f"{p}: no {META_NAME} inside: not a DHG model")
-            meta = json.loads(z.read(name))
-    except FileNotFoundError:
-        raise ModelFileError(f"{p}: no such model file") from None
-    except (zipfile.BadZipFile, OSError, json.JSONDecodeError, KeyError) as exc:
-        raise ModelFileError(f"{p}: unreadable model file ({exc})") from None
-    if meta.get("format") != MODEL_FORMAT or meta.get("version") != MODEL_VERSION:
-        raise ModelFileError(
-            f"{p}: format {meta.get('format')} v{meta.get('version')}, expected {MODEL_FORMAT} v{MODEL_VERSION}"
-        )
-    if meta.get("input", {}).get("features") != list(FEATURE_NAMES):
-        raise ModelFileError(
-            f"{p}: trained on features {meta.get('input', {}).get('features')}, not {list(FEATURE_NAMES)}"
-        )
-    return meta
 
 
 @dataclass

@@ -59,11 +59,10 @@ import json
 import os
 import re
 import subprocess
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import tomllib
 
 from dhg.core.errors import InvalidInputError
 from dhg.core.protocol import check_session_id

@@ -274,7 +274,9 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
             run.xray_service = XRayService(run.zenoh, run.engine, volume, options.prefix)
             run.bone_service = BoneService(run.zenoh, run.engine, volume, options.prefix)
             served = model if options.role == "all" else None  # with --role sim, the workers run theirs
-            run.about_service = AboutService(run.zenoh, volume, path, session_config, guidance, served, options.prefix)
+            run.about_service = AboutService(
+                run.zenoh, volume, path, session_config, guidance=guidance, model=served, prefix=options.prefix
+            )
     except BaseException:
         run.close()
         raise

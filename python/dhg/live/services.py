@@ -56,7 +56,7 @@ MAX_NPZ_BYTES = 12 * 1024 * 1024
 def encode_npz(**arrays: np.ndarray) -> bytes:
     """Arrays as a compressed ``.npz`` (the bone and volume replies' format)."""
     buf = io.BytesIO()
-    np.savez_compressed(buf, allow_pickle=False, **arrays)
+    np.savez_compressed(buf, **arrays)  # type: ignore[arg-type]  # the stub types **kwds as numpy 2.2's allow_pickle
     return buf.getvalue()
 
 
@@ -305,28 +305,6 @@ class ModelService:
         self._worker.join(timeout=2.0)
 
 
-def model_about(model: Any) -> dict[str, Any]:
-    """What identifies a guidance model (a :class:`dhg.learning.torchscript.GuidanceModel`): its
-    file's name and SHA-256, its preset, window and horizon (records), the SHA-256 of the
-    ``records.parquet`` it was trained on (as in that dataset's card) and the DHG version that
-    exported it."""
-    import hashlib
-
-    meta = model.meta
-    data = meta.get("data")
-    with open(model.path, "rb") as f:
-        digest = hashlib.file_digest(f, "sha256").hexdigest()
-    return {
-        "file": model.path.name,
-        "sha256": digest,
-        "preset": meta.get("preset"),
-        "window": model.window,
-        "horizon_records": model.horizon,
-        "records_sha256": data.get("records_sha256") if isinstance(data, dict) else None,
-        "dhg_version": meta.get("dhg_version"),
-    }
-
-
 class AboutService:
     """Where a live session's data comes from, for a recording's dataset card: the key
     ``<prefix>/server/about`` answers (JSON) with ``dhg_version``, ``volume`` (as a card's:
@@ -335,8 +313,9 @@ class AboutService:
     session starts with, flat: :meth:`dhg.core.session.SessionConfig.to_flat_dict`),
     ``planned_path`` (new sessions' default A and B, m), ``guidance`` (how a new session is
     guided and the laws every session runs: :attr:`dhg.core.server.Server.new_session_guidance`)
-    and ``model`` (:func:`model_about` of the model this process serves; None when the model
-    runs in other processes, ``--role sim``). The reply is made once, at start."""
+    and ``model`` (:func:`dhg.learning.model_file.model_identity` of the model this process serves,
+    where other workers may join the pool; None when the model runs in other processes only,
+    ``--role sim``). The reply is made once, at start."""
 
     def __init__(
         self,
@@ -344,6 +323,7 @@ class AboutService:
         volume: Any,
         path: Any,
         config: Any,
+        *,
         guidance: dict[str, Any],
         model: Any = None,
         prefix: str = "dhg",
@@ -352,6 +332,7 @@ class AboutService:
 
         from dhg import __version__
         from dhg.data.dataset import volume_card
+        from dhg.learning.model_file import model_identity
 
         self.key = f"{prefix}/server/about"
         described = volume_card(volume)
@@ -364,7 +345,7 @@ class AboutService:
                 "session_config": config.to_flat_dict(),
                 "planned_path": path.to_dict(),
                 "guidance": guidance,
-                "model": None if model is None else model_about(model),
+                "model": None if model is None else model_identity(model.path, model.meta),
             }
         )
         self._queryable = session.declare_queryable(self.key, self._on_query)

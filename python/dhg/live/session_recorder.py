@@ -411,6 +411,8 @@ class SessionRecorder(FlushLoop):
             for key in ("volume", "session_config", "guidance", "model"):
                 if isinstance(self.about.get(key), dict):
                     card[key] = self.about[key]
+            if "model" in self.about and self.about["model"] is None:
+                card["model"] = None  # the server's model runs in other processes (--role sim)
         parts = []
         if self._parts is not None:
             parts = self._parts.joined(self.out_dir) if final else self._parts.parts()
