@@ -20,6 +20,7 @@ from dhg.learning.profiles import DemoProfiles
 from dhg.learning.weights import default_model_path
 from dhg.live.client import TraineeClient
 from dhg.live.process import free_port
+from dhg.live.services import MODEL_NICE
 from support import ctrl_c, read_until, readline_within, record_process, thread_nices
 from support import entry as _entry
 from support import serve as _serve
@@ -156,8 +157,8 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             assert "libtorch" in Path(f"/proc/{worker.proc.pid}/maps").read_text(), "the check can tell"
             # ONNX Runtime runs the passes on CPU by default, TorchScript when asked (below).
             assert any("(onnxruntime)" in line for line in worker.lines), worker.lines
-            # The worker's forward passes run at nice 19 (decision 0026); its other threads keep 0.
-            assert thread_nices(worker.proc.pid) == {0, 19}
+            # The worker's forward passes run at MODEL_NICE (decisions 0026, 0038); its other threads keep 0.
+            assert thread_nices(worker.proc.pid) == {0, MODEL_NICE}
             worker.proc.send_signal(signal.SIGKILL)
             assert worker.stop() == -signal.SIGKILL
             _wait(lambda: not c.force["flags"] & protocol.FLAGS["model_available"], 15.0, "model unavailable")

@@ -77,11 +77,11 @@ def main() -> None:
         help="with --against-echo, alternated in this order: dhg (dhg-serve, ticks on the pose's thread), "
         "dhg-thread (dhg-serve --tick-on thread: the tick thread ticks every pose), dhg-sim (dhg-serve --role "
         "sim, the model service in a process of its own, its CPU reported apart), dhg-engine (dhg-serve --role "
-        "sim and no model service), dhg-nice0 (dhg-serve --model-nice 0: the model's worker thread at the "
-        "engine's priority, as before decision 0026), dhg-ts (dhg-serve --executor torchscript: the passes by "
-        "TorchScript, as before decision 0030), other (dhg-serve from the build --other names), "
-        "echo (must be included). A variant may end in +rx1 (Zenoh's receive runtime on one worker thread, "
-        "ZENOH_RUNTIME); a server variant with a tag is set against echo+TAG where the run has it",
+        "sim and no model service), dhg-niceN (dhg-serve --model-nice N, 0 to 19: dhg-nice0 puts the model's "
+        "worker thread at the engine's priority, as before decision 0026), dhg-ts (dhg-serve --executor "
+        "torchscript: the passes by TorchScript, as before decision 0030), other (dhg-serve from the build "
+        "--other names), echo (must be included). A variant may end in +rx1 (Zenoh's receive runtime on one "
+        "worker thread, ZENOH_RUNTIME); a server variant with a tag is set against echo+TAG where the run has it",
     )
     p.add_argument(
         "--other",
@@ -185,7 +185,7 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
     process, ``--role model``, whose CPU is reported apart as ``model_cpu_per_session``),
     ``dhg-engine`` (``--role sim`` with no model service: the sessions tick, their model queries go
     unanswered; what the engine costs without the model's forward passes on the same cores),
-    ``dhg-nice0`` (``dhg-serve --model-nice 0``), ``dhg-ts`` (``dhg-serve --executor torchscript``:
+    ``dhg-niceN`` (``dhg-serve --model-nice N``), ``dhg-ts`` (``dhg-serve --executor torchscript``:
     the forward passes by TorchScript, as before decision 0030), ``other`` (``dhg-serve`` from the build
     ``--other`` names), ``echo``."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -197,7 +197,7 @@ def _one_load(args: argparse.Namespace, target: str, n: int) -> dict[str, Any]:
         if target.startswith("dhg") or target == "other":
             tick_on = "thread" if target == "dhg-thread" else "pose"
             role = "sim" if target in ("dhg-sim", "dhg-engine") else "all"
-            nice = ["--model-nice", "0"] if target == "dhg-nice0" else []
+            nice = ["--model-nice", target.removeprefix("dhg-nice")] if target.startswith("dhg-nice") else []
             nice += ["--executor", "torchscript"] if target == "dhg-ts" else []
             device = ["--device", args.device] if args.device else []
             server = serve_from(
@@ -287,7 +287,7 @@ def _zenoh_runtime(tag: str) -> Iterator[None]:
             os.environ["ZENOH_RUNTIME"] = saved
 
 
-SERVERS = ("dhg", "dhg-thread", "dhg-sim", "dhg-engine", "dhg-nice0", "dhg-ts", "other")
+SERVERS = ("dhg", "dhg-thread", "dhg-sim", "dhg-engine", *(f"dhg-nice{n}" for n in range(20)), "dhg-ts", "other")
 
 
 def _check_variants(args: argparse.Namespace, variants: list[str]) -> None:

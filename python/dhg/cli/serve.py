@@ -146,7 +146,8 @@ def _model_args(p: argparse.ArgumentParser, d: Any) -> None:
         default=MODEL_NICE,
         metavar="N",
         help=f"Linux nice value of the model's worker thread, 0 (as the engine) to 19 (default {MODEL_NICE}: a "
-        "forward pass gives way at once to the threads that carry poses and forces, where they share cores)",
+        "forward pass gives way to the threads that carry poses and forces, where they share cores, yet keeps "
+        "about a tenth of a core where other programs keep the cores busy; 19 starves it there)",
     )
     g.add_argument(
         "--model-timeout",

@@ -32,9 +32,10 @@ __all__ = [
     "encode_npz",
 ]
 
-MODEL_NICE = 19
-"""``dhg-serve``'s nice value for the model worker thread: the lowest priority, so that on shared
-cores a forward pass gives way to the forces' threads at once (decision 0026)."""
+MODEL_NICE = 10
+"""``dhg-serve``'s nice value for the model worker thread: on shared cores a forward pass gives way
+to the forces' threads (decision 0026), yet still gets about a tenth of a core where other programs
+keep the cores busy at nice 0 (at 19 it got 1.5 %, and a third of the guidance timed out; 0038)."""
 
 BURST_WAIT_S = 0.002
 """How long (s) the model worker waits, after a batch of N > 1 queries, for the next burst's N: the
@@ -98,11 +99,11 @@ class ModelService:
     its asker has given up) is refused as ``stale`` instead of computed. Why no batching wait:
     ``docs/decisions/0010-model-service.md``.
 
-    The worker thread runs at the Linux nice value ``nice`` (default :data:`MODEL_NICE`, the
-    lowest priority): where the model shares cores with the 1 kHz engine, the Zenoh threads that
-    carry poses and forces preempt a forward pass as soon as they wake, instead of waiting behind
-    a few milliseconds of LSTM (``docs/decisions/0026-the-model-yields-to-the-forces.md``). 0 leaves
-    it as it is; where nice values do not exist (not Linux) it is ignored.
+    The worker thread runs at the Linux nice value ``nice`` (default :data:`MODEL_NICE`): where the
+    model shares cores with the 1 kHz engine, the Zenoh threads that carry poses and forces preempt
+    a forward pass as soon as they wake, instead of waiting behind a few milliseconds of LSTM
+    (``docs/decisions/0026-the-model-yields-to-the-forces.md``, ``0038-the-model-yields-at-nice-10.md``).
+    0 leaves it as it is; where nice values do not exist (not Linux) it is ignored.
     """
 
     def __init__(
