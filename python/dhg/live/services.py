@@ -233,9 +233,8 @@ class ModelService:
         if not good:
             return
         stacked = np.concatenate(windows)
-        usable = np.asarray(
-            np.isfinite(stacked).all(axis=(1, 2)), dtype=np.bool_
-        )  # a window with NaN or inf is not computed
+        # A window with NaN or inf is not computed.
+        usable = np.asarray(np.isfinite(stacked).all(axis=(1, 2)), dtype=np.bool_)
         stacked = np.where(usable[:, None, None], stacked, np.float32(0.0))
         forces = np.empty((len(stacked), 3), dtype=np.float32)
         pass_s = np.empty(len(stacked))
