@@ -159,8 +159,9 @@ def test_record_all_keeps_each_session_in_its_own_dataset(server, tmp_path):
                 _stream(c, a + off + d * np.linspace(-2e-3, 1e-3, 1200)[:, None], q)
                 if session_id == "class-b":  # held there until the model's answers guide it, 3 records more
                     end = a + off + 1e-3 * d
-                    guided = lambda m: np.linalg.norm(m["guidance_n"]) > 0.1  # noqa: E731
-                    hold_until(c, end, q, guided, 20.0, "guidance off the line")
+                    hold_until(
+                        c, end, q, lambda m: np.linalg.norm(m["guidance_n"]) > 0.1, 20.0, "guidance off the line"
+                    )
                     _stream(c, np.repeat(end[None, :], 300, axis=0), q)
                 infos[session_id] = c.control("info")
         output = ctrl_c(rec)

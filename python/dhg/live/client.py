@@ -36,9 +36,9 @@ class ForceGuard:
     device's rate limit (a token bucket of ``max_force_rate_n_per_s``, holding at most
     ``burst_s`` of it), the excess slewed away and counted. The server's own forces pass (its
     limiter is the same profile), unless this process stalls for longer than ``burst_s`` and they
-    arrive bunched: then a change the device would feel at once is slewed too (3 of ~2,600 forces
-    in one test run beside two busy loops on 2 cores). A peer that puts a NaN, 1e6 N or a jolt on
-    this session's force key cannot get it to the device. Not thread-safe: one guard per stream."""
+    arrive bunched: then a change the device would feel at once is slewed too. A peer that puts a
+    NaN, 1e6 N or a jolt on this session's force key cannot get it to the device. Not thread-safe:
+    one guard per stream."""
 
     def __init__(self, device: Any = None, burst_s: float = 0.005) -> None:
         from dhg.core.session import DeviceProfile

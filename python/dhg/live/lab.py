@@ -10,8 +10,8 @@ a Zenoh configuration that
 * and gives the server an access-control list (deny by default) in which
 
   - a **station** may publish only its own poses, query only its own control, metrics and
-    X-rays (and the server's health, volume and about), and hear only its own outputs. Its sessions are named
-    ``<station>`` or ``<station>-<anything>``;
+    X-rays (and the server's health, volume and about), and hear only its own outputs. Its
+    sessions are named ``<station>`` or ``<station>-<anything>``;
   - an **instructor** may read every session (subscribe to every output, query every session and
     the server's health, recover the recorded streams) and publish nothing;
   - a **model worker** may join the engine's worker pool under its own name (the liveliness

@@ -194,8 +194,8 @@ class SessionRecorder(FlushLoop):
         """Raw rows of an attempt too short for a record (no 10 Hz state): left out."""
         self.path: PlannedPath | None = None
         self.about: dict[str, Any] | None = None
-        """The server's ``about`` reply (its version, volume and session configuration,
-        docs/protocol.md); ``None`` until it answered (a server before it never does: it is asked
+        """The server's ``about`` reply (its version, volume, session configuration, guidance and
+        model, docs/protocol.md); ``None`` until it answered (a server before it never does: it is asked
         at :data:`ABOUT_ASKS` flushes at most)."""
         self._about_asks = 0
         self.session_info: dict[str, Any] | None = None
@@ -293,7 +293,7 @@ class SessionRecorder(FlushLoop):
         """The server's ``about`` and the session's planned path (for the skill metrics) and
         settings (for the card), asked until they answer. Best effort: without the path the
         records are still written, with empty metrics; without ``about`` the card lacks the
-        volume and session configuration."""
+        volume, session configuration, guidance and model."""
         if self.about is None and self._about_asks < ABOUT_ASKS:
             self._about_asks += 1
             try:
