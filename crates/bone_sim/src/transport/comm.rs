@@ -127,9 +127,6 @@ impl Comm {
         lock(&self.shared.history).push(s);
         let idle = self.shared.config.idle_timeout_s;
         lock(&self.shared.registry).sweep_idle(idle);
-        for o in self.outlets.iter_mut().flatten() {
-            o.publish_stale_ticks();
-        }
     }
 
     fn run(&mut self, outputs: &OutputQueue, wait: WaitMode) {
@@ -154,6 +151,7 @@ impl Comm {
             self.model.send_if_due(now);
             for o in self.outlets.iter_mut().flatten() {
                 o.publish_view(now);
+                o.publish_stale_ticks(now);
             }
             if now >= next_housekeeping {
                 self.housekeeping(&mut io_sessions);

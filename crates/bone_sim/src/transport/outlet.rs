@@ -32,7 +32,9 @@ const RECORDED_HISTORY: usize = 600;
 const TICKS_HISTORY: usize = 100;
 /// Ticks in one batch: one record period, so a batch leaves at 10 Hz.
 const TICKS_PER_BATCH: usize = RECORD_PERIOD_TICKS as usize;
-/// A partial batch older than this (a silent or ended session) leaves at the next housekeeping.
+/// A partial batch whose first tick is older than this (a silent or ended session's) leaves at the
+/// comm thread's next wake-up (at most [`IDLE_WAKE`](super::comm::IDLE_WAKE) later): a full one
+/// takes 100 ms at 1 kHz.
 const BATCH_MAX_AGE: Duration = Duration::from_millis(200);
 /// How often a recorded stream's publisher announces its last sequence number, so that a
 /// recorder notices a lost last sample too.
@@ -211,10 +213,10 @@ impl Outlet {
         }
     }
 
-    /// Publishes the batch of ticks if its first is older than [`BATCH_MAX_AGE`] (a silent or
-    /// ended session's).
-    pub(super) fn publish_stale_ticks(&mut self) {
-        if !self.batch.is_empty() && self.batch_since.elapsed() >= BATCH_MAX_AGE {
+    /// Publishes the batch of ticks if its first is older than [`BATCH_MAX_AGE`] at `now` (a
+    /// silent or ended session's).
+    pub(super) fn publish_stale_ticks(&mut self, now: Instant) {
+        if !self.batch.is_empty() && now.saturating_duration_since(self.batch_since) >= BATCH_MAX_AGE {
             self.publish_ticks();
         }
     }
@@ -361,6 +363,54 @@ mod tests {
             sub.undeclare().wait().unwrap();
             wait_for("the screen's leaving to be seen", || !view.watched());
         }
+    }
+
+    #[test]
+    fn a_partial_batch_of_ticks_leaves_once_its_first_tick_is_older_than_its_maximum_age() {
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let open = |side: &str| {
+            let conf = format!(
+                r#"{{"mode": "peer", "{side}": {{"endpoints": ["tcp/127.0.0.1:{port}"]}}, "scouting": {{"multicast": {{"enabled": false}}, "gossip": {{"enabled": false}}}}}}"#
+            );
+            zenoh::open(zenoh::Config::from_json5(&conf).unwrap()).wait().unwrap()
+        };
+        let server = open("listen");
+        let recorder = open("connect");
+        let batches = Arc::new(std::sync::Mutex::new(Vec::<Vec<u64>>::new()));
+        let got = batches.clone();
+        let _sub = recorder
+            .declare_subscriber("t/session/a/ticks")
+            .callback(move |s| {
+                let rows = protocol::decode_ticks(&s.payload().to_bytes()).unwrap();
+                got.lock().unwrap().push(rows.iter().map(|r| r.tick).collect());
+            })
+            .wait()
+            .unwrap();
+        let key = |leaf: &str| format!("t/session/a/{leaf}");
+        let force = Outlet::declare_force(&server, key("force"), 1).unwrap();
+        let mut outlet = Outlet::declare(&server, key, 1, force).unwrap();
+        wait_for("the recorder to be connected", || {
+            outlet.ticks.matching_status().wait().is_ok_and(|m| m.matching())
+        });
+        // A session that ticked 30 times and went silent: its batch is not full.
+        for tick in 1..=30 {
+            outlet.add_force(protocol::ForceMsg { tick, ..Default::default() }, None);
+        }
+        let first = outlet.batch_since;
+        outlet.publish_stale_ticks(first + BATCH_MAX_AGE / 2);
+        assert_eq!(outlet.batch.len(), 30, "a batch younger than its maximum age waits for more ticks");
+        outlet.publish_stale_ticks(first + BATCH_MAX_AGE);
+        assert!(outlet.batch.is_empty(), "a batch as old as its maximum age leaves");
+        wait_for("the partial batch to arrive", || !batches.lock().unwrap().is_empty());
+        // Nothing left: no empty batch leaves after it.
+        outlet.publish_stale_ticks(first + 10 * BATCH_MAX_AGE);
+        for tick in 31..=(30 + TICKS_PER_BATCH as u64) {
+            outlet.add_force(protocol::ForceMsg { tick, ..Default::default() }, None);
+        }
+        wait_for("the next, full batch", || batches.lock().unwrap().len() == 2);
+        let got = batches.lock().unwrap().clone();
+        assert_eq!(got[0], (1..=30).collect::<Vec<u64>>());
+        assert_eq!(got[1], (31..=(30 + TICKS_PER_BATCH as u64)).collect::<Vec<u64>>(), "a full batch leaves at once");
     }
 
     #[test]
