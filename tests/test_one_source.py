@@ -12,13 +12,18 @@ import pytest
 import dhg
 from dhg import _bone_sim
 from dhg.core import errors, protocol
+from dhg.core.errors import InvalidInputError
+from dhg.core.path import PlannedPath
 from dhg.core.server import ServerSettings, start_engine
-from dhg.core.session import CuttingLaw, DeviceProfile, SessionConfig, ThermalParams
+from dhg.core.session import MAX_GAIN, CuttingLaw, DeviceProfile, SessionConfig, ThermalParams
 from dhg.core.volume import HuMapping
 from dhg.live.process import free_port
 from dhg.live.zenoh_config import zenoh_config_json5
+from dhg.operators.styles import sample_style
+from dhg.study.design import parse_arms
 
 CORE = _bone_sim.defaults()
+MIN_PATH_LENGTH_M = _bone_sim.MIN_PATH_LENGTH_M
 
 
 @pytest.mark.parametrize(
@@ -160,3 +165,31 @@ def test_the_command_lines_take_their_defaults_from_the_config_types():
         protocol.duration_s,
         protocol.probe_every,
     )
+
+
+def test_a_study_arm_and_a_session_take_the_same_largest_gain(coarse_phantom):
+    """The study's arms check gains before any session runs: by the core's bound, not a copy."""
+    s = dhg.DrillingSession(coarse_phantom.volume, coarse_phantom.path)
+    s.set_guidance("shaped", MAX_GAIN)
+    _, arm = parse_arms(f"none,shaped@{MAX_GAIN!r}")
+    assert arm.gain == MAX_GAIN
+    over = MAX_GAIN + 0.01
+    with pytest.raises(InvalidInputError, match="gain"):
+        s.set_guidance("shaped", over)
+    with pytest.raises(InvalidInputError, match="gain"):
+        parse_arms(f"none,shaped@{over!r}")
+
+
+def test_a_path_is_refused_below_the_cores_shortest_length_and_taken_above_it():
+    a = np.zeros(3)
+    style = sample_style("novice", np.random.default_rng(1)).to_dict()
+    for length, ok in [(MIN_PATH_LENGTH_M * 0.99, False), (MIN_PATH_LENGTH_M * 1.01, True)]:
+        b = np.array([0.0, 0.0, length])
+        if ok:
+            PlannedPath(a, b)
+            _bone_sim.SurgeonController(a.tolist(), b.tolist(), style, 1, 1.0)  # the core agrees
+        else:
+            with pytest.raises(InvalidInputError, match="apart"):
+                PlannedPath(a, b)
+            with pytest.raises(InvalidInputError, match="path length"):
+                _bone_sim.SurgeonController(a.tolist(), b.tolist(), style, 1, 1.0)

@@ -85,3 +85,4 @@ def test_deterministic_for_a_seed():
 def test_default_voxel_size_and_shared_instance(phantom):
     assert phantom.volume.spacing_m == (0.5e-3, 0.5e-3, 0.5e-3)
     assert dhg.default_phantom() is phantom
+    assert dhg.default_phantom(voxel_m=0.5e-3) is phantom and dhg.default_phantom(0, 0.5e-3) is phantom

@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 
 from dhg.bone.planning import layer_runs, planned_breakthrough_depth_m
+from dhg.core.errors import InvalidInputError
+from dhg.core.features import TICK_S
 from dhg.core.layers import Layer
-from dhg.core.path import PlannedPath
-from dhg.core.surgeon import SurgeonController
+from dhg.core.path import PlannedPath, TaskRules
+from dhg.core.surgeon import MAX_ATTEMPT_S, SurgeonController
 from dhg.core.volume import DrilledVolume
 from dhg.operators.styles import sample_style
 
@@ -164,3 +166,16 @@ def test_no_cue_but_the_heat_cue_is_felt_as_a_buzz(phantom):
         assert ep.metrics["peak_temperature_c"] < 45.0, "the heat cue was on: the test says nothing"
         assert ep.records[:, 8].max() > breakthrough_m, "the attempt ended before the breakthrough"
         assert ep.extra["buzz_felt_s"] == 0.0, (seed, mode, operator, ep.extra)
+
+
+@pytest.mark.parametrize("seconds", [MAX_ATTEMPT_S * 1.01, 1e17])
+def test_an_attempt_longer_than_the_core_allows_is_refused_not_a_panic(seconds):
+    """A duration of 1e17 s used to size the kept raw ticks by it: pyo3's PanicException
+    ("capacity overflow"), which ``except Exception`` does not catch."""
+    style = sample_style("novice", np.random.default_rng(1))
+    with pytest.raises(InvalidInputError, match="max_duration_s"):
+        SurgeonController(PATH, style, np.random.default_rng(1), TaskRules(max_duration_s=seconds), keep_raw=True)
+    longest = SurgeonController(
+        PATH, style, np.random.default_rng(1), TaskRules(max_duration_s=MAX_ATTEMPT_S), keep_raw=True
+    )
+    assert longest.max_ticks == round(MAX_ATTEMPT_S / TICK_S)

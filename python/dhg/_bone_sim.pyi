@@ -20,6 +20,10 @@ __all__ = [
     "HU_MIN",
     "HU_MAX",
     "BRICK_EDGE",
+    "FULL_MATERIAL",
+    "XRAY_VIEWS",
+    "MIN_PATH_LENGTH_M",
+    "MAX_GAIN",
     "MAX_BURR_RADIUS_M",
     "MIN_BURR_RADIUS_M",
     "MAX_POSITION_M",
@@ -56,6 +60,10 @@ RECORD_COLUMNS: Final[int]
 HU_MIN: Final[int]
 HU_MAX: Final[int]
 BRICK_EDGE: Final[int]
+FULL_MATERIAL: Final[int]
+XRAY_VIEWS: Final[list[str]]
+MIN_PATH_LENGTH_M: Final[float]
+MAX_GAIN: Final[float]
 MAX_BURR_RADIUS_M: Final[float]
 MIN_BURR_RADIUS_M: Final[float]
 MAX_SPINDLE_RPM: Final[float]

@@ -9,6 +9,8 @@ use crate::volume::grid::Grid;
 use crate::volume::layer::Layer;
 use crate::volume::Volume;
 
+/// The shortest planned path (m): 0.1 mm, under which A→B has no usable direction.
+pub const MIN_PATH_LENGTH_M: f64 = 1e-4;
 /// The finest sampling step [`PlannedPath::layer_runs`] takes (m): bounds the work to about a
 /// million samples per metre of path.
 pub const MIN_LAYER_STEP_M: f64 = 1e-6;
@@ -62,7 +64,7 @@ impl PlannedPath {
                 reason: "entry and target must be a finite distance apart",
             });
         }
-        if length_m < 1e-4 {
+        if length_m < MIN_PATH_LENGTH_M {
             return Err(SimError::InvalidParameter {
                 name: "path length (m)",
                 value: length_m,

@@ -237,7 +237,12 @@ def femur(seed: int = 0, voxel_m: float = 0.5e-3, mapping: HuMapping | None = No
     return Phantom(volume, path, arrays["landmarks_m"], int(seed))
 
 
-@lru_cache(maxsize=2)
 def default_phantom(seed: int = 0, voxel_m: float = 0.5e-3) -> Phantom:
-    """The embedded default phantom, built once per process and shared (volumes are immutable)."""
+    """The embedded default phantom, built once per process and shared (volumes are immutable):
+    the same (seed, voxel size) gives the same instance however the arguments are passed."""
+    return _shared_phantom(int(seed), float(voxel_m))
+
+
+@lru_cache(maxsize=4)
+def _shared_phantom(seed: int, voxel_m: float) -> Phantom:
     return femur(seed, voxel_m)

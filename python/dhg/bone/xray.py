@@ -17,11 +17,10 @@ import numpy.typing as npt
 from PIL import Image, ImageDraw
 
 from dhg.core.path import PlannedPath
-from dhg.core.volume import Volume, XRayViews
+from dhg.core.volume import VIEW_NAMES, Volume, XRayViews
 
 __all__ = ["VIEW_NAMES", "auto_windows", "radiograph", "render_views", "view_pixel", "write_views"]
 
-VIEW_NAMES = ("top", "front", "side")
 PIXEL_MM = 0.2
 _PATH_RGB = (60, 220, 90)
 _TIP_RGB = (235, 50, 40)

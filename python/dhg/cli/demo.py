@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from dhg.core.features import RECORD_INDEX, TICK_S
+from dhg.core.session import ThermalParams
 from dhg.live.process import ServerProcess, free_port
 
 __all__ = ["plot_live_runs", "run_live_demo"]
@@ -36,16 +38,17 @@ def plot_live_runs(runs: list[Any], out: str | Path, title: str = "") -> Path:
         label = f"{run.skill}, {run.guidance_mode} gain {run.guidance_gain:g}"
         r = run.records
         if len(r):
-            axes[0].plot(r[:, 0], np.linalg.norm(r[:, 1:4], axis=1), color=colour, label=label)
-            axes[2].plot(r[:, 0], r[:, 9], color=colour, label=label)
+            force = RECORD_INDEX["force_x_n"]
+            axes[0].plot(r[:, 0], np.linalg.norm(r[:, force : force + 3], axis=1), color=colour, label=label)
+            axes[2].plot(r[:, 0], r[:, RECORD_INDEX["temperature_c"]], color=colour, label=label)
         if run.guidance:
-            tg = np.array([g["tick"] * 1e-3 for g in run.guidance])  # session time, as the records' time_s
+            tg = np.array([g["tick"] * TICK_S for g in run.guidance])  # session time, as the records' time_s
             gx = np.array([np.linalg.norm(g["guidance_n"]) for g in run.guidance])
             axes[1].plot(tg, gx, color=colour, label=label)
     axes[0].set_ylabel("feedback |F| (N)")
     axes[1].set_ylabel("guidance |G| (N)")
     axes[2].set_ylabel("tip temperature (°C)")
-    axes[2].axhline(47.0, color="red", lw=0.8, ls="--")
+    axes[2].axhline(ThermalParams().necrosis_threshold_c, color="red", lw=0.8, ls="--")
     axes[2].set_xlabel("time (s)")
     axes[0].legend(loc="upper left")
     if title:

@@ -55,8 +55,8 @@ class PlannedPath:
             raise InvalidInputError(f"entry and target must be 3-D points, got {a.shape} and {b.shape}")
         if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
             raise InvalidInputError("entry and target must be finite")
-        if np.linalg.norm(b - a) < 1e-4:
-            raise InvalidInputError("entry and target must be at least 0.1 mm apart")
+        if np.linalg.norm(b - a) < _bone_sim.MIN_PATH_LENGTH_M:
+            raise InvalidInputError(f"entry and target must be at least {_bone_sim.MIN_PATH_LENGTH_M * 1e3:g} mm apart")
         object.__setattr__(self, "entry_m", a)
         object.__setattr__(self, "target_m", b)
 

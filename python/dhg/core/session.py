@@ -31,6 +31,7 @@ __all__ = [
     "FADING_DEFAULTS",
     "GUIDANCE_DEFAULTS",
     "GUIDANCE_MODES",
+    "MAX_GAIN",
     "MAX_BURR_RADIUS_M",
     "MIN_BURR_RADIUS_M",
     "MAX_POSITION_M",
@@ -49,6 +50,8 @@ __all__ = [
 GuidanceMode = Literal["paper", "corridor", "brake", "shaped"]
 GUIDANCE_MODES: tuple[GuidanceMode, ...] = tuple(_bone_sim.GUIDANCE_MODES)
 """The guidance modes, as the core defines them (``crates/bone_sim/src/guidance/``)."""
+MAX_GAIN: float = float(_bone_sim.MAX_GAIN)
+"""The largest guidance gain a session takes (from the core)."""
 
 MAX_SPINDLE_RPM: float = float(_bone_sim.MAX_SPINDLE_RPM)
 """Fastest spindle speed a pose may ask for (rpm); a faster one is refused and counted (the
@@ -328,7 +331,7 @@ class DrillingSession:
         return XRayViews(*self._s.xray())
 
     def set_guidance(self, mode: GuidanceMode, gain: float) -> None:
-        """Renders guidance in ``mode`` at ``gain`` (0..4; 0: none) from now on. Modes:
+        """Renders guidance in ``mode`` at ``gain`` (0 to :data:`MAX_GAIN`; 0: none) from now on. Modes:
         ``"paper"`` (the paper's force-matching cue: predicted expert force − the trainee's),
         ``"corridor"`` (a lateral spring–damper towards the planned line beyond a deadband, no force
         along the drill), ``"brake"`` (a hold along the axis the moment the cortex gives, decaying,

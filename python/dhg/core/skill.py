@@ -9,6 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dhg import _bone_sim
+from dhg.core.features import RECORD_COLUMNS
 from dhg.core.path import PlannedPath, TaskRules
 
 __all__ = ["skill_metrics"]
@@ -36,7 +37,7 @@ def skill_metrics(
     :class:`~dhg.core.errors.InvalidInputError` for a non-positive rule."""
     rec = np.ascontiguousarray(records, dtype=np.float64)
     if rec.size == 0:
-        rec = rec.reshape(0, 11)
+        rec = rec.reshape(0, len(RECORD_COLUMNS))
     tip = np.asarray(final_tip_m, dtype=np.float64).reshape(3)
     return dict(
         _bone_sim.skill_metrics(

@@ -51,6 +51,8 @@ from dhg.core.path import PlannedPath, TaskRules
 __all__ = [
     "AIM_FOLLOW_S",
     "CUE_LEAK_PER_S",
+    "MAX_ATTEMPT_S",
+    "START_S_M",
     "GENERIC_BREAKTHROUGH_DEPTH_M",
     "HAND_MASS_KG",
     "LATERAL_STIFFNESS_N_PER_M",
@@ -87,6 +89,10 @@ YIELD_SETTLE_S: float = _CONSTANTS["YIELD_SETTLE_S"]
 """How fast a surgeon who yields to the guidance settles onto what it asks (s)."""
 CUE_LEAK_PER_S: float = _CONSTANTS["CUE_LEAK_PER_S"]
 """How fast the lean a cue built up fades once the cue is gone (1/s)."""
+MAX_ATTEMPT_S: float = _CONSTANTS["MAX_ATTEMPT_S"]
+"""The longest attempt a virtual surgeon takes (s); a longer ``max_duration_s`` is refused."""
+START_S_M: float = _CONSTANTS["START_S_M"]
+"""Where the surgeon's hand starts along A→B (m; negative: before the entry)."""
 
 
 @dataclass(frozen=True)

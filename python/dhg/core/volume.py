@@ -21,7 +21,10 @@ import numpy.typing as npt
 from dhg import _bone_sim
 from dhg.core.errors import InvalidInputError, ShapeError, VolumeFileError
 
-__all__ = ["DrilledVolume", "HuMapping", "RemovalReport", "Volume", "XRayViews"]
+__all__ = ["VIEW_NAMES", "DrilledVolume", "HuMapping", "RemovalReport", "Volume", "XRayViews"]
+
+VIEW_NAMES: tuple[str, ...] = tuple(_bone_sim.XRAY_VIEWS)
+"""The three X-ray views, in the core's order (``bone_sim::xray::View``): top, front, side."""
 
 VOLUME_FILE_FORMAT = "dhg-volume"
 VOLUME_FILE_VERSION = 1

@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from dhg.core.features import FEATURE_INDEX, RECORD_PERIOD_S
 from dhg.core.layers import Layer
-from dhg.core.session import StepResult
+from dhg.core.session import StepResult, ThermalParams
 
 __all__ = ["plot_drilling", "plot_forces", "plot_losses", "plot_timeline"]
 
@@ -53,19 +54,21 @@ def plot_timeline(
     fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True, constrained_layout=True)
     for ax in axes:
         for i in range(len(t_rec)):
-            layer = Layer(int(feats[i, 6]))
-            ax.axvspan(t_rec[i] - 0.1, t_rec[i], color=_LAYER_COLOURS[layer], lw=0)
+            layer = Layer(int(feats[i, FEATURE_INDEX["layer"]]))
+            ax.axvspan(t_rec[i] - RECORD_PERIOD_S, t_rec[i], color=_LAYER_COLOURS[layer], lw=0)
     t_f = np.asarray(force_t_s, dtype=float)
     axes[0].plot(t_f, np.linalg.norm(np.asarray(forces_n, dtype=float), axis=1), lw=0.8, color="#1f4e79", label="|F|")
     if guidance_n is not None:
         g = np.linalg.norm(np.asarray(guidance_n, dtype=float), axis=1)
         axes[0].plot(t_f, g, lw=0.8, color="#e67e22", label="guidance share |G|")
     axes[0].set_ylabel("device force (N)")
-    axes[1].plot(t_rec, feats[:, 8], color="#c0392b")
-    axes[1].axhline(47.0, ls="--", lw=0.8, color="#c0392b")
-    axes[1].text(t_rec[0] if len(t_rec) else 0, 47.2, "47 °C necrosis threshold", fontsize=8, color="#c0392b")
+    necrosis_c = ThermalParams().necrosis_threshold_c  # the core's default (Eriksson & Albrektsson 1983)
+    axes[1].plot(t_rec, feats[:, FEATURE_INDEX["temperature_c"]], color="#c0392b")
+    axes[1].axhline(necrosis_c, ls="--", lw=0.8, color="#c0392b")
+    label = f"{necrosis_c:g} °C necrosis threshold"
+    axes[1].text(t_rec[0] if len(t_rec) else 0, necrosis_c + 0.2, label, fontsize=8, color="#c0392b")
     axes[1].set_ylabel("tip temperature (°C)")
-    axes[2].plot(t_rec, feats[:, 7] * 1e3, color="#2d6a4f")
+    axes[2].plot(t_rec, feats[:, FEATURE_INDEX["depth_m"]] * 1e3, color="#2d6a4f")
     axes[2].set_ylabel("depth along A→B (mm)")
     axes[2].set_xlabel("time (s)")
     handles = [Patch(color=c, label=layer.name.lower()) for layer, c in _LAYER_COLOURS.items() if layer]

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from dhg.core.protocol import WINDOW_RECORDS
 from dhg.learning.network import PRESETS
 from dhg.learning.train import TrainConfig, train
 
@@ -19,7 +20,9 @@ __all__ = ["TABLE1_PRESETS", "ablate", "markdown_table", "persistence_baseline"]
 TABLE1_PRESETS = ("fusion-1x128", "fusion-2x256", "force-only-2x256", "all-2x256")
 
 
-def persistence_baseline(data_dir: str | os.PathLike[str], cfg: TrainConfig | None = None, window: int = 20) -> dict:
+def persistence_baseline(
+    data_dir: str | os.PathLike[str], cfg: TrainConfig | None = None, window: int = WINDOW_RECORDS
+) -> dict:
     """Test RMSE (N) of predicting that the next force equals the last one, on the same split the
     models are scored on. The yardstick that shows how much the models learn beyond the force's
     autocorrelation."""

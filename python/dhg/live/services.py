@@ -19,6 +19,7 @@ import numpy as np
 from dhg.core import protocol
 from dhg.core.errors import InvalidInputError
 from dhg.core.protocol import check_session_id
+from dhg.core.volume import VIEW_NAMES
 
 __all__ = [
     "BURST_MEMORY_S",
@@ -385,8 +386,8 @@ class XRayService:
         try:
             parts = str(query.key_expr).split("/")
             sid, view = parts[-3], parts[-1]
-            if view not in ("top", "front", "side", "*"):
-                raise InvalidInputError(f"unknown view {view!r}: use top, front, side or *")
+            if view not in (*VIEW_NAMES, "*"):
+                raise InvalidInputError(f"unknown view {view!r}: use {', '.join(VIEW_NAMES)} or *")
             info = self.server.control(sid, {"op": "info"})
             top, front, side = self.server.xray(sid)
             path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))

@@ -24,7 +24,7 @@ import numpy.typing as npt
 
 from dhg import __version__
 from dhg.core import protocol
-from dhg.core.features import FEATURE_NAMES
+from dhg.core.features import FEATURE_NAMES, RECORD_INDEX, RECORD_PERIOD_S
 from dhg.core.layers import Layer
 from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.skill import skill_metrics
@@ -380,8 +380,8 @@ class SessionRecorder(FlushLoop):
                     records,
                     self.path,
                     rules,
-                    final_tip_m=records[-1, 4:7],
-                    drilling_s=float(np.count_nonzero(records[:, 10] > 0.5)) * 0.1,
+                    final_tip_m=records[-1, RECORD_INDEX["tip_x_m"] : RECORD_INDEX["tip_x_m"] + 3],
+                    drilling_s=float(np.count_nonzero(records[:, RECORD_INDEX["drill_on"]] > 0.5)) * RECORD_PERIOD_S,
                     plunge_depth_m=max(s["plunge_depth_m"] for s in states),
                     peak_temperature_c=last["peak_temperature_c"],
                     time_above_47_s=last["time_above_47_s"],

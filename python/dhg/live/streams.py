@@ -22,6 +22,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from dhg.core.features import TICK_S
 from dhg.data.dataset import RAW_FILE, RAW_PART_FILE, RawPart, raw_parquet_bytes, raw_schema
 
 __all__ = ["RAW_COLUMNS", "RecordingEpisode", "EpisodeSplitter", "RawParts", "force_jerk"]
@@ -105,7 +106,7 @@ def force_jerk(ep: RecordingEpisode, rows: npt.NDArray[np.float64]) -> None:
         rows = np.vstack([ep.last_row[None, :], rows])
     if len(rows) > 1:
         consecutive = np.diff(rows[:, 0]) == 1
-        d = np.diff(rows[:, 10:13], axis=0)[consecutive] / 1e-3
+        d = np.diff(rows[:, 10:13], axis=0)[consecutive] / TICK_S
         ep.jerk_sum += float(np.sum(d * d))
         ep.jerk_count += int(np.count_nonzero(consecutive))
     ep.last_row = rows[-1].copy()

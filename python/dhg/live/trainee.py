@@ -20,8 +20,9 @@ import numpy.typing as npt
 from dhg.bone.planning import breakthrough_depth_from_runs
 from dhg.core.errors import InvalidInputError
 from dhg.core.path import PlannedPath, TaskRules
+from dhg.core.session import ThermalParams
 from dhg.core.skill import skill_metrics
-from dhg.core.surgeon import CueMeaning, SurgeonController
+from dhg.core.surgeon import START_S_M, CueMeaning, SurgeonController
 from dhg.live.client import TraineeClient, feedback_tuple
 from dhg.operators.styles import sample_style
 
@@ -35,6 +36,9 @@ __all__ = [
     "state_records",
     "states_since_reset",
 ]
+
+_BODY_C = ThermalParams().body_temperature_c
+"""A resting drill's temperature (°C): the core's body temperature."""
 
 
 @dataclass
@@ -113,7 +117,7 @@ def drive_surgeon(client: TraineeClient, surgeon: SurgeonController, duration_s:
     answer poses sent before this call (a reset's stragglers) are not felt: until the first
     force for one of its own poses arrives, the surgeon feels a resting drill at A."""
     a = surgeon.path.entry_m
-    resting = (a[0], a[1], a[2], -0.025, 0.0, 37.0, 0, False, 0, False, 0.0)
+    resting = (a[0], a[1], a[2], START_S_M, 0.0, _BODY_C, 0, False, 0, False, 0.0)
     first_seq = (client.sent_seq + 1) & 0xFFFFFFFF
     period_ns = 1_000_000
     t0 = time.monotonic_ns()
@@ -159,7 +163,7 @@ def live_metrics(client: TraineeClient, surgeon: SurgeonController, states: list
         final_tip_m=np.array(feedback["tip_m"]) if feedback else surgeon.path.entry_m,
         drilling_s=surgeon.drilling_s,
         plunge_depth_m=surgeon.max_plunge,
-        peak_temperature_c=last["peak_temperature_c"] if last else 37.0,
+        peak_temperature_c=last["peak_temperature_c"] if last else _BODY_C,
         time_above_47_s=last["time_above_47_s"] if last else 0.0,
     )
     metrics["reached_target"] = bool(surgeon.phase == "done")

@@ -8,7 +8,7 @@ import math
 from dataclasses import dataclass
 
 from dhg.core.errors import InvalidInputError
-from dhg.core.session import GUIDANCE_MODES, GuidanceMode
+from dhg.core.session import GUIDANCE_MODES, MAX_GAIN, GuidanceMode
 
 __all__ = ["ARMS", "METRICS", "PHASES", "Arm", "Protocol", "parse_arms"]
 
@@ -108,8 +108,8 @@ def parse_arms(text: str) -> list[Arm]:
                 g = float(gain)
             except ValueError:
                 raise InvalidInputError(f"arm {item!r}: the gain after @ must be a number") from None
-            if not (math.isfinite(g) and 0 <= g <= 4):
-                raise InvalidInputError(f"arm {item!r}: the gain must be within 0..4")
+            if not (math.isfinite(g) and 0 <= g <= MAX_GAIN):
+                raise InvalidInputError(f"arm {item!r}: the gain must be within 0..{MAX_GAIN:g}")
             arm = dataclasses.replace(arm, name=item, gain=g)
         arms.append(arm)
     if not arms or arms[0].mode is not None:

@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dhg.core import protocol
+from dhg.core.volume import VIEW_NAMES
 from dhg.live.client import all_finite, get_json, get_replies
 from dhg.live.services import decode_npz
 
@@ -144,8 +145,8 @@ class SessionFeed:
 
     def xray(self, view: str, timeout_s: float = 5.0) -> bytes:
         """One PNG radiograph (``top``, ``front`` or ``side``) of the bone as drilled now."""
-        if view not in ("top", "front", "side"):
-            raise ValueError(f"unknown view {view!r}: use top, front or side")
+        if view not in VIEW_NAMES:
+            raise ValueError(f"unknown view {view!r}: use {', '.join(VIEW_NAMES)}")
         ((_, png),) = get_replies(self._z, f"{self.keys['xray']}/{view}", None, timeout_s)[:1]
         return png
 

@@ -18,7 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from dhg.core.session import FADING_DEFAULTS
+from dhg.core.features import FEATURE_INDEX
+from dhg.core.session import FADING_DEFAULTS, ThermalParams
+from dhg.core.volume import VIEW_NAMES
 from dhg.view.feed import SessionFeed, VolumeData
 from dhg.view.instructor import InstructorPage
 from dhg.view.scene import LAYER_NAMES, SCENE_MM_PER_M, add_bone_piece, add_whole_bone, along, look_at, stop_quietly
@@ -46,8 +48,9 @@ SHAFT_RADIUS_M = 0.8e-3
 PLUNGE_WARNING_M = float(FADING_DEFAULTS["plunge_tolerance_m"])
 """A plunge past this is shown as a warning (m): the fading schedule's tolerance, from the core."""
 
-NECROSIS_C = 47.0
-"""Bone necrosis threshold (°C; Eriksson & Albrektsson 1983), drawn on the temperature plot."""
+NECROSIS_C = ThermalParams().necrosis_threshold_c
+"""Bone necrosis threshold (°C; Eriksson & Albrektsson 1983), drawn on the temperature plot: the
+core's default (``ThermalParams``)."""
 
 
 def _png_array(png: bytes) -> np.ndarray:
@@ -167,7 +170,7 @@ class TraineePage:
         self._title = gui.add_markdown(f"**Session `{html.escape(self.session_id)}`**: waiting for the server")
         self._readout = gui.add_html(self._readout_html(None, None))
         with gui.add_folder("X-ray"):
-            self._xray_buttons = gui.add_button_group("View", ("top", "front", "side"))
+            self._xray_buttons = gui.add_button_group("View", VIEW_NAMES)
             self._xray_image = gui.add_image(np.full((8, 8, 3), 240, np.uint8), label="press a view", visible=False)
             self._xray_buttons.on_click(lambda event: self._take_xray(event.target.value))
         with gui.add_folder("Attempt"):
@@ -185,7 +188,7 @@ class TraineePage:
         out = {}
         for key, title, labels in (
             ("force", "Force (N)", ("|F| device", "thrust", "guidance share")),
-            ("temperature", "Tip temperature (°C)", ("temperature", "47 °C")),
+            ("temperature", "Tip temperature (°C)", ("temperature", f"{NECROSIS_C:g} °C")),
             ("depth", "Depth and deviation (mm)", ("depth along A→B", "lateral deviation")),
         ):
             colours = ("#1f4e79", "#c0392b", "#e67e22")
@@ -250,8 +253,8 @@ class TraineePage:
         thrust = np.array([s["thrust_n"] for s in states])
         dev = np.array([s["deviation_m"] for s in states]) * 1e3
         self._plots["force"].data = (t, np.linalg.norm(feats[:, 0:3], axis=1), thrust, self._guidance_norms(t))
-        self._plots["temperature"].data = (t, feats[:, 8], np.full_like(t, NECROSIS_C))
-        self._plots["depth"].data = (t, feats[:, 7] * 1e3, dev)
+        self._plots["temperature"].data = (t, feats[:, FEATURE_INDEX["temperature_c"]], np.full_like(t, NECROSIS_C))
+        self._plots["depth"].data = (t, feats[:, FEATURE_INDEX["depth_m"]] * 1e3, dev)
 
     def _guidance_norms(self, t: np.ndarray) -> np.ndarray:
         g = self.feed.snapshot()["guidance"]
@@ -308,7 +311,7 @@ class TraineePage:
             f"| largest lateral deviation | {mm('max_lateral_deviation_m')} |",
             f"| distance to B at the end | {mm('target_distance_m')} |",
             f"| peak temperature | {m['peak_temperature_c']:.1f} °C |",
-            f"| time above 47 °C | {m['time_above_47_s']:.1f} s |",
+            f"| time above {NECROSIS_C:g} °C | {m['time_above_47_s']:.1f} s |",
             f"| force jerk | {m['force_jerk_n_per_s']:.1f} N/s |",
             f"| bone removed | {m['removed_volume_m3'] * 1e9:.1f} mm³ |",
         ]

@@ -58,11 +58,16 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("HU_MIN", HU_MIN)?;
     m.add("HU_MAX", HU_MAX)?;
     m.add("BRICK_EDGE", BRICK_EDGE)?;
+    m.add("FULL_MATERIAL", crate::volume::FULL_MATERIAL)?;
+    let views: Vec<&str> = crate::xray::View::ALL.iter().map(|v| v.name()).collect();
+    m.add("XRAY_VIEWS", views)?;
+    m.add("MIN_PATH_LENGTH_M", crate::path::MIN_PATH_LENGTH_M)?;
     m.add("MAX_BURR_RADIUS_M", MAX_BURR_RADIUS_M)?;
     m.add("MIN_BURR_RADIUS_M", MIN_BURR_RADIUS_M)?;
     m.add("MAX_SPINDLE_RPM", crate::session::MAX_SPINDLE_RPM)?;
     let modes: Vec<&str> = crate::guidance::GuidanceMode::ALL.iter().map(|m| m.name()).collect();
     m.add("GUIDANCE_MODES", modes)?;
+    m.add("MAX_GAIN", crate::guidance::MAX_GAIN)?;
     m.add("MAX_POSITION_M", crate::session::MAX_POSITION_M)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())

@@ -9,6 +9,8 @@ use super::convert::{detached, from_python, to_python};
 use super::errors::IntoPyResult;
 use super::session::{record_row, PySession, POSE_COLUMNS};
 use crate::path::PlannedPath;
+use crate::record::TICK_S;
+use crate::skill::TaskRules;
 use crate::surgeon::{self, CueMeaning, Perception, SurgeonController, SurgeonStyle};
 use crate::volume::layer::Layer;
 
@@ -53,7 +55,10 @@ impl PySurgeon {
         let style: SurgeonStyle = from_python(style, "surgeon style")?;
         let cue = CueMeaning::from_name(cue_meaning).py()?;
         let inner = SurgeonController::new(&path, style, seed, max_duration_s, breakthrough_depth_m, cue).py()?;
-        let raw = keep_raw.then(|| (Vec::with_capacity(inner.max_ticks()), Vec::with_capacity(inner.max_ticks())));
+        // Room for an attempt as long as the task's rules allow up front; a longer one (up to
+        // `surgeon::MAX_ATTEMPT_S`) grows as it goes.
+        let room = inner.max_ticks().min((TaskRules::default().max_duration_s / TICK_S) as usize);
+        let raw = keep_raw.then(|| (Vec::with_capacity(room), Vec::with_capacity(room)));
         Ok(Self { inner, raw })
     }
 
@@ -159,7 +164,7 @@ pub(crate) fn drive<'py>(
 /// The virtual surgeon's constants (`crate::surgeon`), SI units, by name.
 #[pyfunction]
 pub(crate) fn surgeon_constants(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
-    let c: [(&str, f64); 9] = [
+    let c: [(&str, f64); 11] = [
         ("HAND_MASS_KG", surgeon::HAND_MASS_KG),
         ("TRACK_STIFFNESS_N_PER_M", surgeon::TRACK_STIFFNESS_N_PER_M),
         ("LATERAL_STIFFNESS_N_PER_M", surgeon::LATERAL_STIFFNESS_N_PER_M),
@@ -169,6 +174,8 @@ pub(crate) fn surgeon_constants(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
         ("MAX_PUSH_N", surgeon::MAX_PUSH_N),
         ("YIELD_SETTLE_S", surgeon::YIELD_SETTLE_S),
         ("CUE_LEAK_PER_S", surgeon::CUE_LEAK_PER_S),
+        ("MAX_ATTEMPT_S", surgeon::MAX_ATTEMPT_S),
+        ("START_S_M", surgeon::START_S_M),
     ];
     to_python(py, &std::collections::BTreeMap::from(c))
 }

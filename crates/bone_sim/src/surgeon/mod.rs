@@ -49,8 +49,12 @@ use crate::record::{Record, TICK_S};
 use crate::session::{DrillingSession, Pose};
 use crate::volume::layer::Layer;
 
+/// Longest attempt a virtual surgeon takes (s): an hour. The paper's attempts take minutes
+/// (Fekri et al. 2021), and the task's rules give up at 240 s ([`crate::skill::TaskRules`]); the
+/// bound keeps a mistyped duration from sizing an attempt's buffers by it.
+pub const MAX_ATTEMPT_S: f64 = 3600.0;
 /// Where the hand starts along A→B (m): 25 mm before the entry.
-const START_S_M: f64 = -25e-3;
+pub const START_S_M: f64 = -25e-3;
 /// Where the approach ends and the drill is aligned (m along A→B): 3 mm before the entry.
 const ALIGNED_S_M: f64 = -3e-3;
 /// SD of the hand's starting offset across the path (m).
@@ -143,11 +147,11 @@ impl Felt {
 /// Checks an attempt's duration (s) and planned breakthrough depth (m; `None`: the generic one),
 /// and returns the depth.
 fn check_attempt(max_duration_s: f64, breakthrough_depth_m: Option<f64>) -> SimResult<f64> {
-    if !(max_duration_s.is_finite() && max_duration_s > 0.0) {
+    if !(max_duration_s.is_finite() && max_duration_s > 0.0 && max_duration_s <= MAX_ATTEMPT_S) {
         return Err(SimError::InvalidParameter {
             name: "max_duration_s (s)",
             value: max_duration_s,
-            reason: "must be positive and finite",
+            reason: "must be positive and at most MAX_ATTEMPT_S (3600 s)",
         });
     }
     let depth = breakthrough_depth_m.unwrap_or(GENERIC_BREAKTHROUGH_DEPTH_M);

@@ -119,8 +119,11 @@ fn an_invalid_style_or_duration_is_refused_with_the_field_named() {
     let nan = SurgeonStyle { tremor_m: f64::NAN, ..novice() };
     let e = SurgeonController::new(&path(), nan, 1, 5.0, None, CueMeaning::Felt).unwrap_err();
     assert!(matches!(e, SimError::NonFinite { .. }) && e.to_string().contains("tremor_m"), "{e}");
-    let e = SurgeonController::new(&path(), novice(), 1, 0.0, None, CueMeaning::Felt).unwrap_err();
-    assert!(e.to_string().contains("max_duration_s"), "{e}");
+    for bad in [0.0, -1.0, f64::NAN, f64::INFINITY, MAX_ATTEMPT_S * 1.001, 1e17] {
+        let e = SurgeonController::new(&path(), novice(), 1, bad, None, CueMeaning::Felt).unwrap_err();
+        assert!(matches!(e, SimError::InvalidParameter { .. }) && e.to_string().contains("max_duration_s"), "{e}");
+    }
+    assert!(SurgeonController::new(&path(), novice(), 1, MAX_ATTEMPT_S, None, CueMeaning::Felt).is_ok());
     assert!(CueMeaning::from_name("obey").is_err());
 }
 

@@ -389,9 +389,7 @@ mod tests {
         let key = |leaf: &str| format!("t/session/a/{leaf}");
         let force = Outlet::declare_force(&server, key("force"), 1).unwrap();
         let mut outlet = Outlet::declare(&server, key, 1, force).unwrap();
-        wait_for("the recorder to be connected", || {
-            outlet.ticks.matching_status().wait().is_ok_and(|m| m.matching())
-        });
+        wait_for("the recorder to be connected", || outlet.ticks.matching_status().wait().is_ok_and(|m| m.matching()));
         // A session that ticked 30 times and went silent: its batch is not full.
         for tick in 1..=30 {
             outlet.add_force(protocol::ForceMsg { tick, ..Default::default() }, None);
