@@ -61,6 +61,26 @@ def stream(client: TraineeClient, positions: np.ndarray, q: tuple, drill_on: boo
     return (time.monotonic_ns() - t0) * 1e-9
 
 
+def hold(
+    client: TraineeClient,
+    position: np.ndarray,
+    q: tuple,
+    until: Callable[[], object],
+    timeout_s: float,
+    what: str = "condition",
+) -> None:
+    """Holds the stylus at ``position`` (a pose a millisecond, 100 ms at a time; a held stylus keeps
+    its session alive) until ``until()`` is true. For what the model's answers bring: on a loaded
+    machine they come later than on an idle one."""
+    held = np.repeat(np.asarray(position, dtype=float)[None, :], 100, axis=0)
+
+    def met() -> object:
+        stream(client, held, q)
+        return until()
+
+    wait_until(met, timeout_s, what)
+
+
 def hold_until(
     client: TraineeClient,
     position: np.ndarray,
@@ -69,20 +89,17 @@ def hold_until(
     timeout_s: float,
     what: str = "condition",
 ) -> dict:
-    """Holds the stylus at ``position`` (a pose a millisecond, 100 ms at a time) until the latest
-    force message meets ``cond``; returns that message. For what the model's answers bring: on a
-    loaded machine its first answers come later than on an idle one."""
-    held = np.repeat(np.asarray(position, dtype=float)[None, :], 100, axis=0)
+    """Holds the stylus at ``position`` (see :func:`hold`) until the latest force message meets
+    ``cond``; returns that message."""
     found: list[dict] = []
 
     def met() -> bool:
-        stream(client, held, q)
         m = client.force
         if m is not None and cond(m):
             found.append(m)
         return bool(found)
 
-    wait_until(met, timeout_s, what)
+    hold(client, position, q, met, timeout_s, what)
     return found[0]
 
 

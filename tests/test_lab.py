@@ -19,7 +19,7 @@ from dhg.core.errors import InvalidInputError, TransportError
 from dhg.live.client import TraineeClient
 from dhg.live.lab import acl, load_lab, write_lab
 from dhg.live.process import ServerProcess, free_port
-from support import said
+from support import Stylus, said, stream
 from support import wait_until as _wait
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl to create certificates")
@@ -94,16 +94,19 @@ def _client(root, endpoint, name, session_id=None, **kw) -> TraineeClient:
     return TraineeClient(endpoint, session_id or name, zenoh_config_file=str(conf), **kw)
 
 
-def _stream(c: TraineeClient, seconds: float) -> None:
+def _drill_path(c: TraineeClient, poses: int) -> np.ndarray:
+    """Creates the client's session; returns ``poses`` positions (m) a millisecond apart, from
+    3 mm before A into the bone at 1 mm/s for 2 mm."""
     info = c.create()
     a, b = np.array(info["entry_m"]), np.array(info["target_m"])
     d = (b - a) / np.linalg.norm(b - a)
-    t0 = time.monotonic()
-    k = 0
-    while time.monotonic() - t0 < seconds:
-        c.send_pose(a + d * (-3e-3 + 1e-3 * min(k / 1000, 2.0)), (1.0, 0.0, 0.0, 0.0), True, 1200.0)
-        k += 1
-        time.sleep(0.001)
+    return a + d * (-3e-3 + 1e-3 * np.minimum(np.arange(poses) / 1000, 2.0))[:, None]
+
+
+def _stream(c: TraineeClient, seconds: float) -> None:
+    """Drills for ``seconds`` worth of poses at 1 kHz (on absolute deadlines: a loaded machine
+    sends them late, not fewer)."""
+    stream(c, _drill_path(c, int(seconds * 1000)), (1.0, 0.0, 0.0, 0.0))
 
 
 def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_path):
@@ -273,8 +276,8 @@ def test_the_viewer_works_in_lab_mode_with_a_station_or_an_instructor_identity(l
                 endpoint, port=free_port(), session_id="station-1", zenoh_config_file=conf["station-1"]
             )
             teacher_view = Viewer(endpoint, port=free_port(), zenoh_config_file=conf["teacher"])
-            drilling = threading.Thread(target=_stream, args=(s1, 8.0), daemon=True)
-            drilling.start()  # the session lives while its stylus streams
+            hand = Stylus(s1, (1.0, 0.0, 0.0, 0.0))  # the session lives while its stylus streams
+            hand.move(_drill_path(s1, 2000))
             watchers: list[PageWatcher] = []  # a page draws only while watched
             try:
                 page = station_view.pages["station-1"]
@@ -300,7 +303,7 @@ def test_the_viewer_works_in_lab_mode_with_a_station_or_an_instructor_identity(l
             finally:
                 for w in watchers:
                     w.close()
-                drilling.join()  # before the clients close under it
+                hand.stop()  # before the clients close under it
                 station_view.close()
                 teacher_view.close()
     finally:
