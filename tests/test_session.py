@@ -8,7 +8,9 @@ import pytest
 import dhg
 from dhg import InvalidInputError, Layer, SessionConfig, ShapeError
 from dhg.core.features import FEATURE_NAMES, FEATURE_UNITS, POSE_COLUMNS, RECORD_COLUMNS
+from dhg.core.path import TaskRules
 from dhg.core.session import poses
+from dhg.core.skill import skill_metrics
 from support import tool_quaternion as axis_quaternion
 
 
@@ -140,3 +142,35 @@ def test_bad_pose_arrays_are_clear_errors(coarse_phantom):
     with pytest.raises(TypeError):
         s.step([["a"] * 9])
     assert s.state.ticks == 0, "nothing ran"
+
+
+_GOOD_END = dict(
+    final_tip_m=[0.0, 0.0, 0.05], drilling_s=1.0, plunge_depth_m=0.0, peak_temperature_c=40.0, time_above_47_s=0.0
+)
+
+
+@pytest.mark.parametrize(
+    ("bad", "error", "said"),
+    [
+        ({"final_tip_m": [0.0, 0.0]}, ShapeError, "final_tip_m"),
+        ({"records": np.zeros(len(RECORD_COLUMNS))}, ShapeError, "records"),
+        ({"records": np.zeros((3, 5))}, ShapeError, "records"),
+        ({"records": np.full((3, len(RECORD_COLUMNS)), np.nan)}, InvalidInputError, "records"),
+        ({"forces_n": np.array([[0.0, np.inf, 0.0]] * 2)}, InvalidInputError, "forces_n"),
+        ({"forces_n": np.zeros(3)}, ShapeError, "forces_n"),
+        ({"drilling_s": float("nan")}, InvalidInputError, "drilling_s"),
+        ({"drilling_s": -1.0}, InvalidInputError, "drilling_s"),
+        ({"plunge_depth_m": -1e-3}, InvalidInputError, "plunge_depth_m"),
+        ({"peak_temperature_c": float("inf")}, InvalidInputError, "peak_temperature_c"),
+        ({"time_above_47_s": float("nan")}, InvalidInputError, "time_above_47_s"),
+        ({"final_tip_m": [0.0, float("nan"), 0.0]}, InvalidInputError, "final_tip_m"),
+    ],
+)
+def test_skill_metrics_refuse_bad_input_by_name(bad, error, said):
+    """NaN metrics used to come back for a NaN drilling time, and numpy's reshape error for a
+    short final tip."""
+    path = dhg.PlannedPath(np.zeros(3), np.array([0.0, 0.0, 0.05]))
+    args = {"records": np.zeros((3, len(RECORD_COLUMNS))), "path": path, "rules": TaskRules(), **_GOOD_END}
+    assert skill_metrics(**args)["completion_time_s"] == 1.0  # the good input is taken
+    with pytest.raises(error, match=said):
+        skill_metrics(**(args | bad))

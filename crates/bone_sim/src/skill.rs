@@ -5,7 +5,7 @@
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::error::{SimError, SimResult};
+use crate::error::{finite, non_negative, SimError, SimResult};
 use crate::path::PlannedPath;
 use crate::record::{RECORD_PERIOD_TICKS, TICK_S};
 
@@ -60,6 +60,28 @@ pub struct AttemptEnd {
     pub peak_temperature_c: f64,
     /// Time the tip spent above 47 °C (s).
     pub time_above_47_s: f64,
+}
+
+impl AttemptEnd {
+    /// Checks every field: finite, and the durations and the plunge not negative.
+    ///
+    /// # Errors
+    /// A non-finite value, or a negative duration or plunge, named.
+    pub fn validate(&self) -> SimResult<()> {
+        let [x, y, z] = self.final_tip_m.coords.into();
+        for (what, v) in [
+            ("final_tip_m x (m)", x),
+            ("final_tip_m y (m)", y),
+            ("final_tip_m z (m)", z),
+            ("peak_temperature_c (°C)", self.peak_temperature_c),
+        ] {
+            finite(what, v)?;
+        }
+        non_negative("drilling_s (s)", self.drilling_s)?;
+        non_negative("plunge_depth_m (m)", self.plunge_depth_m)?;
+        non_negative("time_above_47_s (s)", self.time_above_47_s)?;
+        Ok(())
+    }
 }
 
 /// The skill metrics of one attempt (SI units; `docs/dataset.md`).

@@ -9,6 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dhg import _bone_sim
+from dhg.core.errors import ShapeError
 from dhg.core.features import RECORD_COLUMNS
 from dhg.core.path import PlannedPath, TaskRules
 
@@ -33,12 +34,20 @@ def skill_metrics(
     (``force_jerk_n_per_s``) is the RMS rate of change of the device force (N/s) over the 1 kHz
     ``forces_n`` (N, 3) when given, else over the 10 Hz records.
 
-    Raises :class:`~dhg.core.errors.ShapeError` for records or forces of the wrong width,
-    :class:`~dhg.core.errors.InvalidInputError` for a non-positive rule."""
+    Raises :class:`~dhg.core.errors.ShapeError` for records, forces or a final tip of the wrong
+    shape, :class:`~dhg.core.errors.InvalidInputError` for a non-positive rule, a NaN or infinite
+    value, or a negative duration or plunge."""
     rec = np.ascontiguousarray(records, dtype=np.float64)
     if rec.size == 0:
         rec = rec.reshape(0, len(RECORD_COLUMNS))
-    tip = np.asarray(final_tip_m, dtype=np.float64).reshape(3)
+    if rec.ndim != 2:
+        raise ShapeError(f"records must be (M, {len(RECORD_COLUMNS)}), got shape {rec.shape}")
+    tip = np.asarray(final_tip_m, dtype=np.float64)
+    if tip.shape != (3,):
+        raise ShapeError(f"final_tip_m must be 3 coordinates (m), got shape {tip.shape}")
+    forces = None if forces_n is None else np.ascontiguousarray(forces_n, dtype=np.float64)
+    if forces is not None and forces.ndim != 2:
+        raise ShapeError(f"forces_n must be (N, 3), got shape {forces.shape}")
     return dict(
         _bone_sim.skill_metrics(
             rec,
@@ -50,6 +59,6 @@ def skill_metrics(
             float(peak_temperature_c),
             float(time_above_47_s),
             rules=asdict(rules),
-            forces_n=None if forces_n is None else np.ascontiguousarray(forces_n, dtype=np.float64),
+            forces_n=forces,
         )
     )

@@ -47,7 +47,9 @@ pub use params::GuidanceParams;
 use crate::error::{SimError, SimResult};
 use crate::path::PlannedPath;
 
-/// Largest accepted guidance gain.
+/// Largest accepted guidance gain: the project's bound, not from a source. The paper's cue is
+/// gain × (expert − trainee) force, and every share is clamped to the device's limits whatever the
+/// gain, so the bound only keeps a mistyped gain from saturating every cue.
 pub const MAX_GAIN: f64 = 4.0;
 
 /// The default [`GuidanceParams::warning_feed_m_s`] (m/s), the safe feed: half a novice's

@@ -69,15 +69,25 @@ pub struct GuidanceParams {
 impl Default for GuidanceParams {
     fn default() -> Self {
         Self {
+            // The Touch's continuous force (3D Systems' specification, `DeviceProfile`): a share
+            // the device can hold indefinitely.
             max_n: 0.88,
+            // Derived, not from a source: the whole 0.88 N in 0.11 s, about one 10 Hz model
+            // period (Fekri et al. 2021's record rate), so a reply's step is spread over the
+            // interval until the next one instead of felt as a jolt.
             max_rate_n_per_s: 8.0,
+            // Derived: three missed 10 Hz replies and 50 ms more count as a lost model.
             timeout_s: 0.35,
+            // The project's choice, not from a source: a quarter second, faster than the 0.35 s
+            // timeout that starts it, slow enough not to be a step.
             fade_s: 0.25,
             // The experts' lateral spread on the phantom is 0.3 mm mean, 0.8 mm at most
             // (docs/benchmarks.md): inside 0.5 mm the corridor leaves the hand alone.
             corridor_deadband_m: 0.5e-3,
             // 0.88 N at 2.7 mm off the line: at most the Touch's 400 N/m, so it is rendered stably.
             corridor_stiffness_n_per_m: 400.0,
+            // The project's choice, not from a source: a tenth of the brake's, enough to take the
+            // spring's overshoot off a 0.4 kg hand without dragging a lateral correction.
             corridor_damping_n_s_per_m: 2.0,
             // An arm that holds the tip off the line against the spring is pulled further over
             // about a second, as assistance that grows with a persisting error does (Wolbrecht et
@@ -92,9 +102,17 @@ impl Default for GuidanceParams {
             // 0.25–0.40 s reaction and is down to a tenth within a second.
             brake_hold_n: 2.2,
             brake_decay_s: 0.4,
+            // The Touch's 400 N/m stiffness limit (`DeviceProfile`), rendered stably.
             brake_stiffness_n_per_m: 400.0,
+            // The arm damping of `docs/fidelity.md`'s hand-held plunge model (the project's
+            // choice): the brake resists a surge as the arm itself would.
             brake_damping_n_s_per_m: 20.0,
+            // Tuned, not from a source: under half the continuous 0.88 N and well under the
+            // 1.6–2.7 N a hand pushes through cortex, so it is felt without stopping the cut
+            // (docs/results.md, "A warning that lets a slow drill through").
             warning_n: 0.35,
+            // The last millimetre before the planned breakthrough: the project's choice, not from
+            // a source (docs/results.md).
             warning_span_m: 1.0e-3,
             warning_feed_m_s: WARNING_FEED_M_S,
             // The expert of `dhg synth` pauses with the drill off 2 °C short of 47 °C and goes on

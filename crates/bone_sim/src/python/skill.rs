@@ -46,6 +46,9 @@ pub(crate) fn skill_metrics<'py>(
         })
         .py();
     }
+    if let Some(bad) = rec.iter().find(|v| !v.is_finite()) {
+        return Err(SimError::NonFinite { what: "records", value: *bad }).py();
+    }
     let mut tally = SkillTally::default();
     for r in rec.rows() {
         let tip = Point3::new(r[4], r[5], r[6]);
@@ -61,11 +64,15 @@ pub(crate) fn skill_metrics<'py>(
             })
             .py();
         }
+        if let Some(bad) = f.iter().find(|v| !v.is_finite()) {
+            return Err(SimError::NonFinite { what: "forces_n (N)", value: *bad }).py();
+        }
         for r in f.rows() {
             tally.add_tick_force(&Vector3::new(r[0], r[1], r[2]));
         }
     }
     let end =
         AttemptEnd { final_tip_m: final_tip_m.into(), drilling_s, plunge_depth_m, peak_temperature_c, time_above_47_s };
+    end.validate().py()?;
     to_python(py, &tally.metrics(&path, &rules, &end))
 }
