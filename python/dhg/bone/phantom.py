@@ -34,18 +34,33 @@ from dhg.core.volume import HuMapping, Volume
 __all__ = ["Phantom", "default_phantom", "femur", "femur_arrays"]
 
 # Anatomy, in mm (LPS: +x patient left = medial for a right femur, +y posterior, +z superior).
+# Where a value has a published counterpart it is cited; the rest are the phantom's own choices,
+# said so (docs/fidelity.md, "The phantom's anatomy").
 NECK_SHAFT_ANGLE_DEG = 129.0
+"""The mean angle of inclination, 129.2°, of Toogood, Skalak & Cooperman 2009's normal femora."""
 ANTEVERSION_DEG = 12.0
+"""The phantom's choice, a little above the mean version of 9.7° of the same femora (Toogood et al.
+2009); reported means run to 14.5° in other CT series."""
 NECK_BASE_MM = np.array([0.0, 0.0, 60.0])  # where the neck axis meets the shaft axis
-NECK_LENGTH_MM = 50.0  # neck base to head centre
+NECK_LENGTH_MM = 50.0
+"""Neck base to head centre: the phantom's choice (published neck lengths depend on how they are
+measured)."""
 HEAD_RADIUS_MM = 23.5
+"""Between the mean head radii of female and male adolescents' CT, 21.9 and 24.5 mm (Jamali et al.,
+Clin Orthop Relat Res, "What is normal femoral head/neck anatomy?")."""
 SHAFT_RADIUS_MM = 13.5
+"""27 mm across: a little above the mean mid-shaft widths of 25.6 (women) and 26.5 mm (men)
+(Karakaş & Harma 2008)."""
 CANAL_RADIUS_MM = 7.0
+"""The phantom's choice, wider than the isthmus' mean diameter in CT (about 10.5 mm); with the 4.5 mm
+cortex it leaves a ring of cancellous bone around the canal, which real diaphyses lack."""
 LESION_CORE_MM = 6.0
 LESION_RIM_MM = 1.8
+"""The necrotic lesion's core radius and sclerotic rim: illustrative, the phantom's choice."""
 TARGET_DEPTH_BELOW_SURFACE_MM = 6.0
 FIELD_OF_VIEW_MM = ((-31.0, 68.0), (-38.0, 24.0), (-2.0, 121.0))
 SOFT_TISSUE_HU = 30.0
+"""The phantom's choice for the tissue around the bone (no source found)."""
 
 
 def neck_axis() -> npt.NDArray[np.float64]:
@@ -101,7 +116,7 @@ def _bone_sdf(x, y, z) -> np.ndarray:
 
 def _cortical_thickness_mm(x, y, z) -> np.ndarray:
     """Cortical thickness (mm): 4.5 along the shaft, thinning to 1.8 in the metaphysis, 1.0 at the
-    head."""
+    head. The phantom's choice: the trend is anatomy's, the millimetres have no source here."""
     t = np.interp(z, [35.0, 70.0], [4.5, 1.8])
     h = head_center_mm()
     near_head = np.sqrt((x - h[0]) ** 2 + (y - h[1]) ** 2 + (z - h[2]) ** 2) < HEAD_RADIUS_MM - 3.0
@@ -156,7 +171,11 @@ def femur_arrays(seed: int = 0, voxel_m: float = 0.5e-3) -> dict[str, Any]:
     labels[lesion] = Layer.NECROSIS
 
     hu = np.full(shape, SOFT_TISSUE_HU, dtype=np.float32)
-    # Cortical bone: denser where the shell is thick (the shaft).
+    # Cortical bone: denser where the shell is thick (the shaft). 1500-1850 HU lies within bone's
+    # 700-3000 HU in CT reference tables (Buzug 2008, as Radclass tabulates it); the values are the
+    # phantom's choice. Cancellous
+    # bone below, 160-690 HU, and marrow, -30 HU (fatty marrow is below 115 HU: Suchacki et al.
+    # 2020), likewise.
     zz = np.broadcast_to(z, shape)
     hu[cortical] = np.interp(zz[cortical], [35.0, 70.0], [1850.0, 1500.0])
     # Cancellous: denser towards the head (principal compressive trabeculae), textured.

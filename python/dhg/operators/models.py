@@ -7,8 +7,10 @@ Two operators drive :class:`dhg.core.surgeon.SurgeonController` in ``dhg study``
   mechanical impedance; the trainee is told nothing about the cue. The arm's mass, damping and
   stiffness are those measured at the handle of a haptic device held in a relaxed posture
   (van Beek, Bergmann Tiest & Kappers 2015, *Sci. Rep.* 5:18004: M = 0.554 kg, B = 6.45 N·s/m,
-  K = 135 N/m in their example fit), drawn ±20 % per trainee; a novice's reaction delay to a
-  change in force is 150–250 ms (the range of voluntary responses to a force perturbation).
+  K = 135 N/m in their example fit, one trial of one participant, not a population mean), drawn
+  ±20 % per trainee; a novice's reaction delay to a change in force is drawn from 150–250 ms, a
+  range chosen above the 100 ms after which voluntary responses to a force perturbation begin
+  (Pruszynski & Scott 2012, *Exp. Brain Res.* 218:341; the bounds themselves have no source).
 - ``instructed``: today's trainee (the novices of ``dhg synth``), who was told what the cue means:
   they lean into the paper's force-matching cue, yield to the shaping modes' cues, and pause with
   the drill off while they feel ``shaped``'s heat cue, a vibration in the handle
@@ -53,15 +55,17 @@ OPERATORS: tuple[Operator, ...] = ("impedance", "instructed")
 """The operator models ``dhg study`` can run."""
 
 ARM_MASS_KG = 0.554
-"""Effective arm mass at a haptic handle (kg; van Beek et al. 2015)."""
+"""Effective arm mass at a haptic handle (kg): van Beek et al. 2015's example fit (one trial)."""
 ARM_DAMPING_N_S_PER_M = 6.45
-"""Arm damping at a haptic handle (N·s/m; van Beek et al. 2015)."""
+"""Arm damping at a haptic handle (N·s/m): van Beek et al. 2015's example fit (one trial)."""
 ARM_STIFFNESS_N_PER_M = 135.0
-"""Arm stiffness at a haptic handle (N/m; van Beek et al. 2015)."""
+"""Arm stiffness at a haptic handle (N/m): van Beek et al. 2015's example fit (one trial)."""
 ARM_SPREAD = 0.2
 """Per-trainee spread of the arm's impedance, ± this fraction (uniform)."""
 NOVICE_REACTION_S = (0.15, 0.25)
-"""Range of a novice's reaction delay to a change in force (s)."""
+"""Range of a novice's reaction delay to a change in force (s): chosen above the 0.1 s after which
+voluntary responses to a force perturbation begin (Pruszynski & Scott 2012). The demonstrators of
+``dhg synth`` react in 0.25–0.40 s (:func:`dhg.operators.styles.sample_style`), another choice."""
 
 
 def operator_style(style: SurgeonStyle, operator: Operator, rng: np.random.Generator) -> SurgeonStyle:

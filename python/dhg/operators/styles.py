@@ -1,4 +1,11 @@
-"""The virtual surgeons' styles: an expert's or a novice's motor parameters, drawn per subject."""
+"""The virtual surgeons' styles: an expert's or a novice's motor parameters, drawn per subject.
+
+The ranges are the virtual surgeons' design, the project's choice so that the two groups differ
+(the paper records experts and novices but publishes no motor parameters for either), not measured
+values: no published distribution was found for them. Where a published figure bounds one it is named: a
+reaction to a force perturbation is voluntary from about 0.1 s (Pruszynski & Scott 2012), below the
+experts' 0.10–0.16 s upper end and the novices' 0.25–0.40 s; the arm stiffnesses are of the order
+of van Beek et al. 2015's 135 N/m at a haptic handle (one trial)."""
 
 from __future__ import annotations
 

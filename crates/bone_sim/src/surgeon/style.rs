@@ -6,15 +6,19 @@ use crate::error::{SimError, SimResult};
 use crate::session::SessionState;
 use crate::volume::layer::Layer;
 
-// The hand and habits every surgeon shares (the defaults of the style fields they name).
+// The hand and habits every surgeon shares (the defaults of the style fields they name). They
+// are the virtual surgeon's tuning, not measured values: no source was found for a stylus grip's
+// mass or an arm's endpoint stiffness while drilling (van Beek et al. 2015 fitted 0.554 kg and
+// 135 N/m to one trial at a haptic handle in a relaxed posture, which the `impedance` operator of
+// `dhg study` uses instead: `dhg.operators.models`).
 /// Effective mass of hand and stylus at the stylus tip (kg): the default of
-/// [`SurgeonStyle::hand_mass_kg`].
+/// [`SurgeonStyle::hand_mass_kg`]; the project's choice.
 pub const HAND_MASS_KG: f64 = 0.4;
 /// How stiffly the arm follows an intended position (N/m), for the approach and holding; the
-/// default of [`SurgeonStyle::arm_stiffness_n_per_m`].
+/// default of [`SurgeonStyle::arm_stiffness_n_per_m`]; the project's choice.
 pub const TRACK_STIFFNESS_N_PER_M: f64 = 300.0;
 /// How stiffly the arm holds the drill on its aim across the path (N/m); the default of
-/// [`SurgeonStyle::lateral_stiffness_n_per_m`].
+/// [`SurgeonStyle::lateral_stiffness_n_per_m`]; the project's choice.
 pub const LATERAL_STIFFNESS_N_PER_M: f64 = 250.0;
 /// Tip depth at which a surgeon without a plan expects the first cortex to give (m): about
 /// 3.5 mm of cortex less a 2.5 mm burr's reach.
