@@ -18,14 +18,13 @@ import numpy as np
 import numpy.typing as npt
 from scipy import ndimage
 
-from dhg import _bone_sim
 from dhg.core.errors import CTImportError, InvalidInputError
 from dhg.core.layers import Layer
-from dhg.core.volume import HuMapping, Volume
+from dhg.core.volume import HU_MIN, HuMapping, Volume
 
 __all__ = ["CTImage", "crop", "load", "load_dicom", "load_nifti", "prepare", "resample_isotropic", "segment"]
 
-AIR_HU = float(_bone_sim.HU_MIN)
+AIR_HU = HU_MIN
 """Air (HU): the core's lowest stored value, given to voxels resampled from outside the scan."""
 
 

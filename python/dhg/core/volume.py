@@ -21,10 +21,26 @@ import numpy.typing as npt
 from dhg import _bone_sim
 from dhg.core.errors import InvalidInputError, ShapeError, VolumeFileError
 
-__all__ = ["VIEW_NAMES", "DrilledVolume", "HuMapping", "RemovalReport", "Volume", "XRayViews"]
+__all__ = [
+    "BRICK_EDGE",
+    "FULL_MATERIAL",
+    "HU_MIN",
+    "VIEW_NAMES",
+    "DrilledVolume",
+    "HuMapping",
+    "RemovalReport",
+    "Volume",
+    "XRayViews",
+]
 
 VIEW_NAMES: tuple[str, ...] = tuple(_bone_sim.XRAY_VIEWS)
 """The three X-ray views, in the core's order (``bone_sim::xray::View``): top, front, side."""
+HU_MIN: float = float(_bone_sim.HU_MIN)
+"""The lowest HU the core stores (air)."""
+BRICK_EDGE: int = _bone_sim.BRICK_EDGE
+"""Voxels along a drilled brick's edge."""
+FULL_MATERIAL: int = _bone_sim.FULL_MATERIAL
+"""The core's material fraction 1 (``u16``)."""
 
 VOLUME_FILE_FORMAT = "dhg-volume"
 VOLUME_FILE_VERSION = 1

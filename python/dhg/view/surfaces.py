@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from dhg import _bone_sim
+from dhg.core import volume as _core_volume
 from dhg.core.layers import Layer
 
 __all__ = ["CHUNK_EDGE", "DISPLAY_VOXEL_M", "SURFACES", "ChunkMesh", "LayerSurfaces", "Surface", "display_step"]
@@ -38,10 +38,10 @@ def display_step(spacing_m: Iterable[float]) -> int:
     return int(min(4, max(1, round(DISPLAY_VOXEL_M / max(spacing_m)))))
 
 
-BRICK_EDGE: int = _bone_sim.BRICK_EDGE
+BRICK_EDGE: int = _core_volume.BRICK_EDGE
 """Voxels along a drilled brick's edge (from the core)."""
 
-FULL_MATERIAL: int = _bone_sim.FULL_MATERIAL
+FULL_MATERIAL: int = _core_volume.FULL_MATERIAL
 """The core's material fraction 1 (``u16``)."""
 
 
