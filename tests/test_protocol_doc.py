@@ -106,3 +106,25 @@ def test_the_json_replies_in_the_doc_are_the_rust_types(reply):
         for name, field in node.get("properties", {}).items():
             nullable = "null" in field.get("type", []) or {"type": "null"} in field.get("anyOf", [])
             assert name in node.get("required", []) or nullable, (node.get("title"), name)
+
+
+def test_the_documents_key_table_is_the_cores_key_space():
+    """Every key ``docs/protocol.md``'s table lists is one the core builds, and the other way
+    round: the session leaves and the server's keys (``protocol/keys.rs``), and the model keys."""
+    table = [ln for ln in DOC.read_text().splitlines() if ln.startswith("| `<p>/")]
+    listed = {k.split("?")[0] for ln in table for k in re.findall(r"`(<p>/[^`]*)`", ln.split("|")[1])}
+    p, sid, w = "<p>", "<id>", "<w>"
+    built = {protocol.session_key(p, sid, leaf) for leaf in protocol.SESSION_LEAVES if leaf != "xray"}
+    built |= {protocol.session_key(p, sid, "xray/<view>")}
+    built |= {protocol.server_key(p, leaf) for leaf in protocol.SERVER_LEAVES}
+    built |= {protocol.worker_key(p, w), protocol.worker_predict_key(p, w), protocol.shared_predict_key(p)}
+    assert listed == built
+
+
+def test_a_session_key_gives_back_its_session_and_nothing_else_does():
+    key = protocol.session_key("lab/a", "station-1", "xray/top")
+    assert key == "lab/a/session/station-1/xray/top"
+    assert protocol.session_of("lab/a", key) == "station-1"
+    assert protocol.session_of("lab/a", protocol.server_key("lab/a", "health")) is None
+    assert protocol.session_of("lab/b", key) is None, "another prefix"
+    assert protocol.session_of("lab/a", protocol.session_key("lab/a", "station-1")) is None, "no leaf"

@@ -26,6 +26,8 @@ __all__ = [
     "MAX_PAYLOAD_BYTES",
     "MAX_QUERY_WINDOWS",
     "MAX_TICK_ROWS",
+    "SERVER_LEAVES",
+    "SESSION_LEAVES",
     "VERSION",
     "WINDOW_RECORDS",
     "Layout",
@@ -37,6 +39,12 @@ __all__ = [
     "encode_pose",
     "encode_prediction",
     "keys",
+    "server_key",
+    "session_key",
+    "session_of",
+    "shared_predict_key",
+    "worker_key",
+    "worker_predict_key",
 ]
 
 VERSION: int = _bone_sim.PROTOCOL_VERSION
@@ -98,28 +106,63 @@ def check_session_id(session_id: str) -> str:
     return _bone_sim.check_session_id(session_id)
 
 
+_KEYS: dict[str, Any] = _bone_sim.key_layout()
+SESSION_LEAVES: tuple[str, ...] = tuple(_KEYS["session_leaves"])
+"""The leaves under a session's key (``pose``, ``force``, …, ``bone``), as the core defines them
+(``protocol/keys.rs``)."""
+SERVER_LEAVES: tuple[str, ...] = tuple(_KEYS["server_leaves"])
+"""The server's own queryables under ``<prefix>/server/`` (``health``, ``about``, ``volume``)."""
+
+
+def _fill(template: str, prefix: str, key_id: str = "", leaf: str = "") -> str:
+    return template.replace("{prefix}", prefix).replace("{id}", key_id).replace("{leaf}", leaf)
+
+
+def session_key(prefix: str, session_id: str, leaf: str | None = None) -> str:
+    """``<prefix>/session/<id>[/<leaf>]`` (``session_id`` may be ``*``, ``leaf`` may go deeper:
+    ``xray/top``)."""
+    root = _fill(_KEYS["templates"]["session"], prefix, session_id)
+    return root if leaf is None else f"{root}/{leaf}"
+
+
+def session_of(prefix: str, key: str) -> str | None:
+    """The session id of a key under ``<prefix>/session/<id>/…``, or None for any other key."""
+    head = session_key(prefix, "")
+    if not key.startswith(head):
+        return None
+    sid, sep, _ = key[len(head) :].partition("/")
+    return sid if sep and sid else None
+
+
+def server_key(prefix: str, leaf: str) -> str:
+    """``<prefix>/server/<leaf>`` (one of :data:`SERVER_LEAVES`)."""
+    return _fill(_KEYS["templates"]["server"], prefix, leaf=leaf)
+
+
+def shared_predict_key(prefix: str) -> str:
+    """``<prefix>/model/predict``: the key every model service answers."""
+    return _fill(_KEYS["templates"]["shared_predict"], prefix)
+
+
+def worker_key(prefix: str, worker_id: str) -> str:
+    """``<prefix>/model/workers/<id>``: a pool worker's liveliness token (``worker_id`` may be ``*``)."""
+    return _fill(_KEYS["templates"]["worker"], prefix, worker_id)
+
+
+def worker_predict_key(prefix: str, worker_id: str) -> str:
+    """``<prefix>/model/workers/<id>/predict``: the key a pool worker answers."""
+    return _fill(_KEYS["templates"]["worker_predict"], prefix, worker_id)
+
+
 def keys(prefix: str, session_id: str) -> dict[str, str]:
-    """The key expressions of one session under ``prefix`` (see ``docs/protocol.md``)."""
-    base = f"{prefix}/session/{session_id}"
-    return {
-        leaf: f"{base}/{leaf}"
-        for leaf in (
-            "pose",
-            "force",
-            "guidance",
-            "state",
-            "ticks",
-            "control",
-            "metrics",
-            "xray",
-            "view/force",
-            "view/pose",
-        )
-    } | {
-        "health": f"{prefix}/server/health",
-        "about": f"{prefix}/server/about",
-        "predict": f"{prefix}/model/predict",
-    }
+    """The key expressions of one session under ``prefix`` (``session_id`` may be ``*``): one per
+    session leaf, the server's (``health``, ``about``, ``volume``) and the shared model key
+    (``predict``); see ``docs/protocol.md``."""
+    return (
+        {leaf: session_key(prefix, session_id, leaf) for leaf in SESSION_LEAVES}
+        | {leaf: server_key(prefix, leaf) for leaf in SERVER_LEAVES}
+        | {"predict": shared_predict_key(prefix)}
+    )
 
 
 def encode(name: str, flags: int = 0, **values: Any) -> bytes:

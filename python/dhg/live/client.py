@@ -300,7 +300,7 @@ class TraineeClient:
 
     def put_raw(self, leaf: str, payload: bytes) -> None:
         """Publishes raw bytes on ``<prefix>/session/<id>/<leaf>`` (for protocol tests)."""
-        self._z.put(f"{self.prefix}/session/{self.session_id}/{leaf}", payload)
+        self._z.put(protocol.session_key(self.prefix, self.session_id, leaf), payload)
 
     # -- queries ---------------------------------------------------------------------------
     def _get(self, key: str, payload: bytes | None = None, timeout_s: float = 2.0) -> list[tuple[str, bytes]]:

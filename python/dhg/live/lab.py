@@ -65,16 +65,16 @@ from pathlib import Path
 from typing import Any
 
 from dhg.core.errors import InvalidInputError
-from dhg.core.protocol import check_session_id
+from dhg.core.protocol import check_session_id, server_key, session_key, shared_predict_key, worker_key
 
 __all__ = ["Identity", "Lab", "acl", "load_lab", "make_certs", "write_lab"]
 
 ROLES = ("station", "instructor", "model_worker")
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,47}")
 SERVER_IDENTITY = "dhg-server"
+"""The user name of the server's own services (model, X-rays) when they connect to its engine."""
 _HEARD = ("force", "guidance", "state", "ticks", "guidance/**", "state/**", "ticks/**", "view/force", "view/pose")
 """A station's own streams it may subscribe to."""
-"""The user name of the server's own services (model, X-rays) when they connect to its engine."""
 
 
 @dataclass(frozen=True)
@@ -169,7 +169,7 @@ def _rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> d
 def _station_rules(p: str, n: str, server: list[str]) -> list[dict[str, Any]]:
     """Station ``n``'s rules under prefix ``p``: it drives and reads only its own sessions (``n``
     and ``n-*``), and asks the server's keys ``server`` (health, volume, about)."""
-    own = [f"{p}/session/{n}", f"{p}/session/{n}-$*"]
+    own = [session_key(p, n), session_key(p, f"{n}-$*")]
     return [
         _rule(f"{n}:pose", ["put"], ["ingress"], [f"{s}/pose" for s in own]),
         _rule(
@@ -216,17 +216,17 @@ def _instructor_rules(p: str) -> list[dict[str, Any]]:
 def _worker_rules(p: str, n: str, served: list[str]) -> list[dict[str, Any]]:
     """Model worker ``n``'s rules under prefix ``p`` (the server's own identity also serves the
     X-rays, the bone, and the server's Python keys ``served``: the volume and about)."""
-    own = f"{p}/model/workers/{n}"
-    extra = [f"{p}/session/*/xray/*", f"{p}/session/*/bone", *served] if n == SERVER_IDENTITY else []
+    own = worker_key(p, n)
+    extra = [session_key(p, "*", "xray/*"), session_key(p, "*", "bone"), *served] if n == SERVER_IDENTITY else []
     return [
         _rule(
             f"{n}:serve",
             ["declare_queryable", "reply"],
             ["ingress"],
-            [f"{p}/model/predict", f"{own}/predict"] + extra,
+            [shared_predict_key(p), f"{own}/predict"] + extra,
         ),
         _rule(f"{n}:join", ["liveliness_token"], ["ingress"], [own]),
-        _rule(f"{n}:queries", ["query"], ["egress"], [f"{p}/model/predict", f"{own}/predict"] + extra),
+        _rule(f"{n}:queries", ["query"], ["egress"], [shared_predict_key(p), f"{own}/predict"] + extra),
     ]
 
 
@@ -242,7 +242,7 @@ def acl(lab: Lab) -> dict[str, Any]:
         rules.extend(granted)
         policies.append({"rules": [r["id"] for r in granted], "subjects": [who]})
 
-    health, served = f"{p}/server/health", [f"{p}/server/volume", f"{p}/server/about"]
+    health, served = server_key(p, "health"), [server_key(p, "volume"), server_key(p, "about")]
     for st in lab.of("station"):
         grant(f"station:{st.name}", [st.name], *_station_rules(p, st.name, [health, *served]))
     instructors = [i.name for i in lab.of("instructor")]

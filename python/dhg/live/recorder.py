@@ -107,17 +107,19 @@ class AllSessionsRecorder(FlushLoop):
         self.lost_states = 0
         """States the server published that never reached the recorder, even after recovery."""
         self._subs: list[Any] = list(
-            recorded_subscriber(self._z, f"{prefix}/session/*/state", self._on_sample, self._lost)
+            recorded_subscriber(self._z, protocol.session_key(prefix, "*", "state"), self._on_sample, self._lost)
         )
         if raw:
             self._subs.extend(
-                recorded_subscriber(self._z, f"{prefix}/session/*/ticks", self._on_sample, self._lost_ticks)
+                recorded_subscriber(
+                    self._z, protocol.session_key(prefix, "*", "ticks"), self._on_sample, self._lost_ticks
+                )
             )
 
     def _on_sample(self, sample: Any) -> None:
         key = str(sample.key_expr)
-        head = f"{self.prefix}/session/"
-        session_id, _, leaf = key[len(head) :].partition("/") if key.startswith(head) else ("", "", "")
+        session_id = protocol.session_of(self.prefix, key) or ""
+        leaf = key[len(protocol.session_key(self.prefix, session_id)) + 1 :] if session_id else ""
         rec = self.sessions.get(session_id)
         if rec is not None:
             rec.on_sample(leaf, sample)

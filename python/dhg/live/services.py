@@ -132,7 +132,7 @@ class ModelService:
             )
         self.model = model
         self.model_id = str(model.meta.get("id") or model.meta.get("preset") or model.path.name)
-        self.key = f"{prefix}/model/predict"
+        self.key = protocol.shared_predict_key(prefix)
         self.max_batch = max_batch
         self.max_wait_s = max_wait_s
         self.burst_wait_s = BURST_WAIT_S if burst_wait_s is None else burst_wait_s
@@ -155,7 +155,7 @@ class ModelService:
         self._worker = threading.Thread(target=self._run, name="dhg-model", daemon=True)
         self._worker.start()
         self.worker_id = check_session_id(worker_id if worker_id is not None else str(session.info.zid()))
-        self.worker_key = f"{prefix}/model/workers/{self.worker_id}"
+        self.worker_key = protocol.worker_key(prefix, self.worker_id)
         self._queryables = [
             session.declare_queryable(key, self._on_query, complete=True)
             for key in (self.key, f"{self.worker_key}/predict")
@@ -335,7 +335,7 @@ class AboutService:
         from dhg.data.dataset import volume_card
         from dhg.learning.model_file import model_identity
 
-        self.key = f"{prefix}/server/about"
+        self.key = protocol.server_key(prefix, "about")
         described = volume_card(volume)
         if "source" in described:  # every station may ask: a CT by its file name, not its folders
             described["source"] = Path(str(described["source"])).name
@@ -376,7 +376,7 @@ class XRayService:
         self.volume = volume
         self.prefix = prefix
         self.windows = auto_windows(volume.xray())
-        self._queryable = session.declare_queryable(f"{prefix}/session/*/xray/*", self._on_query)
+        self._queryable = session.declare_queryable(protocol.session_key(prefix, "*", "xray/*"), self._on_query)
 
     def _on_query(self, query: Any) -> None:
         from dhg.bone.xray import render_views
@@ -384,8 +384,10 @@ class XRayService:
         from dhg.core.volume import XRayViews
 
         try:
-            parts = str(query.key_expr).split("/")
-            sid, view = parts[-3], parts[-1]
+            key = str(query.key_expr)
+            sid, view = protocol.session_of(self.prefix, key), key.rsplit("/", 1)[-1]
+            if sid is None:
+                raise InvalidInputError(f"not a session's key: {key!r}")
             if view not in (*VIEW_NAMES, "*"):
                 raise InvalidInputError(f"unknown view {view!r}: use {', '.join(VIEW_NAMES)} or *")
             info = self.server.control(sid, {"op": "info"})
@@ -396,7 +398,8 @@ class XRayService:
                 if view in ("*", name):
                     buf = io.BytesIO()
                     img.save(buf, format="PNG")
-                    query.reply(f"{self.prefix}/session/{sid}/xray/{name}", buf.getvalue(), encoding="image/png")
+                    reply_key = protocol.session_key(self.prefix, sid, f"xray/{name}")
+                    query.reply(reply_key, buf.getvalue(), encoding="image/png")
         except Exception as exc:  # every failure becomes an error reply, never a dead callback
             query.reply_err(json.dumps({"error": str(exc)}))
         finally:
@@ -428,8 +431,8 @@ class BoneService:
             direction=np.asarray(volume.direction),
         )
         self._queryables = [
-            session.declare_queryable(f"{prefix}/server/volume", self._on_volume),
-            session.declare_queryable(f"{prefix}/session/*/bone", self._on_bone),
+            session.declare_queryable(protocol.server_key(prefix, "volume"), self._on_volume),
+            session.declare_queryable(protocol.session_key(prefix, "*", "bone"), self._on_bone),
         ]
 
     def _on_volume(self, query: Any) -> None:
@@ -438,7 +441,7 @@ class BoneService:
                 raise InvalidInputError(
                     f"the volume is {len(self._volume)} bytes compressed, over the {MAX_NPZ_BYTES} a reply may hold"
                 )
-            query.reply(f"{self.prefix}/server/volume", self._volume, encoding="application/octet-stream")
+            query.reply(protocol.server_key(self.prefix, "volume"), self._volume, encoding="application/octet-stream")
         except Exception as exc:
             query.reply_err(json.dumps({"error": str(exc)}))
         finally:
@@ -446,12 +449,12 @@ class BoneService:
 
     def _on_bone(self, query: Any) -> None:
         try:
-            sid = check_session_id(str(query.key_expr).split("/")[-2])
+            sid = check_session_id(protocol.session_of(self.prefix, str(query.key_expr)) or "")
             origins, material = self.server.bricks(sid)
             payload = encode_npz(origins=origins, material=material)
             if len(payload) > MAX_NPZ_BYTES:
                 raise InvalidInputError(f"session {sid}'s bricks are {len(payload)} bytes, over {MAX_NPZ_BYTES}")
-            query.reply(f"{self.prefix}/session/{sid}/bone", payload, encoding="application/octet-stream")
+            query.reply(protocol.session_key(self.prefix, sid, "bone"), payload, encoding="application/octet-stream")
         except Exception as exc:  # every failure becomes an error reply, never a dead callback
             query.reply_err(json.dumps({"error": str(exc)}))
         finally:

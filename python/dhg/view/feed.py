@@ -41,14 +41,14 @@ class VolumeData:
 
 def fetch_volume(z: Any, prefix: str = "dhg", timeout_s: float = 10.0) -> VolumeData:
     """The server's volume; raises :class:`dhg.core.errors.TransportError` without an answer."""
-    ((_, payload),) = get_replies(z, f"{prefix}/server/volume", None, timeout_s)[:1]
+    ((_, payload),) = get_replies(z, protocol.server_key(prefix, "volume"), None, timeout_s)[:1]
     a = decode_npz(payload)
     return VolumeData(a["labels"], a["spacing_m"], a["origin_m"], a["direction"])
 
 
 def server_sessions(z: Any, prefix: str = "dhg", timeout_s: float = 2.0) -> list[str]:
     """The session ids the server lists in its health report."""
-    return list(get_json(z, f"{prefix}/server/health?window=1", None, timeout_s)["session_ids"])
+    return list(get_json(z, protocol.server_key(prefix, "health") + "?window=1", None, timeout_s)["session_ids"])
 
 
 class SessionFeed:
@@ -139,7 +139,9 @@ class SessionFeed:
 
     def bricks(self, timeout_s: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
         """The session's drilled bricks now: origins (n, 3) voxel (i, j, k), material (n, 8, 8, 8)."""
-        ((_, payload),) = get_replies(self._z, f"{self.prefix}/session/{self.session_id}/bone", None, timeout_s)[:1]
+        ((_, payload),) = get_replies(
+            self._z, protocol.session_key(self.prefix, self.session_id, "bone"), None, timeout_s
+        )[:1]
         a = decode_npz(payload)
         return a["origins"], a["material"]
 

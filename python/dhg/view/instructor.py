@@ -45,7 +45,7 @@ class InstructorPage:
         self.refreshes = 0
         self.sessions: list[str] = []
         self._protocol = protocol
-        self._sub = z.declare_subscriber(f"{prefix}/session/*/state", self._on_state)
+        self._sub = z.declare_subscriber(protocol.session_key(prefix, "*", "state"), self._on_state)
         self.server = viser_server(host, port, "DHG: instructor")
         self.url = f"http://{host}:{self.server.get_port()}"
         gui = self.server.gui
@@ -65,7 +65,9 @@ class InstructorPage:
         self._thread.start()
 
     def _on_state(self, sample: Any) -> None:
-        sid = str(sample.key_expr).split("/")[-2]
+        sid = self._protocol.session_of(self.prefix, str(sample.key_expr))
+        if sid is None:
+            return
         try:
             m = self._protocol.decode("state", sample.payload.to_bytes())
         except ValueError:
@@ -84,7 +86,7 @@ class InstructorPage:
                 for sid in ids:
                     url = self.open_page(sid)
                     try:
-                        met = get_json(self._z, f"{self.prefix}/session/{sid}/metrics", None, 2.0)
+                        met = get_json(self._z, self._protocol.session_key(self.prefix, sid, "metrics"), None, 2.0)
                     except Exception:
                         met = None
                     with self._lock:

@@ -9,6 +9,7 @@
 //! Positions are in the world (LPS) frame in m, forces in N, times in s unless a name says `_ns`.
 
 mod codec;
+pub mod keys;
 mod layout;
 #[cfg(test)]
 mod tests;

@@ -31,6 +31,7 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(surgeon::surgeon_constants, m)?)?;
     m.add_function(wrap_pyfunction!(surgeon::axis_quaternion, m)?)?;
     m.add_function(wrap_pyfunction!(server::protocol_layouts, m)?)?;
+    m.add_function(wrap_pyfunction!(server::key_layout, m)?)?;
     m.add_function(wrap_pyfunction!(server::check_session_id, m)?)?;
     m.add_function(wrap_pyfunction!(server::check_zenoh_runtime, m)?)?;
     m.add_function(wrap_pyfunction!(server::defaults, m)?)?;

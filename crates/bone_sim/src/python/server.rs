@@ -158,6 +158,20 @@ pub(crate) fn protocol_layouts(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     Ok(out)
 }
 
+/// The key space (`protocol::keys`): `templates` (name → key with `{prefix}`, `{id}` and, for
+/// `server`, `{leaf}` to fill in), `session_leaves`, `server_leaves` and `client_put_leaf`.
+#[pyfunction]
+pub(crate) fn key_layout(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
+    use crate::protocol::keys;
+    let all = serde_json::json!({
+        "templates": keys::layout(),
+        "session_leaves": keys::SESSION_LEAVES,
+        "server_leaves": keys::SERVER_LEAVES,
+        "client_put_leaf": keys::CLIENT_PUT_LEAF,
+    });
+    to_python(py, &all)
+}
+
 /// The JSON schemas of the `metrics` and `health` replies (`transport::replies`).
 #[pyfunction]
 pub(crate) fn reply_schemas(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {

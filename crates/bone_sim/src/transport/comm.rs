@@ -22,6 +22,7 @@ use crate::engine::realtime;
 use crate::engine::{OutputQueue, WaitMode};
 use crate::error::{SimError, SimResult};
 use crate::protocol;
+use crate::protocol::keys;
 
 /// Longest the comm thread sleeps: forces a pose's thread already put are queued without waking
 /// it, only to be added to the recorders' batches, so it takes them in this often.
@@ -52,7 +53,7 @@ impl Comm {
                 }
                 info.id.clone()?
             };
-            let key = |leaf: &str| format!("{}/session/{id}/{leaf}", self.shared.prefix);
+            let key = |leaf: &str| keys::session_leaf(&self.shared.prefix, &id, leaf);
             let force = Outlet::declare_force(&self.session, key("force"), generation)?;
             // From now on the session's poses put their own forces (if they tick it).
             match lock(&self.shared.registry).slots.get_mut(i) {

@@ -27,15 +27,7 @@ use crate::path::PlannedPath;
 use crate::protocol::{self, Refusal};
 use crate::session::{check_burr_radius, DrillingSession};
 
-/// The one leaf under `<prefix>/session/<id>/` that clients put on (the rest they query or hear).
-const CLIENT_PUT_LEAF: &str = "pose";
-
-/// `(id, leaf)` of `<prefix>/session/<id>/<leaf>[/...]`.
-fn session_key<'a>(prefix: &str, key: &'a str) -> Option<(&'a str, &'a str)> {
-    let rest = key.strip_prefix(prefix)?.strip_prefix("/session/")?;
-    let (id, leaf) = rest.split_once('/')?;
-    Some((id, leaf.split('/').next().unwrap_or(leaf)))
-}
+use crate::protocol::keys::{self, CLIENT_PUT_LEAF};
 
 fn count_refusal(shared: &Shared, r: Refusal) {
     let c = &shared.counters;
@@ -555,9 +547,9 @@ fn session_queryable(
 ) -> SimResult<()> {
     let s = shared.clone();
     session
-        .declare_queryable(format!("{}/session/*/{leaf}", shared.prefix))
+        .declare_queryable(keys::session_leaf(&shared.prefix, "*", leaf))
         .callback(move |q| {
-            let r = match session_key(&s.prefix, q.key_expr().as_str()) {
+            let r = match keys::parse_session(&s.prefix, q.key_expr().as_str()) {
                 Some((id, _)) => handle(&s, id, &q),
                 None => Err(SimError::Engine("bad key".into())),
             };
@@ -586,7 +578,7 @@ pub(crate) fn declare(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResu
     session_queryable(session, shared, "metrics", |s, id, _| metrics(s, id).map(|m| json!(m)))?;
     let s = shared.clone();
     session
-        .declare_queryable(format!("{p}/server/health"))
+        .declare_queryable(keys::server(p, "health"))
         .callback(move |q| {
             let window = q.parameters().get("window").and_then(|w| w.parse::<f64>().ok()).unwrap_or(10.0);
             reply(&q, Ok(json!(health(&s, window))));

@@ -17,6 +17,7 @@ use super::{encoding, lock, Shared};
 use crate::engine::handoff::Command;
 use crate::engine::{GRACE_PERIODS, HOLD_LOOK_PERIODS, TICK_PERIOD};
 use crate::error::{SimError, SimResult};
+use crate::protocol::keys;
 use crate::protocol::{self, MAX_PAYLOAD_BYTES, MAX_QUERY_WINDOWS, PREDICT, WINDOW_RECORDS};
 use crate::record::FEATURE_COUNT;
 
@@ -84,7 +85,7 @@ impl ModelQueries {
     pub(super) fn declare(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResult<Self> {
         follow_workers(session, shared)?;
         let querier = session
-            .declare_querier(format!("{}/model/predict", shared.prefix))
+            .declare_querier(keys::shared_predict(&shared.prefix))
             // With no worker in the pool: every queryable on the shared key gets every query (the
             // first valid prediction for each window is applied, the rest are counted as ignored);
             // with BestMatching, Zenoh would pick one per query, and a stalled one would get a share
@@ -220,7 +221,7 @@ impl ModelQueries {
         let sent_ok = match &worker {
             Some(id) => self
                 .session
-                .get(format!("{}/model/workers/{id}/predict", self.shared.prefix))
+                .get(keys::worker_predict(&self.shared.prefix, id))
                 .target(QueryTarget::All)
                 .consolidation(ConsolidationMode::None)
                 .timeout(Duration::from_secs_f64(self.shared.config.model_timeout_s))
@@ -348,10 +349,10 @@ impl Drop for Ending {
 /// those alive before the engine started included.
 fn follow_workers(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResult<()> {
     let s = shared.clone();
-    let prefix = format!("{}/model/workers/", shared.prefix);
+    let prefix = keys::worker(&shared.prefix, "");
     session
         .liveliness()
-        .declare_subscriber(format!("{prefix}*"))
+        .declare_subscriber(keys::worker(&shared.prefix, "*"))
         .history(true)
         .callback(move |sample| {
             let Some(id) = sample.key_expr().as_str().strip_prefix(&prefix) else { return };
