@@ -171,6 +171,9 @@ def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_pat
             assert not np.any(np.all(np.isclose(predicted, rogue_n, atol=1e-6), axis=1))
             # The pool holds the model worker, under its own name, and nobody else.
             assert [w["id"] for w in s1.health(1.0)["model"]["workers"]] == ["model-1"]
+            # The worker may ask the server's about, to check the engine's corridor is its model's.
+            agree = "note: the engine's corridor follows this model's expert profiles"
+            _wait(lambda: agree in worker.lines, 30.0, "the worker's corridor check")
             # Station 2 heard its own forces only: none of station 1's forgeries.
             assert len(seen_by_2) > 1000 and not any(abs(f[2] - 0.123) < 1e-6 for f in seen_by_2)
             # Station 1 cannot reset, re-gain or query station 2.

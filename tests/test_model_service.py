@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import sys
 import threading
@@ -11,10 +12,11 @@ import pytest
 
 from dhg.core import protocol
 from dhg.core.errors import InvalidInputError
+from dhg.learning.model_file import read_model_meta
 from dhg.learning.torchscript import load_model
 from dhg.learning.weights import default_model_path
 from dhg.live import services
-from dhg.live.services import ModelService
+from dhg.live.services import ModelService, corridor_mismatch
 from dhg.live.zenoh_config import open_zenoh, zenoh_config_json5
 from support import wait_until
 
@@ -426,3 +428,29 @@ def test_the_forward_passes_run_at_the_nice_value_asked_for_and_a_bad_one_is_ref
                 ModelService(z, _ScriptedModel(), prefix="svc-nice-bad", nice=bad)
     finally:
         z.close()
+
+
+def test_the_corridor_check_finds_an_engine_guided_by_other_profiles():
+    meta = read_model_meta(default_model_path())
+    profiles = meta["profiles"]
+    about = {
+        "guidance": {
+            "params": {
+                "corridor_profile_n_per_m": list(profiles["corridor_n_per_m"]),
+                "corridor_profile_bin_m": profiles["bin_m"],
+            }
+        }
+    }
+    assert corridor_mismatch(about, meta) is None
+    halved = copy.deepcopy(about)
+    halved["guidance"]["params"]["corridor_profile_n_per_m"] = [0.5 * k for k in profiles["corridor_n_per_m"]]
+    assert "other expert profiles" in (corridor_mismatch(halved, meta) or "")
+    finer = copy.deepcopy(about)
+    finer["guidance"]["params"]["corridor_profile_bin_m"] = profiles["bin_m"] / 2
+    assert corridor_mismatch(finer, meta) is not None
+    fixed = copy.deepcopy(about)
+    fixed["guidance"]["params"]["corridor_profile_n_per_m"] = []
+    assert "fixed stiffness" in (corridor_mismatch(fixed, meta) or "")
+    bare = {k: v for k, v in meta.items() if k != "profiles"}
+    assert corridor_mismatch(fixed, bare) is None, "neither has profiles"
+    assert "no expert profiles" in (corridor_mismatch(about, bare) or "")

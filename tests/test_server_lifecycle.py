@@ -153,6 +153,10 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             profiles = DemoProfiles.from_dict(read_model_meta(default_model_path())["profiles"])
             assert about["guidance"]["params"]["corridor_profile_n_per_m"] == pytest.approx(profiles.corridor_n_per_m)
             assert about["model"] is None
+            # The worker serves the same model: its check of the engine's corridor says so.
+            agree = "note: the engine's corridor follows this model's expert profiles"
+            _wait(lambda: agree in worker.lines, 30.0, "the worker's corridor check")
+            assert not any(line.startswith("warning:") for line in worker.lines), worker.lines
             assert "libtorch" not in Path(f"/proc/{engine.proc.pid}/maps").read_text()
             assert "libtorch" in Path(f"/proc/{worker.proc.pid}/maps").read_text(), "the check can tell"
             # ONNX Runtime runs the passes on CPU by default, TorchScript when asked (below).
@@ -300,3 +304,37 @@ def test_a_screen_runs_at_nice_10_in_every_thread_unless_told_otherwise():
                     assert view.wait(timeout=30) == 0
     finally:
         assert server.stop() == 0
+
+
+def _with_other_profiles(model: Path, out: Path) -> Path:
+    """A copy of ``model`` whose stored expert profiles are halved (its metadata rewritten with
+    zipfile alone: the engine reads nothing else of it)."""
+    import json
+    import zipfile
+
+    with zipfile.ZipFile(model) as src, zipfile.ZipFile(out, "w") as dst:
+        for item in src.infolist():
+            data = src.read(item.filename)
+            if item.filename.endswith("/extra/dhg.json"):
+                meta = json.loads(data)
+                meta["profiles"]["corridor_n_per_m"] = [0.5 * k for k in meta["profiles"]["corridor_n_per_m"]]
+                data = json.dumps(meta).encode()
+            dst.writestr(item, data)
+    return out
+
+
+def test_a_worker_warns_when_the_engines_corridor_is_another_models(tmp_path):
+    """The engine alone (--role sim) takes its corridor from its own --model: a worker serving
+    another model says so, once the engine answers."""
+    other = _with_other_profiles(default_model_path(), tmp_path / "other.ts")
+    engine, endpoint = _serve("--role", "sim", "--model", str(other))
+    worker = None
+    try:
+        worker, _ = _serve("--role", "model", endpoint=endpoint)
+        _wait(lambda: any(line.startswith("warning:") for line in worker.lines), 60.0, "the worker's warning")
+        (warning,) = [line for line in worker.lines if line.startswith("warning:")]
+        assert "other expert profiles" in warning and "--model" in warning, warning
+    finally:
+        if worker is not None:
+            assert worker.stop() == 0
+        assert engine.stop() == 0

@@ -312,7 +312,8 @@ def _load_model(args: argparse.Namespace, options: Any, described: list[str]) ->
 def _corridor_of_model_file(args: argparse.Namespace, options: Any, described: list[str]) -> Any:
     """The engine alone (``--role sim``): the options with the corridor the expert profiles of
     ``--model`` (or the bundled model) give, read from its metadata without torch, so that its
-    sessions are guided as ``--role all``'s are. The workers should serve the same model."""
+    sessions are guided as ``--role all``'s are. The workers should serve the same model; each
+    checks that it does, and warns where not (:class:`dhg.live.services.CorridorCheck`)."""
     from dhg.learning.model_file import read_model_meta
 
     model_file = _model_file(args)
@@ -352,6 +353,10 @@ def _load_bone(args: argparse.Namespace) -> tuple[Any, Any]:
     return volume, path
 
 
+def _say(line: str) -> None:
+    print(line, flush=True)
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     from dhg.core.server import check_zenoh_runtime
     from dhg.live import runner
@@ -386,10 +391,19 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 if hint:
                     print(f"note: {hint}", flush=True)
             viewer = _start_viewer(args, running.endpoints) if args.view is not None else None
+            # A worker alone checks that the engine's corridor is its model's (--role sim takes
+            # it from its own --model): it says so once an engine answers.
+            check = None
+            if args.role == "model" and model is not None:
+                from dhg.live.services import CorridorCheck
+
+                check = CorridorCheck(running.zenoh, model.meta, args.prefix, report=_say)
             try:
                 while not stop.wait(args.status_every):
                     print(time.strftime("%H:%M:%S ") + running.status_line(), flush=True)
             finally:
+                if check is not None:
+                    check.close()
                 if viewer is not None:
                     _stop_viewer(viewer)
             sessions = running.engine.sessions() if running.engine is not None else []

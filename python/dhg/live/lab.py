@@ -215,10 +215,12 @@ def _instructor_rules(p: str) -> list[dict[str, Any]]:
 
 def _worker_rules(p: str, n: str, served: list[str]) -> list[dict[str, Any]]:
     """Model worker ``n``'s rules under prefix ``p`` (the server's own identity also serves the
-    X-rays, the bone, and the server's Python keys ``served``: the volume and about)."""
+    X-rays, the bone, and the server's Python keys ``served``: the volume and about). A worker
+    asks the server's ``about`` to check that the engine's corridor is its model's
+    (:class:`dhg.live.services.CorridorCheck`)."""
     own = worker_key(p, n)
     extra = [session_key(p, "*", "xray/*"), session_key(p, "*", "bone"), *served] if n == SERVER_IDENTITY else []
-    return [
+    rules = [
         _rule(
             f"{n}:serve",
             ["declare_queryable", "reply"],
@@ -228,6 +230,10 @@ def _worker_rules(p: str, n: str, served: list[str]) -> list[dict[str, Any]]:
         _rule(f"{n}:join", ["liveliness_token"], ["ingress"], [own]),
         _rule(f"{n}:queries", ["query"], ["egress"], [shared_predict_key(p), f"{own}/predict"] + extra),
     ]
+    if n != SERVER_IDENTITY:
+        about = [server_key(p, "about")]
+        rules += [_rule(f"{n}:ask", ["query"], ["ingress"], about), _rule(f"{n}:answers", ["reply"], ["egress"], about)]
+    return rules
 
 
 def acl(lab: Lab) -> dict[str, Any]:

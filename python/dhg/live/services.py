@@ -27,8 +27,10 @@ __all__ = [
     "MODEL_NICE",
     "AboutService",
     "BoneService",
+    "CorridorCheck",
     "ModelService",
     "XRayService",
+    "corridor_mismatch",
     "decode_npz",
     "encode_npz",
 ]
@@ -304,6 +306,90 @@ class ModelService:
             except Exception:  # the session may already be closed
                 pass
         self._worker.join(timeout=2.0)
+
+
+def corridor_mismatch(about: dict[str, Any], meta: dict[str, Any]) -> str | None:
+    """Why an engine (its ``<prefix>/server/about`` reply, ``about``) guides its sessions' corridor
+    by other expert profiles than those of the model whose metadata is ``meta``, or None where they
+    agree. The corridor comes from the engine's ``--model`` (``dhg-serve --role sim``), the cue from
+    the worker's: with two models, a session is kept on one set of experts' line and eased by
+    another's forces."""
+    from dhg.learning.profiles import DemoProfiles
+
+    params = about.get("guidance", {}).get("params", {})
+    engine = [float(v) for v in params.get("corridor_profile_n_per_m", [])]
+    engine_bin = float(params.get("corridor_profile_bin_m", 0.0))
+    mine = None if meta.get("profiles") is None else DemoProfiles.from_dict(meta["profiles"])
+    if mine is None:
+        if not engine:
+            return None
+        return (
+            "this model has no expert profiles, but the engine guides its corridor by profiles of "
+            f"{len(engine)} depth bins: it was started with another --model"
+        )
+    ours = [float(v) for v in mine.corridor_n_per_m]
+    same = (
+        len(ours) == len(engine)
+        and abs(engine_bin - mine.bin_m) <= 1e-12
+        and all(abs(a - b) <= 1e-9 * max(1.0, abs(a)) for a, b in zip(ours, engine, strict=True))
+    )
+    if same:
+        return None
+    if not engine:
+        return "the engine guides its corridor at a fixed stiffness, not by this model's expert profiles"
+    return (
+        f"the engine guides its corridor by other expert profiles ({len(engine)} bins) than this model's "
+        f"({len(ours)} bins): start the engine with --model set to the file this worker serves"
+    )
+
+
+class CorridorCheck:
+    """A model worker's check of the engine it serves: asks ``<prefix>/server/about`` (every
+    ``every_s`` until an engine answers) and reports once, through ``report``, a warning where
+    :func:`corridor_mismatch` finds one, or a note that the corridor is this model's. An engine
+    restarted later with another ``--model`` is not checked again."""
+
+    def __init__(
+        self,
+        session: Any,
+        meta: dict[str, Any],
+        prefix: str = "dhg",
+        *,
+        report: Callable[[str], None],
+        every_s: float = 2.0,
+    ):
+        self.result: str | None = None
+        """The line reported (None until an engine has answered)."""
+        self._z, self._meta, self._key, self._report, self._every = (
+            session,
+            meta,
+            protocol.server_key(prefix, "about"),
+            report,
+            every_s,
+        )
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="dhg-corridor-check", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        from dhg.live.client import get_json
+
+        while not self._stop.is_set():
+            try:
+                about = get_json(self._z, self._key, None, timeout_s=self._every)
+            except Exception:  # no engine yet (or the session is closing): ask again
+                self._stop.wait(self._every)
+                continue
+            why = corridor_mismatch(about, self._meta)
+            self.result = (
+                f"warning: {why}" if why else "note: the engine's corridor follows this model's expert profiles"
+            )
+            self._report(self.result)
+            return
+
+    def close(self) -> None:
+        """Stops asking (the thread ends within one query's timeout)."""
+        self._stop.set()
 
 
 class AboutService:
