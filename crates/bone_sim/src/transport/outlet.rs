@@ -336,15 +336,20 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_view_stream_is_watched_only_while_another_session_subscribes_to_it() {
+    /// Opens Zenoh peers on one free loopback port: `open("listen")`, then `open("connect")`.
+    fn peers() -> impl Fn(&str) -> zenoh::Session {
         let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-        let open = |side: &str| {
+        move |side: &str| {
             let conf = format!(
                 r#"{{"mode": "peer", "{side}": {{"endpoints": ["tcp/127.0.0.1:{port}"]}}, "scouting": {{"multicast": {{"enabled": false}}, "gossip": {{"enabled": false}}}}}}"#
             );
             zenoh::open(zenoh::Config::from_json5(&conf).unwrap()).wait().unwrap()
-        };
+        }
+    }
+
+    #[test]
+    fn a_view_stream_is_watched_only_while_another_session_subscribes_to_it() {
+        let open = peers();
         let server = open("listen");
         // The engine's own catch-all subscriber (`control::declare`) is no screen.
         server
@@ -367,13 +372,7 @@ mod tests {
 
     #[test]
     fn a_partial_batch_of_ticks_leaves_once_its_first_tick_is_older_than_its_maximum_age() {
-        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-        let open = |side: &str| {
-            let conf = format!(
-                r#"{{"mode": "peer", "{side}": {{"endpoints": ["tcp/127.0.0.1:{port}"]}}, "scouting": {{"multicast": {{"enabled": false}}, "gossip": {{"enabled": false}}}}}}"#
-            );
-            zenoh::open(zenoh::Config::from_json5(&conf).unwrap()).wait().unwrap()
-        };
+        let open = peers();
         let server = open("listen");
         let recorder = open("connect");
         let batches = Arc::new(std::sync::Mutex::new(Vec::<Vec<u64>>::new()));
