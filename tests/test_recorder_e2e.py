@@ -67,11 +67,13 @@ def test_record_keeps_everything_up_to_the_last_flush_when_killed(server, tmp_pa
         assert "recording" in readline_within(rec, 60.0, "the recorder's start")
         with TraineeClient(endpoint, "rec-1", on_force=on_force) as c:
             client.append(c)
+            first_at = time.monotonic()  # before the session is created: its records start then
             a, d, q = _entry(c)
             positions = a + d * np.linspace(-2e-3, 6e-3, 2600)[:, None]
-            first_s = _stream(c, positions[:1300], q)
+            _stream(c, positions[:1300], q)
             c.control("reset")  # a second attempt on fresh bone
             reset_at = time.monotonic()
+            first_s = reset_at - first_at  # creation, the stream and the reset's round trip
             _stream(c, positions[1300:], q)
         _wait(lambda: flushed_past(max(forces[-1])), 60, "a flush past the last force the client saw")
         rec.send_signal(signal.SIGKILL)  # a crash: no final flush

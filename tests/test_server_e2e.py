@@ -146,8 +146,11 @@ def _rss_mb(pid: int, field: str = "VmHWM") -> float:
 def _reset_peak_rss(pid: int) -> None:
     """Sets the process's peak resident memory to its current one (``clear_refs`` 5, Linux 4.0+):
     the server is shared, so its peak may stand from an earlier test above what a payload adds."""
-    with open(f"/proc/{pid}/clear_refs", "w") as fh:
-        fh.write("5")
+    try:
+        with open(f"/proc/{pid}/clear_refs", "w") as fh:
+            fh.write("5")
+    except OSError as exc:
+        pytest.skip(f"cannot reset the server's peak memory here ({exc}): the check would be blind")
 
 
 def test_an_oversized_payload_is_dropped_by_the_transport_before_it_is_reassembled(server):

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from dhg.core.errors import InvalidInputError
+from dhg.core.surgeon import MAX_ATTEMPT_S
 from dhg.study.runner import ARMS, Protocol, StudyResult, parse_arms, run_study
 
 
@@ -115,6 +116,10 @@ def test_a_protocol_needs_training_and_an_operator_it_knows(tmp_path):
         run_study([1], arms, tmp_path / "m.ts", Protocol(train=0))
     with pytest.raises(InvalidInputError, match="operator"):
         run_study([1], arms, tmp_path / "m.ts", operator="robot")  # type: ignore[arg-type]
+    # An attempt longer than the core's surgeon takes is refused before any attempt runs.
+    Protocol(duration_s=MAX_ATTEMPT_S).validate()
+    with pytest.raises(InvalidInputError, match="at most 3600 s"):
+        run_study([1], arms, tmp_path / "m.ts", Protocol(duration_s=MAX_ATTEMPT_S + 1))
 
 
 def test_a_protocols_drill_and_guidance_laws_reach_every_attempts_session(coarse_phantom, tmp_path):

@@ -375,6 +375,8 @@ def _study_who_args(p: argparse.ArgumentParser) -> None:
 
 def _study_attempt_args(p: argparse.ArgumentParser, d: Any) -> None:
     """``dhg study``: each arm's protocol and its attempts (``d``: the :class:`Protocol` defaults)."""
+    from dhg.core.surgeon import MAX_ATTEMPT_S
+
     p.add_argument(
         "--train", type=int, default=d.train, metavar="N", help=f"guided training attempts per arm (default {d.train})"
     )
@@ -414,7 +416,7 @@ def _study_attempt_args(p: argparse.ArgumentParser, d: Any) -> None:
         type=float,
         default=d.duration_s,
         metavar="S",
-        help=f"most seconds per attempt (default {d.duration_s:g})",
+        help=f"most seconds per attempt, up to {MAX_ATTEMPT_S:g} (default {d.duration_s:g})",
     )
 
 

@@ -338,15 +338,17 @@ def corridor_mismatch(about: dict[str, Any], meta: dict[str, Any]) -> str | None
     if not engine:
         return "the engine guides its corridor at a fixed stiffness, not by this model's expert profiles"
     return (
-        f"the engine guides its corridor by other expert profiles ({len(engine)} bins) than this model's "
-        f"({len(ours)} bins): start the engine with --model set to the file this worker serves"
+        f"the engine guides its corridor by other expert profiles ({len(engine)} bins of {engine_bin * 1e3:g} mm, "
+        f"{min(engine):.0f}-{max(engine):.0f} N/m) than this model's ({len(ours)} bins of {mine.bin_m * 1e3:g} mm, "
+        f"{min(ours):.0f}-{max(ours):.0f} N/m): start the engine with --model set to the file this worker serves"
     )
 
 
 class CorridorCheck:
     """A model worker's check of the engine it serves: asks ``<prefix>/server/about`` (every
     ``every_s`` until an engine answers) and reports once, through ``report``, a warning where
-    :func:`corridor_mismatch` finds one, or a note that the corridor is this model's. An engine
+    :func:`corridor_mismatch` finds one, or a note that the corridor is this model's; after
+    ``quiet_tries`` unanswered asks it also says, once, that no engine has answered yet. An engine
     restarted later with another ``--model`` is not checked again."""
 
     def __init__(
@@ -357,16 +359,13 @@ class CorridorCheck:
         *,
         report: Callable[[str], None],
         every_s: float = 2.0,
+        quiet_tries: int = 15,
     ):
         self.result: str | None = None
-        """The line reported (None until an engine has answered)."""
-        self._z, self._meta, self._key, self._report, self._every = (
-            session,
-            meta,
-            protocol.server_key(prefix, "about"),
-            report,
-            every_s,
-        )
+        """The line reported on the engine's answer (None until one came)."""
+        self._z, self._meta, self._report = session, meta, report
+        self._key = protocol.server_key(prefix, "about")
+        self._every, self._quiet_tries = every_s, quiet_tries
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="dhg-corridor-check", daemon=True)
         self._thread.start()
@@ -374,22 +373,33 @@ class CorridorCheck:
     def _run(self) -> None:
         from dhg.live.client import get_json
 
+        tries = 0
         while not self._stop.is_set():
             try:
                 about = get_json(self._z, self._key, None, timeout_s=self._every)
             except Exception:  # no engine yet (or the session is closing): ask again
+                tries += 1
+                if tries == self._quiet_tries and not self._stop.is_set():
+                    self._report(
+                        f"note: no engine has answered {self._key} yet; the corridor is not checked until one does"
+                    )
                 self._stop.wait(self._every)
                 continue
-            why = corridor_mismatch(about, self._meta)
-            self.result = (
-                f"warning: {why}" if why else "note: the engine's corridor follows this model's expert profiles"
-            )
+            try:
+                why = corridor_mismatch(about, self._meta)
+            except Exception as exc:  # a malformed reply or profile: say so rather than die silently
+                why = f"could not check the engine's corridor ({exc})"
+            if self._stop.is_set():
+                return  # closing: nothing after dhg-serve's last lines
+            agree = "note: the engine's corridor follows this model's expert profiles"
+            self.result = f"warning: {why}" if why else agree
             self._report(self.result)
             return
 
     def close(self) -> None:
-        """Stops asking (the thread ends within one query's timeout)."""
+        """Stops asking and waits for the thread (at most one query's timeout)."""
         self._stop.set()
+        self._thread.join(timeout=self._every + 1.0)
 
 
 class AboutService:

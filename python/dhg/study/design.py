@@ -70,8 +70,10 @@ class Protocol:
                 raise InvalidInputError(f"unknown guidance parameter {name!r}; known: {', '.join(sorted(known))}")
         if self.train < 1:
             raise InvalidInputError(f"a protocol needs at least one training attempt, got {self.train}")
-        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
-            raise InvalidInputError(f"duration must be positive, got {self.duration_s}")
+        from dhg.core.surgeon import MAX_ATTEMPT_S
+
+        if not (math.isfinite(self.duration_s) and 0 < self.duration_s <= MAX_ATTEMPT_S):
+            raise InvalidInputError(f"duration must be positive and at most {MAX_ATTEMPT_S:g} s, got {self.duration_s}")
         if not 1 <= self.test_replicates <= 64:
             raise InvalidInputError(f"test_replicates must be within 1..64, got {self.test_replicates}")
         if self.probe_every < 0:
