@@ -10,8 +10,9 @@ import pydicom
 import pytest
 from pydicom.data import get_testdata_file
 
-from dhg import CTImportError, Layer
+from dhg import CTImportError, InvalidInputError, Layer, ShapeError
 from dhg.bone import ct
+from dhg.core.volume import HuMapping
 
 CT_SMALL = get_testdata_file("CT_small.dcm")
 
@@ -122,3 +123,16 @@ def test_segmentation_finds_marrow_inside_a_bone_ring():
     assert labels[1, 10, 10] == Layer.MARROW
     assert labels[1, 10, 16] == Layer.CORTICAL
     assert labels[1, 0, 0] == Layer.OUTSIDE
+
+
+def test_threshold_layers_are_the_cores_at_both_boundaries():
+    m = HuMapping()
+    hu = np.array([m.cancellous_min_hu - 1, m.cancellous_min_hu, m.cortical_min_hu, m.cortical_min_hu + 1])
+    got = m.threshold_layers(hu.reshape(1, 1, 4))
+    assert got.ravel().tolist() == [Layer.OUTSIDE, Layer.CANCELLOUS, Layer.CANCELLOUS, Layer.CORTICAL]
+    moved = HuMapping(cortical_min_hu=m.cortical_min_hu + 10).threshold_layers(hu.reshape(1, 1, 4))
+    assert moved.ravel().tolist()[-1] == Layer.CANCELLOUS, "the mapping given is the one used"
+    with pytest.raises(ShapeError, match="nz, ny, nx"):
+        m.threshold_layers(hu)
+    with pytest.raises(InvalidInputError):
+        HuMapping(cortical_min_hu=float("nan")).threshold_layers(hu.reshape(1, 1, 4))

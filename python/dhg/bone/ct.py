@@ -221,10 +221,8 @@ def segment(hu: npt.NDArray[np.floating], mapping: HuMapping | None = None) -> n
     """Layer ids from HU: cortical above ``cortical_min_hu``, cancellous from ``cancellous_min_hu``;
     marrow where softer tissue is enclosed by bone within an axial slice; the rest outside."""
     m = mapping or HuMapping()
-    labels = np.zeros(hu.shape, dtype=np.uint8)
-    bone = hu >= m.cancellous_min_hu
-    labels[bone] = Layer.CANCELLOUS
-    labels[hu > m.cortical_min_hu] = Layer.CORTICAL
+    labels = m.threshold_layers(hu)
+    bone = labels != Layer.OUTSIDE
     for k in range(hu.shape[0]):
         enclosed = ndimage.binary_fill_holes(bone[k]) & ~bone[k]
         labels[k][enclosed] = Layer.MARROW

@@ -92,6 +92,15 @@ class HuMapping:
             raise InvalidInputError(f"unknown HU mapping keys {unknown}; known keys are {sorted(known)}")
         return cls(**{k: float(v) for k, v in d.items()})
 
+    def threshold_layers(self, hu: npt.ArrayLike) -> npt.NDArray[np.uint8]:
+        """Layer ids (nz, ny, nx) of HU values by threshold alone, as the core assigns them to a
+        volume without labels: cortical above ``cortical_min_hu``, cancellous from
+        ``cancellous_min_hu``, outside below (marrow and necrosis need anatomy)."""
+        a = np.asarray(hu, dtype=np.float32)
+        if a.ndim != 3:
+            raise ShapeError(f"HU must be (nz, ny, nx), got shape {a.shape}")
+        return _bone_sim.threshold_layers(np.ascontiguousarray(a), self.to_dict())
+
 
 @dataclass(frozen=True)
 class RemovalReport:

@@ -25,6 +25,7 @@ use crate::volume::material::{HU_MAX, HU_MIN};
 fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<volume::PyVolume>()?;
     m.add_class::<volume::PyDrilledVolume>()?;
+    m.add_function(wrap_pyfunction!(volume::threshold_layers, m)?)?;
     m.add_class::<session::PySession>()?;
     m.add_class::<server::PyServer>()?;
     m.add_class::<surgeon::PySurgeon>()?;

@@ -32,6 +32,20 @@ fn mapping_from_dict(dict: Option<&Bound<'_, PyDict>>) -> PyResult<HuMapping> {
     dict.map_or_else(|| Ok(HuMapping::default()), |d| from_python(d.as_any(), "HU mapping"))
 }
 
+/// The layer ids a CT's HU values get by threshold alone (`HuMapping::threshold_layer`: cortical,
+/// cancellous or outside), for the CT importer to add the anatomy thresholds cannot see.
+#[pyfunction]
+#[pyo3(signature = (hu, mapping=None))]
+pub(crate) fn threshold_layers<'py>(
+    py: Python<'py>,
+    hu: PyReadonlyArray3<'py, f32>,
+    mapping: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyArray3<u8>>> {
+    let m = mapping_from_dict(mapping)?;
+    m.validate().py()?;
+    Ok(hu.as_array().mapv(|v| m.threshold_layer(f64::from(v)) as u8).into_pyarray(py))
+}
+
 /// A session's drilled bricks handed to Python: origins (n, 3) as voxel (i, j, k) and material
 /// (n, 8, 8, 8) `u16` indexed [k][j][i] within the brick.
 pub(crate) type Bricks<'py> = (Bound<'py, PyArray2<u32>>, Bound<'py, PyArray4<u16>>);
