@@ -57,10 +57,11 @@ def test_the_guard_refuses_counts_and_slews():
     assert guard.check(_force(tip_m=(0.0, math.inf, 0.0)), 2_000_000) is None
     assert guard.check(_force((1e6, 0.0, 0.0)), 3_000_000) is None
     assert guard.check(_force(guidance_n=(0.0, 3.4, 0.0)), 4_000_000) is None
+    assert guard.check(_force(layer=200), 4_500_000) is None  # no layer has id 200
     # A 3 N jolt 1 ms after a message: slewed to what the bucket holds (at most 5 ms of 200 N/s).
     out = guard.check(_force((3.1, 0.0, 0.0)), 5_000_000)
     assert out is not None and out["force_n"][0] == pytest.approx(0.1 + guard.burst_n)
-    assert guard.rejected == {"non_finite": 2, "over_limit": 2, "rate_limited": 1}
+    assert guard.rejected == {"non_finite": 2, "bad_layer": 1, "over_limit": 2, "rate_limited": 1}
     # The server's own stream (at most 0.2 N per 1 ms tick) passes untouched, however it is batched.
     guard = ForceGuard()
     f = 0.0

@@ -179,3 +179,20 @@ def test_an_attempt_longer_than_the_core_allows_is_refused_not_a_panic(seconds):
         PATH, style, np.random.default_rng(1), TaskRules(max_duration_s=MAX_ATTEMPT_S), keep_raw=True
     )
     assert longest.max_ticks == round(MAX_ATTEMPT_S / TICK_S)
+
+
+@pytest.mark.parametrize(
+    ("index", "value", "said"),
+    [(3, float("nan"), "feedback"), (6, 9, "layer id"), (6, 1.5, "layer id"), (8, -1, "breakthroughs")],
+)
+def test_a_surgeon_refuses_feedback_it_cannot_read(index, value, said):
+    """A NaN depth used to steer the hand to a NaN pose, and an unknown layer id read as outside."""
+    surgeon = SurgeonController(PATH, sample_style("novice", np.random.default_rng(2)), np.random.default_rng(2))
+    good = [0.0, 0.0, 1e-3, 1e-3, 0.0, 37.0, int(Layer.CORTICAL), True, 0, False, 0.0]
+    assert surgeon.step(tuple(good), (0.0, 0.0, 0.0)) is not None
+    bad = list(good)
+    bad[index] = value
+    with pytest.raises(InvalidInputError, match=said):
+        surgeon.step(tuple(bad), (0.0, 0.0, 0.0))
+    with pytest.raises(InvalidInputError, match="force_n"):
+        surgeon.step(tuple(good), (0.0, float("inf"), 0.0))

@@ -23,16 +23,18 @@ import numpy.typing as npt
 
 from dhg.core import protocol
 from dhg.core.errors import ERROR_KINDS, DhgError, EngineError, TransportError
+from dhg.core.layers import Layer
 
 __all__ = ["ForceGuard", "TraineeClient", "all_finite", "feedback_tuple", "get_json", "get_replies"]
 
 _FORCE_FLOATS = ("force_n", "guidance_n", "tip_m", "depth_m", "deviation_m", "temperature_c", "plunge_depth_m")
+_LAYER_IDS = frozenset(int(layer) for layer in Layer)
 
 
 class ForceGuard:
     """What a client hands on to a haptic device, checked: every force message must be finite in
-    every field and its force (and guidance share) within the device's peak, or it is rejected
-    and counted, and the last good message stands; an accepted force changes no faster than the
+    every field, name a known layer, and keep its force (and guidance share) within the device's
+    peak, or it is rejected and counted, and the last good message stands; an accepted force changes no faster than the
     device's rate limit (a token bucket of ``max_force_rate_n_per_s``, holding at most
     ``burst_s`` of it), the excess slewed away and counted. The server's own forces pass (its
     limiter is the same profile), unless this process stalls for longer than ``burst_s`` and they
@@ -47,8 +49,9 @@ class ForceGuard:
         self.peak_n = float(device.peak_force_n)
         self.rate_n_per_s = float(device.max_force_rate_n_per_s)
         self.burst_n = self.rate_n_per_s * burst_s
-        self.rejected = {"non_finite": 0, "over_limit": 0, "rate_limited": 0}
-        """Messages refused for a NaN or infinite field, for a force above the peak, and forces
+        self.rejected = {"non_finite": 0, "bad_layer": 0, "over_limit": 0, "rate_limited": 0}
+        """Messages refused for a NaN or infinite field, for a layer id no layer has (the server
+        sends none: a virtual surgeon would read it), for a force above the peak, and forces
         slewed down to the rate limit."""
         self._last: tuple[float, float, float] | None = None
         self._budget = self.burst_n
@@ -61,6 +64,9 @@ class ForceGuard:
             if not all(math.isfinite(x) for x in v) if isinstance(v, tuple) else not math.isfinite(v):
                 self.rejected["non_finite"] += 1
                 return None
+        if m["layer"] not in _LAYER_IDS:
+            self.rejected["bad_layer"] += 1
+            return None
         f, g = m["force_n"], m["guidance_n"]
         if math.hypot(*f) > self.peak_n or math.hypot(*g) > self.peak_n:
             self.rejected["over_limit"] += 1

@@ -8,6 +8,7 @@ use pyo3::prelude::*;
 use super::convert::{detached, from_python, to_python};
 use super::errors::IntoPyResult;
 use super::session::{record_row, PySession, POSE_COLUMNS};
+use crate::error::{SimError, SimResult};
 use crate::path::PlannedPath;
 use crate::record::TICK_S;
 use crate::skill::TaskRules;
@@ -18,6 +19,36 @@ use crate::volume::layer::Layer;
 /// deviation (m), temperature (°C), layer id, cutting, breakthroughs, plunging, plunge depth (m),
 /// read as numbers (a flag may come as a bool or an int, a count as an int or a float).
 type Feedback = [f64; 11];
+
+/// What the surgeon perceives of `feedback`, checked: every value finite, the layer a known id and
+/// the breakthroughs a count (a NaN would otherwise steer the hand to a NaN pose).
+fn perception(feedback: &Feedback, force_n: &[f64; 3], cue_n: &[f64; 3]) -> SimResult<Perception> {
+    for (what, values) in [("feedback", &feedback[..]), ("force_n (N)", &force_n[..]), ("cue_n (N)", &cue_n[..])] {
+        if let Some(bad) = values.iter().find(|v| !v.is_finite()) {
+            return Err(SimError::NonFinite { what, value: *bad });
+        }
+    }
+    let id = feedback[6];
+    let layer = (id.fract() == 0.0 && (0.0..=f64::from(u8::MAX)).contains(&id))
+        .then(|| Layer::from_id(id as u8))
+        .flatten()
+        .ok_or(SimError::InvalidParameter { name: "feedback layer id", value: id, reason: "must be a layer's id" })?;
+    let breakthroughs = feedback[8];
+    if breakthroughs < 0.0 || breakthroughs.fract() != 0.0 {
+        return Err(SimError::InvalidParameter {
+            name: "feedback breakthroughs",
+            value: breakthroughs,
+            reason: "must be a count",
+        });
+    }
+    Ok(Perception {
+        depth_m: feedback[3],
+        temperature_c: feedback[5],
+        layer,
+        breakthroughs: breakthroughs as u32,
+        plunge_depth_m: feedback[10],
+    })
+}
 
 /// The pose rows and forces (N) of a kept attempt, one per tick.
 type RawTicks = (Vec<[f64; POSE_COLUMNS]>, Vec<[f64; 3]>);
@@ -66,15 +97,14 @@ impl PySurgeon {
     /// `DrillingSession.feedback()` gives it), the force felt and its guidance share (N), or None
     /// once the surgeon has finished.
     #[pyo3(signature = (feedback, force_n, cue_n=[0.0, 0.0, 0.0]))]
-    fn step(&mut self, feedback: Feedback, force_n: [f64; 3], cue_n: [f64; 3]) -> Option<[f64; POSE_COLUMNS]> {
-        let now = Perception {
-            depth_m: feedback[3],
-            temperature_c: feedback[5],
-            layer: Layer::from_id(feedback[6] as u8).unwrap_or(Layer::Outside),
-            breakthroughs: feedback[8] as u32,
-            plunge_depth_m: feedback[10],
-        };
-        self.inner.step(&now, &force_n.into(), &cue_n.into())
+    fn step(
+        &mut self,
+        feedback: Feedback,
+        force_n: [f64; 3],
+        cue_n: [f64; 3],
+    ) -> PyResult<Option<[f64; POSE_COLUMNS]>> {
+        let now = perception(&feedback, &force_n, &cue_n).py()?;
+        Ok(self.inner.step(&now, &force_n.into(), &cue_n.into()))
     }
 
     /// Whether the surgeon has finished (stopped at B, or ran out of time).
