@@ -103,9 +103,14 @@ def test_record_keeps_everything_up_to_the_last_flush_when_killed(server, tmp_pa
     assert raw.num_rows >= 2600
     for eid, ep in enumerate(ds.episodes):
         t = ticks[ids == eid]
-        # Every tick from the episode's first record on, none missing: the batches are recovered.
+        # Every tick from the episode's first pose on, none missing: the batches are recovered.
         np.testing.assert_array_equal(t, np.arange(t[0], t[-1] + 1), err_msg=f"episode {eid}'s ticks")
-        assert t[0] * 1e-3 < ep.times_s[0] and t[-1] * 1e-3 >= ep.times_s[-1] - 0.1
+        # The ticks after a reset until the next pose are not recorded (nothing was drilled:
+        # docs/dataset.md), while a record may fall on one of them when the reset lands just before
+        # the 100 ms grid's mark: at most that one record comes before the raw stream, within 0.1 s.
+        early = ep.times_s[ep.times_s <= t[0] * 1e-3]
+        assert len(early) <= 1 and all(t[0] * 1e-3 - early < 0.1), (t[0], ep.times_s[:3])
+        assert t[-1] * 1e-3 >= ep.times_s[-1] - 0.1
         seen = [
             (k, i) for i, k in zip(np.flatnonzero(ids == eid).tolist(), t.tolist(), strict=True) if k in forces[eid]
         ]
