@@ -52,13 +52,15 @@ def trial(endpoint: str, n: int, poses: int) -> dict[str, float]:
                 t += 1e-3
                 time.sleep(max(0.0, t - time.monotonic()))
             c.control("close")
-            # No more forces come; wait for the batches (a benchmark: a fixed wait is its window).
-            deadline = time.monotonic() + 3.0
-            while time.monotonic() < deadline:
-                time.sleep(0.005)
+            # No more forces come: wait (up to 5 s) for the batch holding the last one's tick.
             last_tick = max(tick for _, tick in last_force)
-            with lock:
-                hit = [at for at, tick in arrivals if tick >= last_tick]
+            deadline = time.monotonic() + 5.0
+            while True:
+                with lock:
+                    hit = [at for at, tick in arrivals if tick >= last_tick]
+                if hit or time.monotonic() > deadline:
+                    break
+                time.sleep(0.005)
             forced = max(at for at, _ in last_force)
             return {
                 "last_tick": last_tick,
