@@ -454,3 +454,48 @@ def test_the_corridor_check_finds_an_engine_guided_by_other_profiles():
     bare = {k: v for k, v in meta.items() if k != "profiles"}
     assert corridor_mismatch(fixed, bare) is None, "neither has profiles"
     assert "no expert profiles" in (corridor_mismatch(about, bare) or "")
+
+
+def test_the_corridor_check_reports_again_when_a_restarted_engine_guides_by_other_profiles():
+    """An engine answering ``about`` (here a queryable whose answer the test swaps, as a restart
+    with another ``--model`` would): the check reports agreement, says nothing while the answer
+    stays the same or while no engine answers, and warns once the answer changes."""
+    meta = read_model_meta(default_model_path())
+    profiles = meta["profiles"]
+    params = {
+        "corridor_profile_n_per_m": list(profiles["corridor_n_per_m"]),
+        "corridor_profile_bin_m": profiles["bin_m"],
+    }
+    answer: dict[str, dict | None] = {"about": {"guidance": {"params": params}}}
+    asked = []
+
+    def reply(query):
+        asked.append(1)
+        if answer["about"] is not None:  # None: no engine (restarting)
+            query.reply(query.key_expr, json.dumps(answer["about"]).encode())
+
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    engine = z.declare_queryable(protocol.server_key("svc-recheck", "about"), reply)
+    reports: list[str] = []
+    with pytest.raises(InvalidInputError, match="recheck_s must be > 0"):
+        services.CorridorCheck(z, meta, "svc-recheck", report=reports.append, recheck_s=0.0)
+    check = services.CorridorCheck(z, meta, "svc-recheck", report=reports.append, every_s=0.2, recheck_s=0.05)
+    try:
+        wait_until(lambda: len(asked) >= 1 and reports, timeout_s=30.0, what="the first report")
+        assert reports == ["note: the engine's corridor follows this model's expert profiles"]
+        answer["about"] = None
+        n = len(asked)
+        wait_until(lambda: len(asked) >= n + 3, timeout_s=30.0, what="asks while no engine answers")
+        answer["about"] = {"guidance": {"params": params}}  # the same model again
+        n = len(asked)
+        wait_until(lambda: len(asked) >= n + 3, timeout_s=30.0, what="asks of the restarted engine")
+        assert len(reports) == 1, reports
+        halved = dict(params, corridor_profile_n_per_m=[0.5 * k for k in profiles["corridor_n_per_m"]])
+        answer["about"] = {"guidance": {"params": halved}}
+        wait_until(lambda: len(reports) >= 2, timeout_s=30.0, what="the warning")
+        assert reports[1].startswith("warning:") and "other expert profiles" in reports[1], reports
+        assert check.result == reports[1]
+    finally:
+        check.close()
+        engine.undeclare()
+        z.close()

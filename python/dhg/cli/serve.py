@@ -392,7 +392,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                     print(f"note: {hint}", flush=True)
             viewer = _start_viewer(args, running.endpoints) if args.view is not None else None
             # A worker alone checks that the engine's corridor is its model's (--role sim takes
-            # it from its own --model): it says so once an engine answers.
+            # it from its own --model): it says so once an engine answers, and again when a
+            # restarted engine's corridor differs.
             check = None
             if args.role == "model" and model is not None:
                 from dhg.live.services import CorridorCheck

@@ -346,10 +346,12 @@ def corridor_mismatch(about: dict[str, Any], meta: dict[str, Any]) -> str | None
 
 class CorridorCheck:
     """A model worker's check of the engine it serves: asks ``<prefix>/server/about`` (every
-    ``every_s`` until an engine answers) and reports once, through ``report``, a warning where
+    ``every_s`` until an engine answers) and reports, through ``report``, a warning where
     :func:`corridor_mismatch` finds one, or a note that the corridor is this model's; after
-    ``quiet_tries`` unanswered asks it also says, once, that no engine has answered yet. An engine
-    restarted later with another ``--model`` is not checked again."""
+    ``quiet_tries`` unanswered asks it also says, once, that no engine has answered yet. Once
+    answered it asks again every ``recheck_s``, so an engine restarted with another ``--model``
+    is found, and reports again only when the outcome changes (a restart with the same model
+    says nothing)."""
 
     def __init__(
         self,
@@ -360,12 +362,15 @@ class CorridorCheck:
         report: Callable[[str], None],
         every_s: float = 2.0,
         quiet_tries: int = 15,
+        recheck_s: float = 30.0,
     ):
+        if not (every_s > 0 and recheck_s > 0):
+            raise InvalidInputError(f"every_s and recheck_s must be > 0 s, not {every_s} and {recheck_s}")
         self.result: str | None = None
-        """The line reported on the engine's answer (None until one came)."""
+        """The line last reported on an engine's answer (None until one came)."""
         self._z, self._meta, self._report = session, meta, report
         self._key = protocol.server_key(prefix, "about")
-        self._every, self._quiet_tries = every_s, quiet_tries
+        self._every, self._quiet_tries, self._recheck = every_s, quiet_tries, recheck_s
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="dhg-corridor-check", daemon=True)
         self._thread.start()
@@ -377,13 +382,13 @@ class CorridorCheck:
         while not self._stop.is_set():
             try:
                 about = get_json(self._z, self._key, None, timeout_s=self._every)
-            except Exception:  # no engine yet (or the session is closing): ask again
+            except Exception:  # no engine (yet, or restarting), or the session is closing: ask again
                 tries += 1
-                if tries == self._quiet_tries and not self._stop.is_set():
+                if tries == self._quiet_tries and self.result is None and not self._stop.is_set():
                     self._report(
                         f"note: no engine has answered {self._key} yet; the corridor is not checked until one does"
                     )
-                self._stop.wait(self._every)
+                self._stop.wait(self._every if self.result is None else self._recheck)
                 continue
             try:
                 why = corridor_mismatch(about, self._meta)
@@ -391,10 +396,11 @@ class CorridorCheck:
                 why = f"could not check the engine's corridor ({exc})"
             if self._stop.is_set():
                 return  # closing: nothing after dhg-serve's last lines
-            agree = "note: the engine's corridor follows this model's expert profiles"
-            self.result = f"warning: {why}" if why else agree
-            self._report(self.result)
-            return
+            line = f"warning: {why}" if why else "note: the engine's corridor follows this model's expert profiles"
+            if line != self.result:
+                self.result = line
+                self._report(line)
+            self._stop.wait(self._recheck)
 
     def close(self) -> None:
         """Stops asking and waits for the thread (at most one query's timeout)."""
