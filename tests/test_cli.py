@@ -70,6 +70,20 @@ def test_demo_drills_and_reports(tmp_path):
         (["view", "--port", "70000"], 3, "port must be within"),
         (["view", "--nice", "20"], 3, "--nice must be 0 (as the server) to 19"),
         (["view", "--connect", "tcp/127.0.0.1:9", "--session", "a-1"], 5, "cannot open a zenoh session"),
+        (["view", "--connect", "notanendpoint"], 2, "is not a Zenoh endpoint"),
+        (["view", "--duration", "1e12"], 3, "--duration must be > 0 and at most"),
+        (["demo", "--out", "{tmp}/d", "--feed-mm-s", "0"], 3, "--feed-mm-s must be a feed rate > 0"),
+        (["demo", "--out", "{tmp}/d", "--feed-mm-s", "nan"], 2, "'nan' is not a finite number"),
+        (["demo", "--out", "{tmp}/d", "--rpm", "5000"], 3, "--rpm must be a spindle speed"),
+        (["trainee", "--duration", "inf"], 2, "'inf' is not a finite number"),
+        (["trainee", "--duration", "7200"], 3, "--duration must be > 0 and at most 3600 s"),
+        (["record", "--session", "a", "--out", "{tmp}/r", "--duration", "-1"], 3, "--duration must be > 0"),
+        (["record", "--session", "a", "--out", "{tmp}/r", "--flush-every", "0"], 3, "--flush-every must be > 0"),
+        (["live-demo", "--out", "{tmp}/l", "--duration", "0"], 3, "--duration must be > 0"),
+        (["ablate", "--data", "{tmp}", "--out", "{tmp}/a", "--seeds", "0"], 3, "--seeds is how many seeds"),
+        (["train", "--data", "{tmp}", "--out", "{tmp}/t", "--epochs", "0"], 3, "max_epochs must be at least 1"),
+        (["ct-import", "{tmp}/notes.txt", "--out", "{tmp}/c.npz", "--crop-mm", "1,2,x"], 2, "--crop-mm takes six"),
+        (["phantom", "--out", "{tmp}/p.npz", "--seed", "-1"], 3, "seed must be a whole number >= 0"),
     ],
 )
 def test_exit_codes_and_messages(tmp_path, args, code, message):
@@ -91,6 +105,21 @@ def test_serve_refuses_an_unknown_role():
     r = run("--role", "chef", tool="dhg-serve")
     assert r.returncode == 2
     assert "invalid choice" in r.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "message"),
+    [
+        (["--status-every", "nan"], 2, "'nan' is not a finite number"),
+        (["--status-every", "1e12"], 3, "--status-every must be > 0 and at most 3600 s"),
+        (["--model-threads", "0"], 3, "--model-threads must be at least 1"),
+        (["--listen", "7447"], 2, "is not a Zenoh endpoint"),
+    ],
+)
+def test_serve_refuses_bad_numbers_and_endpoints_before_starting(args, code, message):
+    r = run(*args, tool="dhg-serve")
+    assert r.returncode == code, (r.stdout, r.stderr)
+    assert message in r.stderr and "Traceback" not in r.stderr
 
 
 def test_phantom_file_round_trip(tmp_path):

@@ -127,6 +127,30 @@ def test_config_round_trip_and_bad_config(coarse_phantom):
         )
     with pytest.raises(InvalidInputError, match="unknown session config key"):
         SessionConfig.from_flat_dict({"device.bogus": 1.0})
+    with pytest.raises(InvalidInputError, match="'burr_radius_m' must be a number, got 'abc'"):
+        SessionConfig.from_flat_dict({"burr_radius_m": "abc"})
+
+
+def test_wrong_types_and_malformed_paths_are_clear_errors(coarse_phantom):
+    """The public constructors say what they take rather than failing later inside."""
+    vol, path = coarse_phantom.volume, coarse_phantom.path
+    with pytest.raises(InvalidInputError, match="path must be a dhg.PlannedPath"):
+        dhg.DrillingSession(vol, (path.entry_m, path.target_m))
+    with pytest.raises(InvalidInputError, match="volume must be a dhg.Volume"):
+        dhg.DrillingSession(np.zeros((4, 4, 4)), path)
+    with pytest.raises(InvalidInputError, match="config must be a SessionConfig"):
+        dhg.DrillingSession(vol, path, {"burr_radius_m": 1e-3})
+    with pytest.raises(InvalidInputError, match="Volume.from_hu"):
+        dhg.Volume(np.zeros((4, 4, 4)))
+    with pytest.raises(InvalidInputError, match="3-D points of numbers"):
+        dhg.PlannedPath("ab", [0.0, 0.0, 0.0])
+    with pytest.raises(InvalidInputError, match="needs target_m"):
+        dhg.PlannedPath.from_dict({"entry_m": [0.0, 0.0, 0.0]})
+    with pytest.raises(InvalidInputError, match="a planned path is a dict"):
+        dhg.PlannedPath.from_dict([0.0, 0.0, 0.0])
+    back = dhg.PlannedPath.from_dict(path.to_dict())
+    np.testing.assert_array_equal(back.entry_m, path.entry_m)
+    np.testing.assert_array_equal(back.target_m, path.target_m)
 
 
 def test_bad_pose_arrays_are_clear_errors(coarse_phantom):
@@ -174,3 +198,23 @@ def test_skill_metrics_refuse_bad_input_by_name(bad, error, said):
     assert skill_metrics(**args)["completion_time_s"] == 1.0  # the good input is taken
     with pytest.raises(error, match=said):
         skill_metrics(**(args | bad))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "said"),
+    [
+        ({"duration_s": -5.0}, "duration_s must be > 0"),
+        ({"duration_s": float("nan")}, "duration_s must be > 0"),
+        ({"duration_s": 1e9}, "at most 3600 s"),
+        ({"duration_s": 1.0, "feed_m_s": 0.0}, "feed_m_s must be a number > 0"),
+        ({"duration_s": 1.0, "feed_m_s": float("nan")}, "feed_m_s must be a number > 0"),
+        ({"duration_s": 1.0, "lead_m": float("inf")}, "lead_m must be a number >= 0"),
+        ({"duration_s": 1.0, "spindle_rpm": 5000.0}, "spindle_rpm must be 0 to"),
+    ],
+)
+def test_the_scripted_stylus_refuses_what_it_cannot_drive(coarse_phantom, kwargs, said):
+    from dhg.operators.scripted import scripted_stylus
+
+    with pytest.raises(InvalidInputError, match=said):
+        scripted_stylus(coarse_phantom.path, **kwargs)
+    assert scripted_stylus(coarse_phantom.path, 0.5).shape == (500, 9)

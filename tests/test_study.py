@@ -122,6 +122,18 @@ def test_a_protocol_needs_training_and_an_operator_it_knows(tmp_path):
         run_study([1], arms, tmp_path / "m.ts", Protocol(duration_s=MAX_ATTEMPT_S + 1))
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_missing_or_foreign_model_is_its_own_error_not_a_broken_pool(tmp_path, workers):
+    from dhg.learning.model_file import ModelFileError
+
+    arms = parse_arms("none,shaped")
+    with pytest.raises(ModelFileError, match="no such model file"):
+        run_study([1, 2], arms, tmp_path / "missing.ts", workers=workers)
+    (tmp_path / "notes.ts").write_text("not a model")
+    with pytest.raises(ModelFileError, match="unreadable model file"):
+        run_study([1, 2], arms, tmp_path / "notes.ts", workers=workers)
+
+
 def test_a_protocols_drill_and_guidance_laws_reach_every_attempts_session(coarse_phantom, tmp_path):
     from dhg.study.runner import _LocalStation
 

@@ -146,6 +146,8 @@ def femur_arrays(seed: int = 0, voxel_m: float = 0.5e-3) -> dict[str, Any]:
     ``spacing_m``, ``origin_m``, and the landmarks (m). Deterministic for a seed."""
     if not (np.isfinite(voxel_m) and 0.2e-3 <= voxel_m <= 4e-3):
         raise InvalidInputError(f"voxel_m must be within [0.2e-3, 4e-3] m, got {voxel_m}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InvalidInputError(f"seed must be a whole number >= 0, got {seed!r}")
     rng = np.random.default_rng(seed)
     h_mm = voxel_m * 1e3
     axes = [np.arange(lo, hi + 1e-9, h_mm, dtype=np.float64) for lo, hi in FIELD_OF_VIEW_MM]

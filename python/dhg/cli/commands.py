@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dhg.cli.common import EXIT_BAD_INPUT, EXIT_OK, EXIT_USAGE
+from dhg.cli.common import EXIT_BAD_INPUT, EXIT_OK, EXIT_USAGE, finite_float
 from dhg.cli.common import load_volume as _load_volume
 from dhg.cli.common import progress as _progress
 
@@ -47,10 +47,14 @@ def cmd_xray(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from dhg.bone.planning import layer_runs
     from dhg.bone.xray import auto_windows, render_views, write_views
-    from dhg.core.session import DrillingSession, SessionConfig, StepResult
+    from dhg.core.session import MAX_SPINDLE_RPM, DrillingSession, SessionConfig, StepResult
     from dhg.data.plots import plot_drilling
     from dhg.operators.scripted import scripted_stylus
 
+    if not args.feed_mm_s > 0:
+        raise ValueError(f"--feed-mm-s must be a feed rate > 0 mm/s, got {args.feed_mm_s}")
+    if not 0 < args.rpm <= MAX_SPINDLE_RPM:
+        raise ValueError(f"--rpm must be a spindle speed in (0, {MAX_SPINDLE_RPM:g}] rpm, got {args.rpm}")
     t0 = time.perf_counter()
     vol, path = _load_volume(args.ct, args.voxel_mm)
     if path is None:
@@ -206,6 +210,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_ablate(args: argparse.Namespace) -> int:
     from dhg.learning.ablation import ablate, markdown_table
 
+    if args.seeds < 1:
+        raise ValueError(f"--seeds is how many seeds each preset trains with: at least 1, got {args.seeds}")
     seeds = tuple(range(args.seed, args.seed + args.seeds))
     results = ablate(
         args.data,
@@ -252,7 +258,11 @@ def cmd_ct_import(args: argparse.Namespace) -> int:
 
     crop = None
     if args.crop_mm is not None:
-        vals = [float(v) * 1e-3 for v in args.crop_mm.split(",")]
+        try:
+            vals = [finite_float(v) * 1e-3 for v in args.crop_mm.split(",")]
+        except argparse.ArgumentTypeError as exc:
+            print(f"error: --crop-mm takes six numbers (xmin,ymin,zmin,xmax,ymax,zmax mm): {exc}", file=sys.stderr)
+            return EXIT_USAGE
         if len(vals) != 6:
             print("error: --crop-mm takes six numbers: xmin,ymin,zmin,xmax,ymax,zmax", file=sys.stderr)
             return EXIT_USAGE

@@ -6,6 +6,8 @@ each other in both directions."""
 from __future__ import annotations
 
 import argparse
+import math
+import re
 import signal
 import sys
 import threading
@@ -18,6 +20,9 @@ from dhg.core.errors import DhgError, TransportError
 
 __all__ = [
     "NETWORK_EPILOG",
+    "check_seconds",
+    "endpoint",
+    "finite_float",
     "EXIT_BAD_INPUT",
     "EXIT_INTERNAL",
     "EXIT_NETWORK",
@@ -34,6 +39,46 @@ EXIT_INTERNAL = 1
 EXIT_USAGE = 2
 EXIT_BAD_INPUT = 3
 EXIT_NETWORK = 5  # 4 meant "not built yet" while features were stubs; it is not reused
+
+
+def finite_float(text: str) -> float:
+    """argparse's ``type`` for every number option: a float, refusing NaN and infinity (``float``
+    takes both), so a bad value is a usage error (exit 2) naming its option."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+LONGEST_WAIT_S = 7 * 24 * 3600.0
+"""The longest ``--duration`` a live command takes (a week; without it they run until Ctrl-C)."""
+
+
+def check_seconds(option: str, value: float | None, most_s: float = LONGEST_WAIT_S, zero_ok: bool = False) -> None:
+    """Refuses (``ValueError``, exit 3) a time option that is not > 0 (``zero_ok``: >= 0) and at
+    most ``most_s``; ``None`` (not given) passes."""
+    if value is None:
+        return
+    low_ok = value >= 0 if zero_ok else value > 0
+    if not (low_ok and value <= most_s):  # also refuses NaN
+        low = ">= 0" if zero_ok else "> 0"
+        raise ValueError(f"{option} must be {low} and at most {most_s:g} s, got {value}")
+
+
+_ENDPOINT = re.compile(r"[a-z][a-z0-9-]*/\S+")
+
+
+def endpoint(text: str) -> str:
+    """argparse's ``type`` for a Zenoh endpoint (``PROTOCOL/ADDRESS``, e.g. ``tcp/127.0.0.1:7447``):
+    a malformed one is a usage error (exit 2), not network trouble."""
+    if not _ENDPOINT.fullmatch(text):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a Zenoh endpoint: PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447 or tls/lab-server:7447"
+        )
+    return text
 
 
 def load_volume(ct: str | None, voxel_mm: float):  # -> tuple[Volume, PlannedPath | None]
@@ -93,7 +138,7 @@ def run_command(func: Callable[[argparse.Namespace], int], args: argparse.Namesp
 
 NETWORK_EPILOG = """\
 exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input (CT, model file, values),
-5 network trouble (endpoint in use, no server answering).
+5 network trouble (endpoint in use, no server answering), 130 interrupted (Ctrl-C).
 endpoints look like tcp/127.0.0.1:7447 (loopback) or tcp/0.0.0.0:7447 (every interface).
 key expressions and payloads: docs/protocol.md. Units: SI (m, N, s, °C).
 """

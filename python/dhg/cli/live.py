@@ -12,8 +12,17 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from dhg.cli.common import EXIT_INTERNAL, EXIT_OK, NETWORK_EPILOG, stop_on_signals
+from dhg.cli.common import (
+    EXIT_INTERNAL,
+    EXIT_OK,
+    NETWORK_EPILOG,
+    check_seconds,
+    endpoint,
+    finite_float,
+    stop_on_signals,
+)
 from dhg.core.session import GUIDANCE_MODES
+from dhg.core.surgeon import MAX_ATTEMPT_S
 
 __all__ = ["VIEW_NICE", "add_commands"]
 
@@ -59,21 +68,27 @@ def _add_trainee(sub: Any, epilog: str) -> None:
         formatter_class=fmt,
     )
     p.add_argument(
-        "--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help=f"server (default {DEFAULT_ENDPOINT})"
+        "--connect",
+        type=endpoint,
+        default=DEFAULT_ENDPOINT,
+        metavar="ENDPOINT",
+        help=f"server (default {DEFAULT_ENDPOINT})",
     )
     p.add_argument("--session", metavar="ID", help="session id (default: trainee-<random>)")
     p.add_argument("--skill", choices=("novice", "expert"), default="novice", help="operator model (default novice)")
     p.add_argument("--guidance", choices=("on", "off"), default="on", help="feel the guidance force (default on)")
-    p.add_argument("--gain", type=float, default=1.0, metavar="G", help="guidance gain when on (default 1)")
+    p.add_argument("--gain", type=finite_float, default=1.0, metavar="G", help="guidance gain when on (default 1)")
     p.add_argument(
         "--guidance-mode",
         choices=GUIDANCE_MODES,
         help="the session's guidance mode (default: the server's, shaped unless dhg-serve --guidance-mode)",
     )
-    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="longest run in seconds (default 20)")
+    p.add_argument(
+        "--duration", type=finite_float, default=20.0, metavar="S", help="longest run in seconds (default 20)"
+    )
     p.add_argument(
         "--drill-mm",
-        type=float,
+        type=finite_float,
         metavar="D",
         help="drill (burr) diameter in mm, e.g. 3.2 for a large guide wire (default: the server's, 2.5 mm)",
     )
@@ -118,7 +133,11 @@ def _add_record(sub: Any, epilog: str) -> None:
         formatter_class=fmt,
     )
     p.add_argument(
-        "--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help=f"server (default {DEFAULT_ENDPOINT})"
+        "--connect",
+        type=endpoint,
+        default=DEFAULT_ENDPOINT,
+        metavar="ENDPOINT",
+        help=f"server (default {DEFAULT_ENDPOINT})",
     )
     which = p.add_mutually_exclusive_group(required=True)
     which.add_argument("--session", metavar="ID", help="the session to record")
@@ -126,11 +145,13 @@ def _add_record(sub: Any, epilog: str) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="dataset folder (replaced on every flush)")
     p.add_argument("--skill", default="unknown", help="label of the subject: expert, novice, ... (default unknown)")
     p.add_argument("--subject", metavar="NAME", help="subject id (default: the session id)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
-    p.add_argument("--flush-every", type=float, default=1.0, metavar="S", help="seconds between writes (default 1)")
+    p.add_argument("--duration", type=finite_float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument(
+        "--flush-every", type=finite_float, default=1.0, metavar="S", help="seconds between writes (default 1)"
+    )
     p.add_argument(
         "--status-every",
-        type=float,
+        type=finite_float,
         default=5.0,
         metavar="S",
         help="print what has been recorded every S seconds, or which sessions the server has while the one "
@@ -168,13 +189,19 @@ def _add_view(sub: Any, epilog: str) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
-        "--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help=f"server (default {DEFAULT_ENDPOINT})"
+        "--connect",
+        type=endpoint,
+        default=DEFAULT_ENDPOINT,
+        metavar="ENDPOINT",
+        help=f"server (default {DEFAULT_ENDPOINT})",
     )
     p.add_argument("--session", metavar="ID", help="one trainee's page (default: the instructor's page)")
     p.add_argument("--port", type=int, default=8080, help="the page's port (default 8080; 0: any free port)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine)")
-    p.add_argument("--frame-hz", type=float, default=30.0, metavar="HZ", help="drill updates a second (default 30)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument(
+        "--frame-hz", type=finite_float, default=30.0, metavar="HZ", help="drill updates a second (default 30)"
+    )
+    p.add_argument("--duration", type=finite_float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (the lab's instructor or station file)")
     p.add_argument(
@@ -191,8 +218,7 @@ def _add_view(sub: Any, epilog: str) -> None:
 def _cmd_view(args: argparse.Namespace) -> int:
     from dhg.view import Viewer
 
-    if args.duration is not None and args.duration <= 0:
-        raise ValueError(f"--duration must be positive, got {args.duration}")
+    check_seconds("--duration", args.duration)
     if not 0 <= args.nice <= 19:
         raise ValueError(f"--nice must be 0 (as the server) to 19 (yield to everything), got {args.nice}")
     _yield_cores(args.nice)
@@ -257,7 +283,7 @@ def _add_live_demo(sub: Any, epilog: str) -> None:
         formatter_class=fmt,
     )
     p.add_argument("--out", default="out/demo", metavar="DIR", help="folder for the PNGs (default out/demo)")
-    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds per run (default 20)")
+    p.add_argument("--duration", type=finite_float, default=20.0, metavar="S", help="seconds per run (default 20)")
     p.add_argument("--seed", type=int, default=7, help="the novice's hand (default 7)")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config for the server and both trainees")
     p.set_defaults(func=_cmd_live_demo)
@@ -265,8 +291,7 @@ def _add_live_demo(sub: Any, epilog: str) -> None:
 
 def _check_trainee_args(args: argparse.Namespace) -> None:
     """Refuses ``dhg trainee`` flags that cannot go together, before connecting."""
-    if args.duration <= 0:
-        raise ValueError("--duration must be positive")
+    check_seconds("--duration", args.duration, MAX_ATTEMPT_S)
     if args.attempts < 1:
         raise ValueError(f"--attempts must be at least 1, got {args.attempts}")
     if args.probe_every is not None and (not args.fading or args.probe_every < 0):
@@ -370,10 +395,9 @@ def _cmd_trainee(args: argparse.Namespace) -> int:
 def _cmd_record(args: argparse.Namespace) -> int:
     from dhg.live.recorder import SessionRecorder
 
-    if args.flush_every <= 0:
-        raise ValueError(f"--flush-every must be positive, got {args.flush_every}")
-    if args.status_every < 0:
-        raise ValueError(f"--status-every must be 0 (quiet) or positive, got {args.status_every}")
+    check_seconds("--flush-every", args.flush_every, 3600.0)
+    check_seconds("--status-every", args.status_every, 3600.0, zero_ok=True)
+    check_seconds("--duration", args.duration)
     if args.all:
         if args.subject:
             raise ValueError("--subject names one subject; with --all each session's id is its subject")
@@ -468,7 +492,6 @@ def _run_recorder(rec: Any, args: argparse.Namespace, status: Callable[[float], 
 def _cmd_live_demo(args: argparse.Namespace) -> int:
     from dhg.cli.demo import run_live_demo
 
-    if args.duration <= 0:
-        raise ValueError("--duration must be positive")
+    check_seconds("--duration", args.duration, MAX_ATTEMPT_S)
     code = run_live_demo(args.out, args.duration, args.seed, zenoh_config_file=args.zenoh_config)
     return EXIT_OK if code == 0 else EXIT_INTERNAL

@@ -26,13 +26,14 @@ from dhg.cli.commands import (
     cmd_train,
     cmd_xray,
 )
-from dhg.cli.common import run_command
+from dhg.cli.common import finite_float, run_command
 from dhg.learning.presets import PRESETS, TrainConfig
 
 __all__ = ["build_parser", "main", "serve_main"]
 
 _EPILOG = """\
-exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input, 5 network trouble.
+exit codes: 0 success, 1 internal error, 2 usage error, 3 bad input, 5 network trouble,
+130 interrupted (Ctrl-C).
 units: SI throughout (m, s, kg); options ending in -mm take millimetres for convenience.
 """
 
@@ -76,7 +77,7 @@ def _add_source(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--voxel-mm",
-        type=float,
+        type=finite_float,
         default=0.5,
         metavar="MM",
         help="isotropic voxel size used to build the phantom or resample a CT (default 0.5)",
@@ -114,9 +115,9 @@ def _add_demo(sub: Any) -> None:
     )
     p.add_argument("--out", default="out/demo", metavar="DIR", help="folder for the PNG files (default out/demo)")
     _add_source(p)
-    p.add_argument("--burr-mm", type=float, default=2.5, metavar="MM", help="drill diameter (default 2.5)")
-    p.add_argument("--feed-mm-s", type=float, default=1.5, metavar="MM_S", help="feed rate (default 1.5 mm/s)")
-    p.add_argument("--rpm", type=float, default=1200.0, help="spindle speed (default 1200 rpm)")
+    p.add_argument("--burr-mm", type=finite_float, default=2.5, metavar="MM", help="drill diameter (default 2.5)")
+    p.add_argument("--feed-mm-s", type=finite_float, default=1.5, metavar="MM_S", help="feed rate (default 1.5 mm/s)")
+    p.add_argument("--rpm", type=finite_float, default=1200.0, help="spindle speed (default 1200 rpm)")
     p.set_defaults(func=cmd_demo)
 
 
@@ -161,7 +162,9 @@ def _add_training(p: argparse.ArgumentParser) -> None:
         default=d.patience,
         help=f"epochs without a better validation RMSE before stopping (default {d.patience})",
     )
-    p.add_argument("--lr", type=float, default=d.learning_rate, help=f"Adam learning rate (paper: {d.learning_rate})")
+    p.add_argument(
+        "--lr", type=finite_float, default=d.learning_rate, help=f"Adam learning rate (paper: {d.learning_rate})"
+    )
     p.add_argument("--batch", type=int, default=d.batch_size, help=f"batch size (paper: {d.batch_size})")
     p.add_argument("--seed", type=int, default=d.seed, help=f"seed (default {d.seed})")
     p.add_argument(
@@ -246,7 +249,9 @@ def _add_ct_import(sub: Any) -> None:
     )
     p.add_argument("src", metavar="SRC", help="DICOM folder or file, or .nii/.nii.gz")
     p.add_argument("--out", required=True, metavar="FILE.npz", help="where to write the prepared volume")
-    p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="isotropic voxel size (default 0.5)")
+    p.add_argument(
+        "--voxel-mm", type=finite_float, default=0.5, metavar="MM", help="isotropic voxel size (default 0.5)"
+    )
     p.add_argument("--crop-mm", metavar="X0,Y0,Z0,X1,Y1,Z1", help="keep only this world box (mm, LPS)")
     p.set_defaults(func=cmd_ct_import)
 
@@ -286,7 +291,7 @@ def _add_phantom(sub: Any) -> None:
     )
     p.add_argument("--out", required=True, metavar="FILE.npz", help="where to write it")
     p.add_argument("--seed", type=int, default=0, help="texture and noise seed (default 0)")
-    p.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="voxel size (default 0.5)")
+    p.add_argument("--voxel-mm", type=finite_float, default=0.5, metavar="MM", help="voxel size (default 0.5)")
     p.set_defaults(func=cmd_phantom)
 
 
@@ -398,7 +403,7 @@ def _study_attempt_args(p: argparse.ArgumentParser, d: Any) -> None:
     )
     p.add_argument(
         "--drill-mm",
-        type=float,
+        type=finite_float,
         metavar="MM",
         help="drill diameter for every attempt (default 2.5 mm); 4.5 mm heats the bone enough to test 47 °C",
     )
@@ -413,7 +418,7 @@ def _study_attempt_args(p: argparse.ArgumentParser, d: Any) -> None:
     p.add_argument("--model", metavar="FILE.ts", help="TorchScript model (default: the bundled one)")
     p.add_argument(
         "--duration",
-        type=float,
+        type=finite_float,
         default=d.duration_s,
         metavar="S",
         help=f"most seconds per attempt, up to {MAX_ATTEMPT_S:g} (default {d.duration_s:g})",

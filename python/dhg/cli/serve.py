@@ -18,7 +18,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from dhg.cli.common import EXIT_OK, NETWORK_EPILOG, load_volume, stop_on_signals
+from dhg.cli.common import EXIT_OK, NETWORK_EPILOG, endpoint, finite_float, load_volume, stop_on_signals
 from dhg.cli.common import run_command as _run
 from dhg.core.session import GUIDANCE_MODES
 
@@ -81,6 +81,7 @@ def _network_args(p: argparse.ArgumentParser, d: Any) -> None:
     g.add_argument(
         "--listen",
         action="append",
+        type=endpoint,
         default=[],
         metavar="ENDPOINT",
         help=f"endpoint to listen on, repeatable (default for all/sim: {DEFAULT_ENDPOINT})",
@@ -88,6 +89,7 @@ def _network_args(p: argparse.ArgumentParser, d: Any) -> None:
     g.add_argument(
         "--connect",
         action="append",
+        type=endpoint,
         default=[],
         metavar="ENDPOINT",
         help=f"endpoint to connect to, repeatable (default for --role model: {DEFAULT_ENDPOINT})",
@@ -104,7 +106,7 @@ def _bone_args(p: argparse.ArgumentParser, d: Any) -> None:
         metavar="PATH",
         help="bone to drill: a prepared volume (.npz), DICOM folder or NIfTI file; default: the phantom femur",
     )
-    g.add_argument("--voxel-mm", type=float, default=0.5, metavar="MM", help="voxel size (default 0.5)")
+    g.add_argument("--voxel-mm", type=finite_float, default=0.5, metavar="MM", help="voxel size (default 0.5)")
     g.add_argument(
         "--entry-mm", metavar="X,Y,Z", help="entry point A of the default path (mm, LPS; a CT's own path by default)"
     )
@@ -151,7 +153,7 @@ def _model_args(p: argparse.ArgumentParser, d: Any) -> None:
     )
     g.add_argument(
         "--model-timeout",
-        type=float,
+        type=finite_float,
         default=d.model_timeout_s,
         metavar="S",
         help=f"give up on one model query after S seconds (default {d.model_timeout_s:g})",
@@ -186,7 +188,7 @@ def _session_args(p: argparse.ArgumentParser, d: Any) -> None:
     )
     g.add_argument(
         "--idle-timeout",
-        type=float,
+        type=finite_float,
         default=d.idle_timeout_s,
         metavar="S",
         help=f"free a session after this many seconds without poses (default {d.idle_timeout_s:g})",
@@ -204,7 +206,7 @@ def _session_args(p: argparse.ArgumentParser, d: Any) -> None:
     )
     g.add_argument(
         "--guidance-gain",
-        type=float,
+        type=finite_float,
         default=d.guidance_gain,
         metavar="G",
         help="guidance gain of new sessions, 0..4; 0 = computed and published but not felt (default 1)",
@@ -229,7 +231,9 @@ def _session_args(p: argparse.ArgumentParser, d: Any) -> None:
         "to the tick thread and every force to the publisher thread (the design before; for comparison: "
         "pose → force p50 about 1.35 times as long, 14-17 %% more server CPU on a 2-core VM)",
     )
-    g.add_argument("--status-every", type=float, default=5.0, metavar="S", help="status line period (default 5 s)")
+    g.add_argument(
+        "--status-every", type=finite_float, default=5.0, metavar="S", help="status line period (default 5 s)"
+    )
 
 
 def _point_mm(text: str, option: str) -> Any:
@@ -300,7 +304,7 @@ def _load_model(args: argparse.Namespace, options: Any, described: list[str]) ->
 
     from dhg.learning.torchscript import load_model
 
-    torch.set_num_threads(args.model_threads or max(1, (os.cpu_count() or 2) // 4))
+    torch.set_num_threads(args.model_threads if args.model_threads is not None else max(1, (os.cpu_count() or 2) // 4))
     model_file = _model_file(args)
     model = load_model(model_file, device=args.device, executor=args.executor)
     described.append(f"model {model.meta.get('preset', '?')} from {model_file} on {model.device} ({model.executor})")
@@ -361,8 +365,10 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from dhg.core.server import check_zenoh_runtime
     from dhg.live import runner
 
-    if args.status_every <= 0:
-        raise ValueError("--status-every must be positive")
+    if not 0 < args.status_every <= 3600:
+        raise ValueError(f"--status-every must be > 0 and at most 3600 s, got {args.status_every}")
+    if args.model_threads is not None and args.model_threads < 1:
+        raise ValueError(f"--model-threads must be at least 1, got {args.model_threads}")
     check_zenoh_runtime()  # before the model and the bone load: Zenoh would refuse it only after
     options = _serve_options(args)
     # Python hands the GIL over every 5 ms by default: a model reply could wait that long behind a

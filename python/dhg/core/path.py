@@ -49,8 +49,13 @@ class PlannedPath:
     """B: where the drill tip should stop (m)."""
 
     def __post_init__(self) -> None:
-        a = np.asarray(self.entry_m, dtype=np.float64).reshape(-1)
-        b = np.asarray(self.target_m, dtype=np.float64).reshape(-1)
+        try:
+            a = np.asarray(self.entry_m, dtype=np.float64).reshape(-1)
+            b = np.asarray(self.target_m, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise InvalidInputError(
+                f"entry and target must be 3-D points of numbers (m), got {self.entry_m!r} and {self.target_m!r}"
+            ) from None
         if a.shape != (3,) or b.shape != (3,):
             raise InvalidInputError(f"entry and target must be 3-D points, got {a.shape} and {b.shape}")
         if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
@@ -103,5 +108,11 @@ class PlannedPath:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> PlannedPath:
-        """Inverse of :meth:`to_dict`."""
-        return cls(np.asarray(d["entry_m"], float), np.asarray(d["target_m"], float))
+        """Inverse of :meth:`to_dict`; a dict without ``entry_m`` and ``target_m`` is an
+        :class:`InvalidInputError` naming what is missing."""
+        if not isinstance(d, dict):
+            raise InvalidInputError(f"a planned path is a dict with entry_m and target_m, got {type(d).__name__}")
+        missing = [k for k in ("entry_m", "target_m") if k not in d]
+        if missing:
+            raise InvalidInputError(f"a planned path needs {' and '.join(missing)} (m); it has {sorted(d)}")
+        return cls(d["entry_m"], d["target_m"])

@@ -160,12 +160,16 @@ class SessionConfig:
         known = {f.name for f in fields(cls)}
         for key, value in flat.items():
             group, _, name = key.partition(".")
-            if name and group in nested:
-                nested[group][name] = float(value)
-            elif key in known:
-                top[key] = float(value)
-            else:
+            if not ((name and group in nested) or key in known):
                 raise InvalidInputError(f"unknown session config key {key!r}")
+            try:
+                number = float(value)
+            except (TypeError, ValueError):
+                raise InvalidInputError(f"session config {key!r} must be a number, got {value!r}") from None
+            if name and group in nested:
+                nested[group][name] = number
+            else:
+                top[key] = number
         try:
             return cls(
                 **top,
@@ -274,6 +278,12 @@ class DrillingSession:
     """A trainee's drilling session on a shared :class:`~dhg.Volume` along a planned path."""
 
     def __init__(self, volume: Volume, path: PlannedPath, config: SessionConfig | None = None) -> None:
+        if not isinstance(volume, Volume):
+            raise InvalidInputError(f"volume must be a dhg.Volume, got {type(volume).__name__}")
+        if not isinstance(path, PlannedPath):
+            raise InvalidInputError(f"path must be a dhg.PlannedPath(entry_m, target_m), got {type(path).__name__}")
+        if config is not None and not isinstance(config, SessionConfig):
+            raise InvalidInputError(f"config must be a SessionConfig, got {type(config).__name__}")
         self.config = config or SessionConfig()
         """The configuration."""
         self.volume = volume

@@ -182,6 +182,11 @@ class Volume:
     """
 
     def __init__(self, native: _bone_sim.Volume, meta: dict[str, Any] | None = None) -> None:
+        if not isinstance(native, _bone_sim.Volume):
+            raise InvalidInputError(
+                f"Volume(...) wraps the core's volume; build one from HU with Volume.from_hu(hu, spacing_m), "
+                f"got {type(native).__name__}"
+            )
         self._vol = native
         self.meta: dict[str, Any] = dict(meta or {})
         """Free-form provenance (source file, phantom seed, ...); saved with the volume."""

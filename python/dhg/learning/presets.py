@@ -4,6 +4,7 @@ them before anything heavy is imported."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -96,8 +97,14 @@ class TrainConfig:
     0.1 s ahead); k predicts the expert's force k × 0.1 s ahead."""
 
     def __post_init__(self) -> None:
-        if not (self.learning_rate > 0 and self.batch_size >= 1 and self.max_epochs >= 1 and self.patience >= 1):
-            raise InvalidInputError(f"invalid training settings {self}")
+        for name, ok, want in (
+            ("learning_rate", self.learning_rate > 0 and math.isfinite(self.learning_rate), "> 0"),
+            ("batch_size", self.batch_size >= 1, "at least 1"),
+            ("max_epochs", self.max_epochs >= 1, "at least 1"),
+            ("patience", self.patience >= 1, "at least 1"),
+        ):
+            if not ok:
+                raise InvalidInputError(f"training setting {name} must be {want}, got {getattr(self, name)!r}")
         if not (0 < self.test_fraction < 0.5 and 0 < self.val_fraction < 0.5):
             raise InvalidInputError("test_fraction and val_fraction must be in (0, 0.5)")
         if self.device not in ("cpu", "cuda", "auto"):

@@ -10,9 +10,10 @@ import numpy as np
 
 from dhg.bone.planning import layer_runs
 from dhg.core.errors import InvalidInputError
+from dhg.core.features import TICK_S
 from dhg.core.path import PlannedPath
-from dhg.core.session import poses
-from dhg.core.surgeon import axis_quaternion
+from dhg.core.session import MAX_SPINDLE_RPM, poses
+from dhg.core.surgeon import MAX_ATTEMPT_S, axis_quaternion
 from dhg.core.volume import DrilledVolume
 
 __all__ = ["DrillRun", "scripted_stylus", "straight_line_drill"]
@@ -92,6 +93,17 @@ def scripted_stylus(
     coupling force (the push) grows until the cutting law lets the tip keep up. It is a
     position-driven operator with no human behaviour (that comes with the virtual surgeons).
     """
-    n = int(round(duration_s * 1000))
-    depth = np.minimum(-start_before_m + np.arange(n) * 1e-3 * feed_m_s + lead_m, path.length_m)
+    if not 0 < duration_s <= MAX_ATTEMPT_S:  # also False for NaN
+        raise InvalidInputError(f"duration_s must be > 0 and at most {MAX_ATTEMPT_S:g} s, got {duration_s}")
+    if not (np.isfinite(feed_m_s) and feed_m_s > 0):
+        raise InvalidInputError(f"feed_m_s must be a number > 0 m/s, got {feed_m_s}")
+    for name, v in (("lead_m", lead_m), ("start_before_m", start_before_m)):
+        if not (np.isfinite(v) and v >= 0):
+            raise InvalidInputError(f"{name} must be a number >= 0 m, got {v}")
+    if not 0.0 <= spindle_rpm <= MAX_SPINDLE_RPM:  # also False for NaN
+        raise InvalidInputError(
+            f"spindle_rpm must be 0 to {MAX_SPINDLE_RPM:g} rpm (a faster pose is refused), got {spindle_rpm}"
+        )
+    n = int(round(duration_s / TICK_S))
+    depth = np.minimum(-start_before_m + np.arange(n) * TICK_S * feed_m_s + lead_m, path.length_m)
     return poses(path.point_at(depth), axis_quaternion(path.direction), True, spindle_rpm)

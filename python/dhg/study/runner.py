@@ -32,13 +32,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Generator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 from typing import Protocol as Protocol_
 
 import numpy as np
 
-from dhg.core.errors import InvalidInputError
+from dhg.core.errors import DhgError, InvalidInputError
 from dhg.core.protocol import WINDOW_RECORDS
 from dhg.core.session import GuidanceMode
 from dhg.operators.models import OPERATORS, Operator
@@ -279,13 +280,19 @@ def _init_worker(model_path: str, voxel_m: float, events: Any = None) -> None:
     from dhg.learning.torchscript import load_model
 
     torch.set_num_threads(1)
-    _WORKER.update(phantom=default_phantom(voxel_m=voxel_m), model=load_model(model_path), events=events)
+    _WORKER.pop("error", None)  # with one worker this is the caller's process: no error of an earlier study
+    try:
+        _WORKER.update(phantom=default_phantom(voxel_m=voxel_m), model=load_model(model_path), events=events)
+    except DhgError as exc:  # raised again by each job, so the caller gets it, not a broken pool
+        _WORKER["error"] = exc
 
 
 def _group(work: tuple[list[int], list[Arm], Operator, Protocol]) -> list[tuple[int, str, list[Attempt]]]:
     """Every attempt of a group of novices: their pre-tests, then every arm's protocol, all side
     by side (:func:`_lockstep`). Returns (seed, arm name or "pre", attempts) per job."""
     seeds, arms, operator, protocol = work
+    if "error" in _WORKER:
+        raise _WORKER["error"]
     phantom, model, events = _WORKER["phantom"], _WORKER["model"], _WORKER["events"]
     on_attempt = (lambda: events.put(1)) if events is not None else _WORKER["on_attempt"]
     profiles = model.profiles
@@ -315,6 +322,9 @@ def _run_offline(
     n_groups = workers * max(1, -(-len(seeds) // (6 * workers)))
     size = -(-len(seeds) // n_groups)
     groups = [(seeds[i : i + size], arms, operator, protocol) for i in range(0, len(seeds), size)]
+    from dhg.learning.model_file import read_model_meta
+
+    read_model_meta(model_path)  # a missing or foreign model file: its error now, before any worker starts
     if workers == 1:
         _init_worker(model_path, voxel_m)
         _WORKER["on_attempt"] = on_attempt
@@ -335,8 +345,11 @@ def _run_offline(
                 on_attempt()
             except queue.Empty:
                 pass
-        for f in futures:
-            out += f.result()  # re-raises a worker's error
+        try:
+            for f in futures:
+                out += f.result()  # re-raises a worker's error
+        except BrokenProcessPool as exc:
+            raise DhgError(f"a study worker process died ({exc}); its error is printed above") from None
     while True:  # attempts counted after the last check
         try:
             events.get_nowait()
