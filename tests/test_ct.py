@@ -136,3 +136,6 @@ def test_threshold_layers_are_the_cores_at_both_boundaries():
         m.threshold_layers(hu)
     with pytest.raises(InvalidInputError):
         HuMapping(cortical_min_hu=float("nan")).threshold_layers(hu.reshape(1, 1, 4))
+    # A NaN voxel is refused, as Volume.from_hu refuses it, not labelled outside.
+    with pytest.raises(InvalidInputError, match="HU value must be finite"):
+        m.threshold_layers(np.array([[[0.0, float("nan")]]]))

@@ -89,6 +89,9 @@ def test_unknown_server_settings_are_refused_with_the_allowed_keys(coarse_phanto
         start({"wait": "poll"})
     with pytest.raises(InvalidInputError, match="idle_timeout_s"):
         start({"idle_timeout_s": "soon"})
+    # Zenoh's query timeout is a Duration: 1e20 s was a PanicException from inside the start.
+    with pytest.raises(InvalidInputError, match="model_timeout_s .*at most"):
+        start({"model_timeout_s": 1e20})
 
 
 def test_a_spinning_engine_serves_a_zenoh_client_says_so_sleeps_when_idle_and_stops(coarse_phantom):
@@ -397,6 +400,14 @@ def test_sessions_are_limited_and_controlled(engine):
     assert engine.health()["session_ids"] == ["a", "b"]
     with pytest.raises(InvalidInputError):
         engine.control("a", {"op": "set_guidance", "gain": float("nan")})
+    # A NaN or infinity anywhere is refused, naming where, not read as "not given" (JSON's null).
+    with pytest.raises(InvalidInputError, match="guidance_gain: NaN is not a finite number"):
+        engine.control("c", {"op": "create", "guidance_gain": float("nan")})
+    with pytest.raises(InvalidInputError, match="gain: inf is not a finite number"):
+        engine.control("a", {"op": "set_guidance", "mode": "brake", "gain": float("inf")})
+    with pytest.raises(InvalidInputError, match=r"entry_m\[1\]: NaN"):
+        engine.control("a", {"op": "set_path", "entry_m": [0.0, float("nan"), 0.0], "target_m": [0.0, 0.0, 0.1]})
+    assert "c" not in engine.sessions()
     with pytest.raises(InvalidInputError, match="burr_radius_m"):
         engine.control("a", {"op": "set_drill", "burr_radius_m": -1e-3})
     assert engine.control("b", {"op": "set_drill", "burr_radius_m": 1.5e-3})["burr_radius_m"] == 1.5e-3

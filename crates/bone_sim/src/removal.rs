@@ -56,8 +56,8 @@ pub struct RemovalReport {
 impl RemovalReport {
     /// Adds another report's counts to this one.
     pub fn accumulate(&mut self, other: &RemovalReport) {
-        self.voxels_eroded += other.voxels_eroded;
-        self.voxels_removed += other.voxels_removed;
+        self.voxels_eroded = self.voxels_eroded.saturating_add(other.voxels_eroded);
+        self.voxels_removed = self.voxels_removed.saturating_add(other.voxels_removed);
         self.mass_removed_kg += other.mass_removed_kg;
         self.volume_removed_m3 += other.volume_removed_m3;
     }

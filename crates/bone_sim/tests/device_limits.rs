@@ -98,3 +98,29 @@ proptest! {
         }
     }
 }
+
+proptest! {
+    /// On the wire the force and its guidance share are float32: rounding never makes them
+    /// longer than what the limiter gave (a client's guard refuses a force over the peak).
+    #[test]
+    fn a_force_at_the_peak_is_not_over_it_on_the_wire(
+        dir in prop::array::uniform3(-1.0..1.0_f64),
+        peak in 0.1..50.0_f64,
+    ) {
+        let d = Vector3::from(dir);
+        prop_assume!(d.norm() > 1e-3);
+        let f = d.normalize() * peak;
+        let bytes = bone_sim::protocol::encode_force(&bone_sim::protocol::ForceMsg {
+            force_n: f,
+            guidance_n: -f,
+            ..Default::default()
+        });
+        let read = |at: usize| -> Vector3<f64> {
+            Vector3::from_fn(|i, _| f64::from(f32::from_le_bytes(bytes[at + 4 * i..at + 4 * i + 4].try_into().unwrap())))
+        };
+        let (wire_f, wire_g) = (read(24), read(36));
+        prop_assert!(wire_f.norm() <= f.norm(), "|F| on the wire {} over {}", wire_f.norm(), f.norm());
+        prop_assert!(wire_g.norm() <= f.norm(), "|G| on the wire {} over {}", wire_g.norm(), f.norm());
+        prop_assert!((wire_f - f).norm() < 1e-5 * peak);
+    }
+}

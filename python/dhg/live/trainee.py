@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 from dhg.bone.planning import breakthrough_depth_from_runs
 from dhg.core.errors import InvalidInputError
+from dhg.core.features import TICK_S
 from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.session import ThermalParams
 from dhg.core.skill import skill_metrics
@@ -149,6 +150,25 @@ def drive_surgeon(client: TraineeClient, surgeon: SurgeonController, duration_s:
     return sent, (time.monotonic_ns() - t0) * 1e-9
 
 
+def wait_for_last_state(client: TraineeClient, timeout_s: float = 2.0) -> bool:
+    """Waits until a state at or after the last force's tick has arrived, so an attempt's records
+    reach its end: the session ticks on without poses, so its next 10 Hz record comes within
+    0.1 s of the last pose. Gives up after ``timeout_s`` (s; a closed session sends none);
+    returns whether it came."""
+    force = client.force
+    if force is None:
+        return True
+    due_s = force["tick"] * TICK_S
+    deadline = time.monotonic() + timeout_s
+    while True:
+        states = client.states
+        if states and states[-1]["time_s"] >= due_s:
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.005)
+
+
 def live_metrics(client: TraineeClient, surgeon: SurgeonController, states: list[dict[str, Any]]) -> dict[str, Any]:
     """Skill metrics (:func:`dhg.core.skill.skill_metrics`, plus ``reached_target`` and
     ``buzz_felt_s``, the seconds a vibration was felt in the guidance) of the attempt
@@ -228,7 +248,7 @@ def _drill_attempt(
     planned for, as :attr:`TraineeRun.planned_breakthrough_depth_m` reports it)."""
     schedule = info.get("fading")
     sent, wall_s = drive_surgeon(client, surgeon, duration_s)
-    time.sleep(0.25)  # let the last state and guidance messages arrive
+    wait_for_last_state(client)
     states = states_since_reset(list(client.states))
     metrics = live_metrics(client, surgeon, states)
     return TraineeRun(

@@ -72,6 +72,10 @@ impl FadingParams {
     }
 }
 
+/// The largest error an attempt counts, in tolerances: far beyond any real attempt's (a plunge of
+/// 1 m against a 1 mm tolerance is 1000), it keeps the update finite.
+const MAX_ERROR_RATIO: f64 = 1e6;
+
 impl FadingParams {
     /// Params from a JSON object; missing fields take their defaults.
     ///
@@ -180,10 +184,13 @@ impl Fading {
     /// attempt's gain. Non-finite errors count as the tolerance (no change of evidence).
     pub fn finish_attempt(&mut self, plunge_m: f64, max_deviation_m: f64) -> f64 {
         let p = &self.params;
-        let ratio = |v: f64, tol: f64| if v.is_finite() { v.max(0.0) / tol } else { 1.0 };
+        // Bounded, so that a tiny tolerance or a huge error cannot make 0 · inf = NaN of the gain.
+        let ratio = |v: f64, tol: f64| if v.is_finite() { (v.max(0.0) / tol).min(MAX_ERROR_RATIO) } else { 1.0 };
         let e = ratio(plunge_m, p.plunge_tolerance_m).max(ratio(max_deviation_m, p.deviation_tolerance_m));
         self.last_error = e;
-        self.assistance = (p.forget * self.assistance + p.learn * e).clamp(0.0, p.max_gain);
+        let next = p.forget * self.assistance + p.learn * e;
+        // learn · e may overflow to inf (then the most assistance); a NaN would keep it as it is.
+        self.assistance = if next.is_nan() { self.assistance } else { next.clamp(0.0, p.max_gain) };
         self.attempts += 1;
         self.gain()
     }

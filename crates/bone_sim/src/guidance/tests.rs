@@ -376,6 +376,15 @@ fn fading_assists_as_needed_and_probes_without_guidance() {
     ] {
         assert!(matches!(Fading::new(bad), Err(SimError::InvalidParameter { .. })));
     }
+    // A tolerance so small that the error ratio overflows, with nothing learned from it
+    // (learn 0: 0 · inf was NaN, and NaN stayed through the clamp): the gain stays a number.
+    let tiny = FadingParams { learn: 0.0, plunge_tolerance_m: 1e-320, ..FadingParams::default() };
+    let mut f = Fading::new(tiny).unwrap();
+    let next = f.finish_attempt(1e-3, 0.0);
+    assert!(next.is_finite() && f.assistance().is_finite(), "gain {next}, assistance {}", f.assistance());
+    let greedy = FadingParams { learn: 1e308, ..FadingParams::default() };
+    let mut f = Fading::new(greedy).unwrap();
+    assert_eq!(f.finish_attempt(1.0, 1.0), 1.0, "an overflowing update is the most assistance");
 }
 
 #[test]

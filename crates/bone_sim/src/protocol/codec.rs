@@ -39,6 +39,26 @@ impl Writer<'_> {
             self.f32(at + 4 * i, *x);
         }
     }
+    /// A force on the wire: each component rounded toward zero, so the float32 vector is never
+    /// longer than the limited one (rounding to nearest made about half the forces at the peak
+    /// 1e-7 N over it, which a client's guard refuses).
+    pub(super) fn force_f32(&mut self, at: usize, v: &Vector3<f64>) {
+        for (i, x) in v.iter().enumerate() {
+            self.0[at + 4 * i..at + 4 * i + 4].copy_from_slice(&f32_toward_zero(*x).to_le_bytes());
+        }
+    }
+}
+
+/// `x` as the nearest float32 no larger in magnitude (NaN stays NaN).
+#[inline]
+pub(crate) fn f32_toward_zero(x: f64) -> f32 {
+    let y = x as f32;
+    if f64::from(y).abs() <= x.abs() || y.is_infinite() {
+        y
+    } else {
+        // |y| > |x| >= 0, so y is finite and not zero: one step down in magnitude, either sign.
+        f32::from_bits(y.to_bits() - 1)
+    }
 }
 
 pub(super) fn rd<const N: usize>(b: &[u8], at: usize) -> [u8; N] {
@@ -204,8 +224,8 @@ pub fn encode_force(m: &ForceMsg) -> [u8; FORCE.size] {
     w.u32(4, m.pose_seq);
     w.u64(8, m.pose_client_time_ns);
     w.u64(16, m.tick);
-    w.vec3_f32(24, &m.force_n);
-    w.vec3_f32(36, &m.guidance_n);
+    w.force_f32(24, &m.force_n);
+    w.force_f32(36, &m.guidance_n);
     w.vec3_f32(48, &m.tip_m);
     w.f32(60, m.depth_m);
     w.f32(64, m.deviation_m);
@@ -503,8 +523,8 @@ impl TickBatch {
             w.f32(40 + 4 * i, *v);
         }
         w.f32(56, r.spindle_rpm);
-        w.vec3_f32(60, &r.force_n);
-        w.vec3_f32(72, &r.guidance_n);
+        w.force_f32(60, &r.force_n);
+        w.force_f32(72, &r.guidance_n);
         self.rows += 1;
         Writer(&mut self.buf).u32(4, self.rows as u32);
     }

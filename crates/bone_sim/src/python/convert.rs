@@ -62,6 +62,36 @@ pub(crate) fn from_python<T: DeserializeOwned>(value: &Bound<'_, PyAny>, what: &
         .py()
 }
 
+/// A Python request (dicts, lists, numbers, strings) as JSON, as a wire request would arrive:
+/// JSON has no NaN or infinity, and `serde_json` would read a Python NaN as `null` ("not given"),
+/// so a non-finite float anywhere in it is an `InvalidConfig` naming where.
+pub(crate) fn json_from_python(value: &Bound<'_, PyAny>, what: &'static str) -> PyResult<serde_json::Value> {
+    fn check(value: &Bound<'_, PyAny>, at: &str, what: &'static str) -> PyResult<()> {
+        use pyo3::types::{PyDict, PyFloat, PyList, PyTuple};
+        if let Ok(f) = value.cast::<PyFloat>() {
+            let v = f.value();
+            if !v.is_finite() {
+                return Err(SimError::InvalidConfig { what, reason: format!("{at}: {v} is not a finite number") }).py();
+            }
+        } else if let Ok(d) = value.cast::<PyDict>() {
+            for (k, v) in d.iter() {
+                check(&v, &if at.is_empty() { k.to_string() } else { format!("{at}.{k}") }, what)?;
+            }
+        } else if let Ok(l) = value.cast::<PyList>() {
+            for (i, v) in l.iter().enumerate() {
+                check(&v, &format!("{at}[{i}]"), what)?;
+            }
+        } else if let Ok(t) = value.cast::<PyTuple>() {
+            for (i, v) in t.iter().enumerate() {
+                check(&v, &format!("{at}[{i}]"), what)?;
+            }
+        }
+        Ok(())
+    }
+    check(value, "", what)?;
+    from_python(value, what)
+}
+
 /// A core value as Python dicts, lists and numbers, through its serde definition.
 pub(crate) fn to_python<'py, T: Serialize + ?Sized>(py: Python<'py>, value: &T) -> PyResult<Bound<'py, PyAny>> {
     pythonize::pythonize(py, value).map_err(|e| SimError::Engine(format!("cannot hand a value to Python: {e}"))).py()

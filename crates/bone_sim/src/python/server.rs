@@ -6,7 +6,7 @@ use std::time::Duration;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
-use super::convert::{detached, from_python, to_python};
+use super::convert::{detached, from_python, json_from_python, to_python};
 use super::errors::IntoPyResult;
 use super::session::config_from_dict;
 use super::volume::{bricks_arrays, xray_tuple, Bricks, PyVolume, Views};
@@ -82,7 +82,7 @@ impl PyServer {
         session_id: &str,
         request: &Bound<'_, PyDict>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let req: serde_json::Value = from_python(request.as_any(), "control request")?;
+        let req = json_from_python(request.as_any(), "control request")?;
         let v = self.server()?.control(session_id, &req).py()?;
         to_python(py, &v)
     }

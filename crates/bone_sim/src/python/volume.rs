@@ -43,7 +43,12 @@ pub(crate) fn threshold_layers<'py>(
 ) -> PyResult<Bound<'py, PyArray3<u8>>> {
     let m = mapping_from_dict(mapping)?;
     m.validate().py()?;
-    Ok(hu.as_array().mapv(|v| m.threshold_layer(f64::from(v)) as u8).into_pyarray(py))
+    let hu = hu.as_array();
+    if let Some(&v) = hu.iter().find(|v| !v.is_finite()) {
+        return Err(SimError::NonFinite { what: "HU value", value: f64::from(v) }).py();
+        // as Volume::from_hu
+    }
+    Ok(hu.mapv(|v| m.threshold_layer(f64::from(v)) as u8).into_pyarray(py))
 }
 
 /// A session's drilled bricks handed to Python: origins (n, 3) as voxel (i, j, k) and material

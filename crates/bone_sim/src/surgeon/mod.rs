@@ -40,7 +40,8 @@ use geometry::{basis, min_jerk};
 use senses::VibrationSense;
 pub use style::{
     CueMeaning, Perception, Skill, SurgeonStyle, AIM_FOLLOW_S, CUE_LEAK_PER_S, GENERIC_BREAKTHROUGH_DEPTH_M,
-    HAND_MASS_KG, LATERAL_STIFFNESS_N_PER_M, MAX_PUSH_N, PUSH_MARGIN_N, TRACK_STIFFNESS_N_PER_M, YIELD_SETTLE_S,
+    HAND_MASS_KG, LATERAL_STIFFNESS_N_PER_M, MAX_PUSH_N, MAX_REACTION_DELAY_S, PUSH_MARGIN_N, TRACK_STIFFNESS_N_PER_M,
+    YIELD_SETTLE_S,
 };
 
 use crate::error::{SimError, SimResult};

@@ -179,9 +179,21 @@ impl SurgeonStyle {
                 return Err(SimError::InvalidParameter { name, value, reason: "must not be negative" });
             }
         }
+        if self.reaction_delay_s > MAX_REACTION_DELAY_S {
+            return Err(SimError::InvalidParameter {
+                name: "surgeon style reaction_delay_s (s)",
+                value: self.reaction_delay_s,
+                reason: "must be at most MAX_REACTION_DELAY_S (2 s)",
+            });
+        }
         Ok(())
     }
 }
+
+/// The longest reaction delay a style may have (s). Human reactions to a felt or seen cue take
+/// 0.1–0.4 s (the long-latency reflex from 0.1 s, Pruszynski & Scott 2012; the novices here
+/// 0.15–0.40 s); 2 s is far beyond them, and it bounds the history the delay sizes (a tick each).
+pub const MAX_REACTION_DELAY_S: f64 = 2.0;
 
 /// What the surgeon perceives of the drill each tick: the part of the session's state a hand and
 /// a screen convey.

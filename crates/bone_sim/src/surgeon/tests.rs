@@ -125,6 +125,15 @@ fn an_invalid_style_or_duration_is_refused_with_the_field_named() {
     }
     assert!(SurgeonController::new(&path(), novice(), 1, MAX_ATTEMPT_S, None, CueMeaning::Felt).is_ok());
     assert!(CueMeaning::from_name("obey").is_err());
+    // A reaction delay sizes the hand's history (a tick each): 1e300 s wrapped to a tiny buffer,
+    // 1e6 s aborted the process allocating one.
+    for bad in [MAX_REACTION_DELAY_S * 1.001, 1e6, 1e300] {
+        let slow = SurgeonStyle { reaction_delay_s: bad, ..novice() };
+        let e = SurgeonController::new(&path(), slow, 1, 5.0, None, CueMeaning::Felt).unwrap_err();
+        assert!(e.to_string().contains("reaction_delay_s"), "{e}");
+    }
+    let slowest = SurgeonStyle { reaction_delay_s: MAX_REACTION_DELAY_S, ..novice() };
+    assert!(SurgeonController::new(&path(), slowest, 1, 5.0, None, CueMeaning::Felt).is_ok());
 }
 
 #[test]

@@ -530,6 +530,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
             errors: n(&c.model_errors),
             ignored: n(&c.model_ignored),
             unanswered: n(&c.model_unanswered),
+            dropped: n(&c.model_dropped),
             latency_p50_s: quantile(&lat, 0.5),
             latency_p99_s: quantile(&lat, 0.99),
             workers,

@@ -32,11 +32,12 @@ impl StatsSample {
         let Some(b) = base else { return self.clone() };
         Self {
             at: self.at,
-            ticks: self.ticks - b.ticks,
-            pose_thread_ticks: self.pose_thread_ticks - b.pose_thread_ticks,
-            poses_left: std::array::from_fn(|i| self.poses_left[i] - b.poses_left[i]),
-            wakes: self.wakes - b.wakes,
-            missed: self.missed - b.missed,
+            // Saturating: a base pushed just after `self` was sampled may be a little ahead.
+            ticks: self.ticks.saturating_sub(b.ticks),
+            pose_thread_ticks: self.pose_thread_ticks.saturating_sub(b.pose_thread_ticks),
+            poses_left: std::array::from_fn(|i| self.poses_left[i].saturating_sub(b.poses_left[i])),
+            wakes: self.wakes.saturating_sub(b.wakes),
+            missed: self.missed.saturating_sub(b.missed),
             lateness: self.lateness.since(&b.lateness),
             busy: self.busy.since(&b.busy),
             pose_to_tick: self.pose_to_tick.since(&b.pose_to_tick),

@@ -53,6 +53,9 @@ pub fn control_fields() -> Vec<(String, Vec<String>)> {
 pub const DEFAULT_IDLE_TIMEOUT_S: f64 = 5.0;
 /// Timeout of one model query (s), by default: 2.5 windows of the 10 Hz stream.
 pub const DEFAULT_MODEL_TIMEOUT_S: f64 = 0.25;
+/// The longest model-query timeout a server takes (s): an answer that old guides nothing (the
+/// guidance is 10 Hz), and Zenoh's timeout is a `Duration` (1e20 s does not fit one).
+pub const MAX_MODEL_TIMEOUT_S: f64 = 10.0;
 
 /// What `dhg-serve` sets, with the defaults: the one definition (`dhg.core.server.ServerSettings` reads
 /// its fields and defaults from here, through `dhg._bone_sim.defaults()`).
@@ -182,6 +185,13 @@ impl ServerConfig {
         }
         crate::error::positive("idle_timeout_s", self.idle_timeout_s)?;
         crate::error::positive("model_timeout_s", self.model_timeout_s)?;
+        if self.model_timeout_s > MAX_MODEL_TIMEOUT_S {
+            return Err(SimError::InvalidParameter {
+                name: "model_timeout_s",
+                value: self.model_timeout_s,
+                reason: "must be at most MAX_MODEL_TIMEOUT_S (10 s): a later answer guides nothing",
+            });
+        }
         Ok(())
     }
 }
@@ -222,6 +232,8 @@ pub struct Counters {
     pub model_ignored: AtomicU64,
     /// Windows whose query ended without a valid prediction for them.
     pub model_unanswered: AtomicU64,
+    /// Valid predictions the engine's full command queue could not take.
+    pub model_dropped: AtomicU64,
     /// Whether the comm thread got the short EEVDF slice (`engine::realtime`); 0 = no, 1 = yes.
     pub comm_short_slice: AtomicU64,
     /// Zenoh I/O threads on the short slice.

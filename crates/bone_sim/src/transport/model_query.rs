@@ -182,7 +182,6 @@ impl ModelQueries {
                 if info.applied_window_seq.is_some_and(|newest| !seq_after(a.window_seq, newest)) {
                     return Verdict::Older;
                 }
-                info.applied_window_seq = Some(a.window_seq);
                 let latency_s = a.at.elapsed().as_secs_f64();
                 let cmd = Command::Prediction {
                     slot: a.slot,
@@ -197,7 +196,11 @@ impl ModelQueries {
                 // command woke the tick thread. Why:
                 // docs/decisions/0009-model-reply-wakes-the-tick.md.
                 if reg.send(cmd).is_err() {
-                    return Verdict::Gone; // the engine's command ring is full
+                    return Verdict::Dropped; // the engine's command ring is full
+                }
+                // `info` again: the send borrowed the registry.
+                if let Some(info) = reg.slots.get_mut(usize::from(a.slot)) {
+                    info.applied_window_seq = Some(a.window_seq);
                 }
                 latencies.push(latency_s);
                 Verdict::Applied
@@ -207,6 +210,7 @@ impl ModelQueries {
             c.model_replies.fetch_add(latencies.len() as u64, Ordering::Relaxed);
             c.model_errors.fetch_add(tally.errors, Ordering::Relaxed);
             c.model_ignored.fetch_add(tally.ignored, Ordering::Relaxed);
+            c.model_dropped.fetch_add(tally.dropped, Ordering::Relaxed);
             let Some(id) = tally.model_id.filter(|_| !latencies.is_empty()) else { return };
             let mut m = lock(&shared.model);
             m.last_reply = Some(Instant::now());
@@ -255,6 +259,9 @@ enum Verdict {
     /// Not applied: its window is of an attempt its session has ended (a reset). The worker
     /// answered in time, so the query counts as answered for it.
     Retired,
+    /// Not applied: the engine's command queue was full. Counted (`dropped`); the worker
+    /// answered in time, so the query counts as answered for it.
+    Dropped,
 }
 
 /// What one reply held, beyond the predictions applied.
@@ -266,6 +273,8 @@ struct Tally {
     /// Valid predictions not applied: a second one for a window, one for a window older than its
     /// session's newest applied, or one for a window of an attempt its session has ended.
     ignored: u64,
+    /// Valid predictions the engine's full command queue could not take.
+    dropped: u64,
     /// The model id of the last prediction taken.
     model_id: Option<String>,
 }
@@ -277,7 +286,8 @@ struct Answers {
     /// Bit `entry` of each window a valid prediction came for.
     answered: AtomicU64,
     /// Bit `entry` of each window whose prediction served: applied, or in time for a window of an
-    /// attempt or a session that has ended since ([`Verdict::Retired`], [`Verdict::Gone`]).
+    /// attempt or a session that has ended since ([`Verdict::Retired`], [`Verdict::Gone`]), or
+    /// dropped by a full command queue ([`Verdict::Dropped`]).
     served: AtomicU64,
 }
 
@@ -309,6 +319,9 @@ impl Answers {
             }
             if matches!(verdict, Verdict::Older | Verdict::Retired) {
                 tally.ignored += 1;
+            }
+            if verdict == Verdict::Dropped {
+                tally.dropped += 1;
             }
             tally.model_id = Some(p.model_id);
         }
@@ -438,6 +451,10 @@ mod tests {
             }
         });
         assert_eq!((t.ignored, t.errors, answers.outcome()), (0, 0, (Outcome::Answered, 0)));
+        // The engine's command queue full: counted as dropped, not ignored; the worker answered.
+        let answers = Answers::new(vec![asked(0, 1)]);
+        let t = answers.take(&prediction(0, 1, 1.0), |_, _| Verdict::Dropped);
+        assert_eq!((t.dropped, t.ignored, answers.outcome()), (1, 0, (Outcome::Answered, 0)));
         // A refused prediction ends the reply; nothing after it is read.
         let answers = Answers::new(vec![asked(0, 1), asked(1, 2)]);
         let mut bad = prediction(0, 1, f32::NAN);

@@ -252,6 +252,9 @@ pub struct ModelHealth {
     pub ignored: u64,
     /// Windows whose query ended without a valid prediction for them.
     pub unanswered: u64,
+    /// Valid predictions the engine could not take: its command queue was full (never seen under
+    /// load so far; a count above 0 says the tick thread fell far behind).
+    pub dropped: u64,
     /// A window's record → its prediction applied (its wait for the burst included), median (s).
     pub latency_p50_s: f64,
     /// ... 99th percentile (s).

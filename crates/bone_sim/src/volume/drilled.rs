@@ -5,6 +5,7 @@ use std::sync::Arc;
 use nalgebra::Point3;
 
 use super::bricks::MaterialOverlay;
+use super::grid::FAR_INDEX;
 use super::layer::Layer;
 use super::sample::{check_point, Interp};
 use super::{Volume, FULL_MATERIAL};
@@ -96,7 +97,8 @@ impl DrilledVolume {
     #[inline]
     #[must_use]
     pub fn material_and_gradient_at_index(&self, c: &nalgebra::Vector3<f64>) -> (f64, nalgebra::Vector3<f64>) {
-        if !(c.x.is_finite() && c.y.is_finite() && c.z.is_finite()) {
+        // Also false for NaN: far (or non-finite) coordinates are outside, before any integer cast.
+        if !(c.x.abs() < FAR_INDEX && c.y.abs() < FAR_INDEX && c.z.abs() < FAR_INDEX) {
             return (0.0, nalgebra::Vector3::zeros());
         }
         let [nx, ny, nz] = self.volume.grid().dims();
@@ -218,9 +220,29 @@ fn floor_finite(x: f64) -> f64 {
 #[cfg(test)]
 #[allow(clippy::float_cmp)] // the same value, exactly, is the property tested
 mod tests {
+    use std::sync::Arc;
+
+    use nalgebra::Vector3;
     use proptest::prelude::*;
 
-    use super::floor_finite;
+    use super::{floor_finite, DrilledVolume};
+    use crate::volume::grid::Grid;
+    use crate::volume::material::HuMapping;
+    use crate::volume::Volume;
+
+    #[test]
+    fn far_and_non_finite_index_coordinates_read_as_outside() {
+        let grid = Grid::axis_aligned([4, 4, 4], [1e-3; 3], [0.0; 3]).unwrap();
+        let vol = Volume::from_hu(grid, &[1500.0; 64], None, HuMapping::default()).unwrap();
+        let bone = DrilledVolume::new(Arc::new(vol));
+        assert!(bone.material_and_gradient_at_index(&Vector3::new(1.5, 1.5, 1.5)).0 > 0.99);
+        for c in [1e18, -1e18, 9.3e18, f64::MAX, f64::INFINITY, f64::NAN, 4.0e9] {
+            let (m, g) = bone.material_and_gradient_at_index(&Vector3::new(c, 1.5, 1.5));
+            assert_eq!((m, g), (0.0, Vector3::zeros()), "{c}");
+            let (m, _) = bone.material_and_gradient_at_index(&Vector3::new(1.5, 1.5, c));
+            assert_eq!(m, 0.0, "{c}");
+        }
+    }
 
     #[test]
     fn the_floor_is_libms_at_the_edges() {

@@ -11,6 +11,12 @@ use crate::error::{finite, positive, SimError, SimResult};
 
 /// Largest number of voxels a grid may hold (4 Gi would overflow the `u32` brick tables).
 pub const MAX_VOXELS: usize = 1 << 31;
+/// Voxel spacings a grid takes (m): 1 µm (beyond micro-CT) to 10 cm. Below it a point a tenth of
+/// a metre away has an index coordinate beyond any integer type's reach.
+pub const SPACING_RANGE_M: [f64; 2] = [1e-6, 0.1];
+/// Index coordinates beyond ±this (voxels) are outside every grid (a side holds at most
+/// `MAX_VOXELS`): readers treat them as outside before casting them to integers.
+pub const FAR_INDEX: f64 = 4.0e9;
 
 /// Geometry of a regular voxel grid.
 #[derive(Debug, Clone, PartialEq)]
@@ -26,7 +32,7 @@ impl Grid {
     /// position of voxel (0,0,0)'s centre) and orientation (a rotation matrix).
     ///
     /// # Errors
-    /// Zero dimensions, too many voxels, non-positive or non-finite spacing, a non-finite origin,
+    /// Zero dimensions, too many voxels, a spacing outside `SPACING_RANGE_M`, a non-finite origin,
     /// or a `direction` that is not a proper rotation.
     pub fn new(dims: [usize; 3], spacing_m: [f64; 3], origin_m: [f64; 3], direction: Matrix3<f64>) -> SimResult<Self> {
         if dims.contains(&0) {
@@ -39,6 +45,14 @@ impl Grid {
         positive("voxel spacing x (m)", spacing_m[0])?;
         positive("voxel spacing y (m)", spacing_m[1])?;
         positive("voxel spacing z (m)", spacing_m[2])?;
+        if spacing_m.iter().any(|h| !(SPACING_RANGE_M[0]..=SPACING_RANGE_M[1]).contains(h)) {
+            return Err(SimError::InvalidGrid {
+                reason: format!(
+                    "voxel spacing {spacing_m:?} m: each must be within [{:e}, {}] m",
+                    SPACING_RANGE_M[0], SPACING_RANGE_M[1]
+                ),
+            });
+        }
         for (what, v) in [("origin x (m)", origin_m[0]), ("origin y (m)", origin_m[1]), ("origin z (m)", origin_m[2])] {
             finite(what, v)?;
         }
@@ -187,6 +201,13 @@ mod tests {
         let mirror = Matrix3::from_diagonal(&Vector3::new(-1.0, 1.0, 1.0));
         assert!(Grid::new([2, 2, 2], [1e-3; 3], [0.0; 3], mirror).is_err());
         assert!(Grid::new([1 << 11, 1 << 11, 1 << 10], [1e-3; 3], [0.0; 3], id).is_err());
+        // Spacings outside SPACING_RANGE_M: a 1e-20 m voxel put points 0.2 m away at index
+        // coordinates no integer holds.
+        assert!(Grid::new([2, 2, 2], [1e-20, 1e-3, 1e-3], [0.0; 3], id).is_err());
+        assert!(Grid::new([2, 2, 2], [1e-3, 1e-3, 0.5], [0.0; 3], id).is_err());
+        assert!(
+            Grid::new([2, 2, 2], [super::SPACING_RANGE_M[0], 1e-3, super::SPACING_RANGE_M[1]], [0.0; 3], id).is_ok()
+        );
     }
 
     #[test]

@@ -4,6 +4,7 @@
 
 use nalgebra::Point3;
 
+use super::grid::FAR_INDEX;
 use super::layer::Layer;
 use super::material::HU_MIN;
 use super::Volume;
@@ -79,6 +80,9 @@ impl Volume {
             },
             Interp::Linear => {
                 let c = grid.world_to_index(p);
+                if !(c.x.abs() < FAR_INDEX && c.y.abs() < FAR_INDEX && c.z.abs() < FAR_INDEX) {
+                    return outside; // also NaN: before the integer casts below
+                }
                 let dims = grid.dims();
                 let base = [c.x.floor(), c.y.floor(), c.z.floor()];
                 let frac = [c.x - base[0], c.y - base[1], c.z - base[2]];
