@@ -20,7 +20,8 @@ from dhg.live.client import TraineeClient
 from dhg.live.process import ServerProcess, free_port
 
 PEAK_FORCE_N = 3.3
-"""The Touch profile's peak: nothing above it may reach a device."""
+"""The Touch's published peak (3D Systems), written here on purpose rather than read from the
+core: the tests check the core against the device's rating, not against itself."""
 
 
 def serve(*args: str, endpoint: str | None = None) -> tuple[ServerProcess, str]:

@@ -68,11 +68,24 @@ def test_the_package_is_found_with_its_subpackages():
 
 
 def test_only_the_core_layer_imports_the_native_module():
-    # The root package reads the version from it; everything else goes through dhg.core.
     importers = {name for name, tree in MODULES.items() if _imports_native(tree)}
     assert "dhg.core.session" in importers
-    outside = sorted(n for n in importers if n != "dhg" and not n.startswith("dhg.core."))
+    outside = sorted(n for n in importers if not n.startswith("dhg.core."))
     assert outside == [], f"modules outside dhg.core import dhg._bone_sim: {outside}"
+
+
+def test_no_module_imports_the_root_package():
+    # The root re-exports the public API from every layer: a module that imported a name from it
+    # would depend on the layers above it, unseen by the checks below (which leave the root out).
+    for name, tree in MODULES.items():
+        if name == "dhg":
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module == "dhg" and node.level == 0:
+                names = sorted(a.name for a in node.names if a.name != "_bone_sim")
+                assert names == [], f"{name} imports {names} from the root package dhg"
+            if isinstance(node, ast.Import):
+                assert all(a.name != "dhg" for a in node.names), f"{name} imports the root package dhg"
 
 
 def test_no_import_cycle_between_modules():

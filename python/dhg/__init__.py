@@ -6,13 +6,14 @@ Units are SI everywhere (m, kg, s, N; °C for temperature). Frames and array lay
 
 from __future__ import annotations
 
-from dhg import _bone_sim
 from dhg.bone.phantom import Phantom, default_phantom, femur
 from dhg.core.errors import (
     CTImportError,
     DhgError,
+    EngineError,
     InvalidInputError,
     ShapeError,
+    TransportError,
     VolumeFileError,
 )
 from dhg.core.layers import Layer
@@ -27,9 +28,8 @@ from dhg.core.session import (
     StepResult,
     ThermalParams,
 )
+from dhg.core.version import __version__
 from dhg.core.volume import DrilledVolume, HuMapping, RemovalReport, Volume, XRayViews
-
-__version__: str = _bone_sim.__version__
 
 __all__ = [
     "CTImportError",
@@ -42,6 +42,7 @@ __all__ = [
     "ThermalParams",
     "DhgError",
     "DrilledVolume",
+    "EngineError",
     "HuMapping",
     "InvalidInputError",
     "Layer",
@@ -51,6 +52,7 @@ __all__ = [
     "Server",
     "ServerSettings",
     "ShapeError",
+    "TransportError",
     "Volume",
     "VolumeFileError",
     "XRayViews",

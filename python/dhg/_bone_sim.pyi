@@ -23,6 +23,8 @@ __all__ = [
     "FULL_MATERIAL",
     "XRAY_VIEWS",
     "MIN_PATH_LENGTH_M",
+    "DEFAULT_RESERVED_BRICKS",
+    "PLAN_STEP_M",
     "MAX_GAIN",
     "MAX_BURR_RADIUS_M",
     "MIN_BURR_RADIUS_M",
@@ -65,6 +67,8 @@ BRICK_EDGE: Final[int]
 FULL_MATERIAL: Final[int]
 XRAY_VIEWS: Final[list[str]]
 MIN_PATH_LENGTH_M: Final[float]
+DEFAULT_RESERVED_BRICKS: Final[int]
+PLAN_STEP_M: Final[float]
 MAX_GAIN: Final[float]
 MAX_BURR_RADIUS_M: Final[float]
 MIN_BURR_RADIUS_M: Final[float]
@@ -167,7 +171,7 @@ class DrillingSession:
         volume: Volume,
         entry_m: tuple[float, float, float],
         target_m: tuple[float, float, float],
-        config: dict[str, float] | None = None,
+        config: dict[str, Any] | None = None,
     ) -> DrillingSession: ...
     def tick(
         self, pose: tuple[float, ...] | None = None

@@ -6,13 +6,13 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from dhg.core.layers import Layer
-from dhg.core.path import PlannedPath
+from dhg.core.path import PLAN_STEP_M, PlannedPath
 from dhg.core.volume import DrilledVolume, Volume
 
 __all__ = ["breakthrough_depth_from_runs", "layer_runs", "planned_breakthrough_depth_m"]
 
 
-def layer_runs(bone: DrilledVolume, path: PlannedPath, step_m: float = 0.25e-3) -> list[tuple[str, float, float]]:
+def layer_runs(bone: DrilledVolume, path: PlannedPath, step_m: float = PLAN_STEP_M) -> list[tuple[str, float, float]]:
     """The pristine layers along A→B as runs (name, start depth (m), end depth (m))."""
     return _layer_runs(bone.volume, path, step_m)
 
@@ -23,7 +23,7 @@ def _layer_runs(volume: Volume, path: PlannedPath, step_m: float) -> list[tuple[
 
 
 def planned_breakthrough_depth_m(
-    volume: Volume, path: PlannedPath, burr_radius_m: float, step_m: float = 0.25e-3
+    volume: Volume, path: PlannedPath, burr_radius_m: float, step_m: float = PLAN_STEP_M
 ) -> float | None:
     """The tip depth along A→B (m) at which a burr of ``burr_radius_m`` (m) leaves the first
     cortical layer on the path, as a surgeon reads it off the planning CT: the end of the first

@@ -21,7 +21,7 @@ from dhg.cli.common import (
     finite_float,
     stop_on_signals,
 )
-from dhg.core.session import GUIDANCE_MODES
+from dhg.core.session import GUIDANCE_MODES, MAX_BURR_RADIUS_M, MIN_BURR_RADIUS_M
 from dhg.core.surgeon import MAX_ATTEMPT_S
 
 __all__ = ["VIEW_NICE", "add_commands"]
@@ -298,8 +298,9 @@ def _check_trainee_args(args: argparse.Namespace) -> None:
         raise ValueError("--probe-every needs --fading and is 0 (no probes) or a positive count")
     if args.fading and args.guidance == "off":
         raise ValueError("--fading fades the guidance: it needs --guidance on")
-    if args.drill_mm is not None and not 0.0 < args.drill_mm <= 40.0:
-        raise ValueError(f"--drill-mm must be a diameter in (0, 40] mm, got {args.drill_mm}")
+    lo_mm, hi_mm = 2e3 * MIN_BURR_RADIUS_M, 2e3 * MAX_BURR_RADIUS_M
+    if args.drill_mm is not None and not lo_mm <= args.drill_mm <= hi_mm:
+        raise ValueError(f"--drill-mm must be a diameter in [{lo_mm:g}, {hi_mm:g}] mm, got {args.drill_mm}")
 
 
 def _report_trainee(args: argparse.Namespace, runs: list[Any]) -> None:

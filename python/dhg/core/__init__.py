@@ -8,5 +8,6 @@
 - :mod:`~dhg.core.volume`: :class:`~dhg.core.volume.Volume` and its drilled copy;
 - :mod:`~dhg.core.session`: :class:`~dhg.core.session.DrillingSession`, the 1 kHz simulation offline;
 - :mod:`~dhg.core.surgeon`: the virtual surgeon's native 1 kHz controller and its style;
-- :mod:`~dhg.core.server`: :class:`~dhg.core.server.Server`, the real-time engine on Zenoh.
+- :mod:`~dhg.core.server`: :class:`~dhg.core.server.Server`, the real-time engine on Zenoh;
+- :mod:`~dhg.core.version`: this build's version.
 """

@@ -11,7 +11,11 @@ import numpy.typing as npt
 from dhg import _bone_sim
 from dhg.core.errors import InvalidInputError
 
-__all__ = ["PlannedPath", "TaskRules"]
+__all__ = ["PLAN_STEP_M", "PlannedPath", "TaskRules"]
+
+PLAN_STEP_M: float = float(_bone_sim.PLAN_STEP_M)
+"""The step (m) at which a planned path's layers are read off the planning CT: the sessions'
+planned breakthrough and the info's ``path_layers`` use it (0.25 mm). Defined in the core."""
 
 _RULES: dict[str, float] = _bone_sim.defaults()["task_rules"]
 """The core's ``TaskRules::default()``: the one place the task's tolerances are defined."""

@@ -307,7 +307,7 @@ class Volume:
         return self._vol.layer_at(as_points(points_m))
 
     def layer_runs(
-        self, entry_m: npt.ArrayLike, target_m: npt.ArrayLike, step_m: float = 0.25e-3
+        self, entry_m: npt.ArrayLike, target_m: npt.ArrayLike, step_m: float = _bone_sim.PLAN_STEP_M
     ) -> list[tuple[int, float, float]]:
         """The layers along the straight path entry → target (world points, m), sampled every
         ``step_m`` (m) from the entry and merged into runs: (layer id, depth of the run's first
@@ -327,7 +327,7 @@ class Volume:
         """X-ray line integrals of the undrilled volume."""
         return XRayViews(*self._vol.xray())
 
-    def drill(self, reserve_bricks: int = 512) -> DrilledVolume:
+    def drill(self, reserve_bricks: int = _bone_sim.DEFAULT_RESERVED_BRICKS) -> DrilledVolume:
         """A new, undrilled session copy of this volume (copy-on-write; costs only what it drills)."""
         return DrilledVolume(self, reserve_bricks)
 
@@ -408,7 +408,7 @@ class Volume:
 class DrilledVolume:
     """One session's drilled copy of a shared :class:`Volume` (copy-on-write 8³ bricks)."""
 
-    def __init__(self, volume: Volume, reserve_bricks: int = 512) -> None:
+    def __init__(self, volume: Volume, reserve_bricks: int = _bone_sim.DEFAULT_RESERVED_BRICKS) -> None:
         if int(reserve_bricks) < 0:
             raise InvalidInputError(f"reserve_bricks must be >= 0, got {reserve_bricks}")
         self.volume = volume

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from dhg.core.features import FEATURE_INDEX, RECORD_PERIOD_S
+from dhg.core.features import FEATURE_INDEX, RECORD_PERIOD_S, TICK_S
 from dhg.core.layers import Layer
 from dhg.core.session import StepResult, ThermalParams
 
@@ -26,7 +26,7 @@ _LAYER_COLOURS = {
 def plot_drilling(result: StepResult, out: str | os.PathLike[str], title: str = "") -> Path:
     """Writes a PNG of a drilling run: device force (N, 1 kHz), drill-tip temperature (°C) and
     penetration depth (mm) over time (s), with the layer at the tip shaded behind."""
-    t_ticks = np.arange(1, len(result.forces_n) + 1) * 1e-3
+    t_ticks = np.arange(1, len(result.forces_n) + 1) * TICK_S
     return plot_timeline(t_ticks, result.forces_n, result.times_s, result.features, out, title)
 
 

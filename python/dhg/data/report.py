@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from dhg.core.features import TICK_S
 from dhg.data.dataset import Dataset, DatasetError, load_raw
 
 __all__ = ["METRIC_COLUMNS", "episode_summaries", "load_with_raw", "plot_episode", "summary_table"]
@@ -93,7 +94,7 @@ def plot_episode(ds: Dataset, episode_id: int, out: str | os.PathLike[str], raw:
         return plot_timeline(e.times_s, e.features[:, 0:3], e.times_s, e.features, out, title + " (10 Hz)")
     forces = np.column_stack([rows[f"force_{a}_n"] for a in "xyz"])
     guidance = np.column_stack([rows[f"guidance_{a}_n"] for a in "xyz"])
-    t = (rows["tick"] + 1) * 1e-3  # the tick ending at this time (docs/dataset.md)
+    t = (rows["tick"] + 1) * TICK_S  # the tick ending at this time (docs/dataset.md)
     return plot_timeline(t, forces, e.times_s, e.features, out, title, guidance if guidance.any() else None)
 
 

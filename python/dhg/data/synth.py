@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from dhg import __version__
 from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.session import DrillingSession, SessionConfig
+from dhg.core.version import __version__
 from dhg.core.volume import Volume
 from dhg.data.dataset import EpisodeInput, volume_card
 from dhg.operators.episodes import Episode, run_episode

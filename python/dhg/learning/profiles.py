@@ -25,12 +25,14 @@ import numpy as np
 from dhg.core.errors import InvalidInputError
 from dhg.core.layers import Layer
 from dhg.core.path import PlannedPath
+from dhg.core.session import GUIDANCE_DEFAULTS
 from dhg.data.dataset import Dataset
 
 __all__ = ["CORRIDOR_N_PER_M", "DemoProfiles", "build_profiles"]
 
-CORRIDOR_N_PER_M = (100.0, 400.0)
-"""Range of the corridor stiffness a profile sets (N/m): the fixed corridor's 400 N/m at most."""
+CORRIDOR_N_PER_M = (100.0, float(GUIDANCE_DEFAULTS["corridor_stiffness_n_per_m"]))
+"""Range of the corridor stiffness a profile sets (N/m): at most the fixed corridor's (the core's
+default, 400 N/m), at least a quarter of it (the project's choice)."""
 MIN_RECORDS_PER_BIN = 3
 """Bins with fewer expert records than this take their neighbours' values."""
 
@@ -79,7 +81,9 @@ class DemoProfiles:
         return (float(b.mean()), float(b.std())) if len(b) else None
 
 
-def build_profiles(ds: Dataset, bin_m: float = 1e-3, skill: str = "expert") -> DemoProfiles:
+def build_profiles(
+    ds: Dataset, bin_m: float = GUIDANCE_DEFAULTS["corridor_profile_bin_m"], skill: str = "expert"
+) -> DemoProfiles:
     """The demonstration profiles of ``ds``'s episodes of ``skill`` (see the module docs)."""
     if not (np.isfinite(bin_m) and bin_m > 0):
         raise InvalidInputError(f"bin_m must be positive, got {bin_m}")

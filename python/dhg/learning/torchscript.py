@@ -28,9 +28,9 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from dhg import __version__
 from dhg.core.errors import InvalidInputError, ShapeError
 from dhg.core.features import FEATURE_NAMES, FEATURE_UNITS
+from dhg.core.version import __version__
 from dhg.learning.model_file import META_NAME, MODEL_FORMAT, MODEL_VERSION, ModelFileError, read_model_meta
 from dhg.learning.network import ForcePredictor, ModelConfig
 

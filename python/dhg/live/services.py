@@ -433,7 +433,7 @@ class AboutService:
     ):
         from pathlib import Path
 
-        from dhg import __version__
+        from dhg.core.version import __version__
         from dhg.data.dataset import volume_card
         from dhg.learning.model_file import model_identity
 

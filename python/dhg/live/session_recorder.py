@@ -22,12 +22,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from dhg import __version__
 from dhg.core import protocol
 from dhg.core.features import FEATURE_NAMES, RECORD_INDEX, RECORD_PERIOD_S
 from dhg.core.layers import Layer
 from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.skill import skill_metrics
+from dhg.core.version import __version__
 from dhg.data.dataset import EpisodeInput, write_dataset
 from dhg.data.synth import attempt_score
 from dhg.live.streams import EpisodeSplitter, RawParts, RecordingEpisode, force_jerk

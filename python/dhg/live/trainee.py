@@ -307,7 +307,7 @@ def run_course(
     info = client.create(guidance_gain=guidance_gain, burr_radius_m=burr_radius_m, guidance_mode=guidance_mode)
     if fading is not None:
         info = client.set_fading({"start_gain": guidance_gain, **fading})
-    mode = str(info.get("guidance_mode", "paper"))
+    mode = str(info["guidance_mode"])
     if on_start is not None:
         on_start(mode)
     path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))

@@ -10,6 +10,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dhg.bone.planning import planned_breakthrough_depth_m
+from dhg.core.features import FEATURE_NAMES
 from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.protocol import WINDOW_RECORDS
 from dhg.core.session import DrillingSession
@@ -99,7 +100,7 @@ def drill_episode(
         path, style, rng, rules, breakthrough_depth_m=planned, cue_meaning=cue_meaning, keep_raw=keep_raw
     )
     records: list[npt.NDArray[np.float64]] = []
-    window = np.empty((WINDOW_RECORDS, 9))
+    window = np.empty((WINDOW_RECORDS, len(FEATURE_NAMES)))
     while (record := session.drive(surgeon, guided)) is not None:
         records.append(record)
         if guided:

@@ -74,7 +74,7 @@ def straight_line_drill(
         mass_removed_kg=mass,
         voxels_removed=removed,
         tip_m=centers[-1],
-        layers=layer_runs(bone, path, step_m=0.25e-3),
+        layers=layer_runs(bone, path),
     )
 
 

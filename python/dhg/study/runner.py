@@ -276,7 +276,7 @@ _WORKER: dict[str, Any] = {}
 def _init_worker(model_path: str, voxel_m: float, events: Any = None) -> None:
     import torch
 
-    from dhg import default_phantom
+    from dhg.bone.phantom import default_phantom
     from dhg.learning.torchscript import load_model
 
     torch.set_num_threads(1)

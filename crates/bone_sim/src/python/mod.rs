@@ -61,9 +61,11 @@ fn _bone_sim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("HU_MAX", HU_MAX)?;
     m.add("BRICK_EDGE", BRICK_EDGE)?;
     m.add("FULL_MATERIAL", crate::volume::FULL_MATERIAL)?;
+    m.add("DEFAULT_RESERVED_BRICKS", crate::volume::drilled::DEFAULT_RESERVED_BRICKS)?;
     let views: Vec<&str> = crate::xray::View::ALL.iter().map(|v| v.name()).collect();
     m.add("XRAY_VIEWS", views)?;
     m.add("MIN_PATH_LENGTH_M", crate::path::MIN_PATH_LENGTH_M)?;
+    m.add("PLAN_STEP_M", crate::session::DrillingSession::PLAN_STEP_M)?;
     m.add("MAX_BURR_RADIUS_M", MAX_BURR_RADIUS_M)?;
     m.add("MIN_BURR_RADIUS_M", MIN_BURR_RADIUS_M)?;
     m.add("MAX_SPINDLE_RPM", crate::session::MAX_SPINDLE_RPM)?;

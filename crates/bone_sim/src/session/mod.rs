@@ -290,7 +290,8 @@ impl DrillingSession {
     }
 
     /// The step (m) at which the planned path's layers are read, as a surgeon reads them off the
-    /// planning CT (`dhg.bone.planning.planned_breakthrough_depth_m` samples the same).
+    /// planning CT (Python reads it as `dhg.core.path.PLAN_STEP_M`, the default step of
+    /// `dhg.bone.planning`'s readings).
     pub const PLAN_STEP_M: f64 = 0.25e-3;
 
     fn planned_breakthrough(&self) -> Option<f64> {
