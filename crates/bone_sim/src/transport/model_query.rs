@@ -170,6 +170,12 @@ impl ModelQueries {
                     return;
                 }
             };
+            // Every window answered: a second worker's or a rogue's extra replies change nothing,
+            // so they are counted without taking the registry the poses' threads take.
+            if ending.answers.complete() {
+                shared.counters.model_ignored.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
             let mut latencies = Vec::new();
             let mut reg = lock(&shared.registry);
             let tally = ending.answers.take(&bytes, |a, p| {
@@ -328,6 +334,13 @@ impl Answers {
         tally
     }
 
+    /// Whether every window has had its valid prediction: later replies can change nothing.
+    fn complete(&self) -> bool {
+        let n = self.asked.len();
+        let all = if n >= 64 { u64::MAX } else { (1u64 << n) - 1 };
+        self.answered.load(Ordering::Acquire) & all == all
+    }
+
     /// How the query did, once it has ended: answered when most of its windows' predictions
     /// served (a worker that answers the first window of each query alone fails), and how many
     /// windows no valid prediction came for.
@@ -413,6 +426,7 @@ mod tests {
         };
         let first = [prediction(2, 30, 3.0), prediction(0, 10, 1.0)].concat();
         assert_eq!(answers.take(&first, &mut apply), Tally { model_id: Some("m".into()), ..Tally::default() });
+        assert!(!answers.complete(), "entry 1 is still open");
         // A second reply: entry 0 again (ignored), entry 1 with entry 2's window_seq and an entry
         // the query does not have (errors), then entry 1 itself.
         let second =
@@ -421,6 +435,13 @@ mod tests {
         assert_eq!((t.errors, t.ignored), (2, 1));
         assert_eq!(got, [(7, 3.0), (3, 1.0), (5, 2.0)], "each session got its own window's prediction, once");
         assert_eq!(answers.outcome(), (Outcome::Answered, 0));
+        assert!(answers.complete(), "every window answered: a later reply is not read");
+        let n = protocol::MAX_QUERY_WINDOWS;
+        let full = Answers::new((0..n as u16).map(|i| asked(i, 1)).collect());
+        let all: Vec<u8> = (0..n as u32).flat_map(|e| prediction(e, 1, 1.0)).collect();
+        assert!(!full.complete());
+        full.take(&all, |_, _| Verdict::Applied);
+        assert!(full.complete(), "a full query, every bit");
     }
 
     #[test]
