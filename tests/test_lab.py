@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+import zenoh
 
 import dhg
 from dhg.core import protocol
@@ -65,11 +66,16 @@ def test_the_lab_file_gives_each_identity_only_its_own_keys(lab):
     parsed = load_lab(root / "lab.toml")
     rules = {r["id"]: r for r in acl(parsed)["rules"]}
     # A station publishes only its own poses; no client may put a force, guidance or state.
-    assert rules["station-1:pose"]["key_exprs"] == ["dhg/session/station-1/pose", "dhg/session/station-1-$*/pose"]
+    assert rules["station:station-1:pose"]["key_exprs"] == [
+        "dhg/session/station-1/pose",
+        "dhg/session/station-1-$*/pose",
+    ]
     for r in rules.values():
         if "put" in r["messages"] and "ingress" in r["flows"]:
             assert all(k.endswith("/pose") for k in r["key_exprs"]), r
-    assert all("station-2" not in k for r in rules.values() if r["id"].startswith("station-1") for k in r["key_exprs"])
+    assert all(
+        "station-2" not in k for r in rules.values() if r["id"].startswith("station:station-1:") for k in r["key_exprs"]
+    )
     assert acl(parsed)["default_permission"] == "deny"
     for f in (root / "out").iterdir():  # passwords inside: the owner's only
         assert stat.S_IMODE(f.stat().st_mode) == 0o600
@@ -83,10 +89,48 @@ def test_a_lab_file_with_mistakes_is_refused_with_the_reason(tmp_path):
         (LAB.format(port=1).replace('name = "station-2"', 'name = "station-1"'), "used twice"),
         (LAB.format(port=1).replace('"station-one-pw"', '"short"'), "at least 8"),
         (LAB.format(port=1).replace('name = "teacher"', 'name = "../x"'), "name"),
+        (LAB.format(port=1).replace('name = "station-2"', 'name = "station-1-b"'), "would drive station"),
     ):
         (tmp_path / "lab.toml").write_text(text)
         with pytest.raises(InvalidInputError, match=match):
             load_lab(tmp_path / "lab.toml")
+
+
+def _allowed(rules: list[dict], rid_prefix: str, message: str, key: str) -> bool:
+    """Whether a rule of ``rid_prefix`` allows ``message`` on ``key`` (Zenoh's key inclusion)."""
+    return any(
+        r["id"].startswith(rid_prefix) and message in r["messages"] and zenoh.KeyExpr(k).includes(zenoh.KeyExpr(key))
+        for r in rules
+        for k in r["key_exprs"]
+    )
+
+
+def test_recovery_and_read_only_keys_are_allowed_and_nothing_more(tmp_path):
+    """What key inclusion the router applies: a recorder's recovery of the advanced publishers'
+    streams (heartbeats, liveliness tokens and cache queries under ``<stream>/@adv/...``, a
+    verbatim chunk ``**`` does not match) is allowed on one's own sessions; an instructor reads
+    every session but cannot change one; rule ids stay unique whatever the names."""
+    (tmp_path / "lab.toml").write_text(LAB.format(port=1).replace('name = "station-2"', 'name = "instructor"'))
+    parsed = load_lab(tmp_path / "lab.toml")
+    rules = acl(parsed)["rules"]
+    ids = [r["id"] for r in rules]
+    assert len(ids) == len(set(ids)), "a station named instructor shares no rule id"
+    heartbeat = "dhg/session/{}/ticks/@adv/pub/abcd/1/_"
+    for who, sid in (("station:station-1:", "station-1"), ("station:station-1:", "station-1-a"), ("instructors:", "x")):
+        assert _allowed(rules, who, "put", heartbeat.format(sid)), (who, sid)
+        assert _allowed(rules, who, "liveliness_token", heartbeat.format(sid)), (who, sid)
+        assert _allowed(rules, who, "query", f"dhg/session/{sid}/state/@adv/pub/abcd/1/_"), (who, sid)
+        assert _allowed(rules, who, "query", f"dhg/session/{sid}/info"), (who, sid)
+    assert not _allowed(rules, "station:station-1:", "put", heartbeat.format("instructor"))
+    assert not _allowed(rules, "station:instructor:", "put", heartbeat.format("station-1"))
+    # An instructor changes nothing: no control, no pose, no model query.
+    for message, key in (
+        ("query", "dhg/session/station-1/control"),
+        ("put", "dhg/session/station-1/pose"),
+        ("query", "dhg/model/predict"),
+        ("query", "dhg/model/workers/model-1/predict"),
+    ):
+        assert not _allowed(rules, "instructors:", message, key), (message, key)
 
 
 def _client(root, endpoint, name, session_id=None, **kw) -> TraineeClient:
@@ -190,6 +234,10 @@ def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_pat
             assert {"station-1", "station-2"} <= set(health["session_ids"])
             metrics = teacher._json("dhg/session/station-1/metrics")
             assert metrics["records"] > 0
+            assert teacher._json("dhg/session/station-1/info")["session"] == "station-1"
+            # ...and changes none: its control query is refused.
+            with pytest.raises(TransportError):
+                teacher._json("dhg/session/station-1/control", {"op": "reset"}, timeout_s=1.0)
             assert teacher._json("dhg/server/about")["dhg_version"] == dhg.__version__
     finally:
         if worker is not None:

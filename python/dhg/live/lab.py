@@ -59,6 +59,7 @@ import json
 import os
 import re
 import subprocess
+import tempfile
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -73,8 +74,20 @@ ROLES = ("station", "instructor", "model_worker")
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,47}")
 SERVER_IDENTITY = "dhg-server"
 """The user name of the server's own services (model, X-rays) when they connect to its engine."""
-_HEARD = ("force", "guidance", "state", "ticks", "guidance/**", "state/**", "ticks/**", "view/force", "view/pose")
+_RECOVERABLE = ("guidance", "state", "ticks")
+"""The streams a recorder recovers (zenoh-ext advanced publishers): their heartbeats, liveliness
+tokens and cache queries live under ``<stream>/@adv/...``, a verbatim chunk ``**`` never matches."""
+_HEARD = (
+    "force",
+    "view/force",
+    "view/pose",
+    *_RECOVERABLE,
+    *(f"{leaf}/**" for leaf in _RECOVERABLE),
+    *(f"{leaf}/@adv/**" for leaf in _RECOVERABLE),
+)
 """A station's own streams it may subscribe to."""
+_READ = ("info", "metrics", "xray/*", "bone")
+"""A session's keys that answer queries without changing it."""
 
 
 @dataclass(frozen=True)
@@ -159,6 +172,14 @@ def load_lab(path: str | os.PathLike[str]) -> Lab:
             lab.identities.append(Identity(role, name, password))
     if not lab.of("station"):
         raise InvalidInputError(f"{p}: a lab needs at least one [[station]]")
+    # A station drives its sessions <name> and <name>-*: "room" would drive "room-2"'s.
+    stations = sorted(s.name for s in lab.of("station"))
+    for a in stations:
+        for b in stations:
+            if b.startswith(a + "-"):
+                raise InvalidInputError(
+                    f"{p}: station {a!r} would drive station {b!r}'s sessions ({a}-* names {b}'s): rename one"
+                )
     return lab
 
 
@@ -170,46 +191,51 @@ def _station_rules(p: str, n: str, server: list[str]) -> list[dict[str, Any]]:
     """Station ``n``'s rules under prefix ``p``: it drives and reads only its own sessions (``n``
     and ``n-*``), and asks the server's keys ``server`` (health, volume, about)."""
     own = [session_key(p, n), session_key(p, f"{n}-$*")]
+    rid = f"station:{n}"  # rule ids are unique across roles (a station may be named "instructor")
+    recover = [f"{s}/{leaf}/{tail}" for s in own for leaf in _RECOVERABLE for tail in ("**", "@adv/**")]
     return [
-        _rule(f"{n}:pose", ["put"], ["ingress"], [f"{s}/pose" for s in own]),
+        _rule(f"{rid}:pose", ["put"], ["ingress"], [f"{s}/pose" for s in own]),
         _rule(
-            f"{n}:ask",
+            f"{rid}:ask",
             ["query"],
             ["ingress"],
-            server + [f"{s}/{leaf}" for s in own for leaf in ("control", "metrics", "xray/*", "bone")],
+            server + [f"{s}/{leaf}" for s in own for leaf in ("control", *_READ)],
         ),
-        _rule(f"{n}:replies", ["reply"], ["egress"], server + [f"{s}/**" for s in own]),
+        _rule(f"{rid}:replies", ["reply"], ["egress"], server + [f"{s}/**" for s in own] + recover),
         _rule(
-            f"{n}:hear",
+            f"{rid}:hear",
             ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
             ["ingress"],
             [f"{s}/{leaf}" for s in own for leaf in _HEARD],
         ),
         _rule(
-            f"{n}:outputs",
+            f"{rid}:outputs",
             ["put", "liveliness_token"],
             ["egress"],
             [f"{s}/{leaf}" for s in own for leaf in _HEARD],
         ),
-        _rule(
-            f"{n}:recover",
-            ["query"],
-            ["ingress"],
-            [f"{s}/{leaf}/**" for s in own for leaf in ("guidance", "state", "ticks")],
-        ),
+        _rule(f"{rid}:recover", ["query"], ["ingress"], recover),
     ]
 
 
-def _instructor_rules(p: str) -> list[dict[str, Any]]:
-    """The instructors' rules under prefix ``p``: they read everything and change nothing."""
+def _instructor_rules(p: str, server: list[str]) -> list[dict[str, Any]]:
+    """The instructors' rules under prefix ``p``: they hear every session's streams and ask its
+    read-only keys (``info``, ``metrics``, X-rays, bone) and the server's ``server``, and change
+    nothing: no pose, no ``control``, no model query."""
+    every = session_key(p, "*")
+    heard = [f"{every}/{leaf}" for leaf in _HEARD]
+    asked = server + [f"{every}/{leaf}" for leaf in _READ]
+    recover = [f"{every}/{leaf}/{tail}" for leaf in _RECOVERABLE for tail in ("**", "@adv/**")]
     return [
         _rule(
-            "instructor:read",
-            ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query", "query"],
+            "instructors:read",
+            ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
             ["ingress"],
-            [f"{p}/**"],
+            heard,
         ),
-        _rule("instructor:hear", ["put", "reply", "liveliness_token"], ["egress"], [f"{p}/**"]),
+        _rule("instructors:ask", ["query"], ["ingress"], asked + recover),
+        _rule("instructors:hear", ["put", "liveliness_token"], ["egress"], heard),
+        _rule("instructors:replies", ["reply"], ["egress"], asked + recover),
     ]
 
 
@@ -222,17 +248,20 @@ def _worker_rules(p: str, n: str, served: list[str]) -> list[dict[str, Any]]:
     extra = [session_key(p, "*", "xray/*"), session_key(p, "*", "bone"), *served] if n == SERVER_IDENTITY else []
     rules = [
         _rule(
-            f"{n}:serve",
+            f"worker:{n}:serve",
             ["declare_queryable", "reply"],
             ["ingress"],
             [shared_predict_key(p), f"{own}/predict"] + extra,
         ),
-        _rule(f"{n}:join", ["liveliness_token"], ["ingress"], [own]),
-        _rule(f"{n}:queries", ["query"], ["egress"], [shared_predict_key(p), f"{own}/predict"] + extra),
+        _rule(f"worker:{n}:join", ["liveliness_token"], ["ingress"], [own]),
+        _rule(f"worker:{n}:queries", ["query"], ["egress"], [shared_predict_key(p), f"{own}/predict"] + extra),
     ]
     if n != SERVER_IDENTITY:
         about = [server_key(p, "about")]
-        rules += [_rule(f"{n}:ask", ["query"], ["ingress"], about), _rule(f"{n}:answers", ["reply"], ["egress"], about)]
+        rules += [
+            _rule(f"worker:{n}:ask", ["query"], ["ingress"], about),
+            _rule(f"worker:{n}:answers", ["reply"], ["egress"], about),
+        ]
     return rules
 
 
@@ -253,7 +282,7 @@ def acl(lab: Lab) -> dict[str, Any]:
         grant(f"station:{st.name}", [st.name], *_station_rules(p, st.name, [health, *served]))
     instructors = [i.name for i in lab.of("instructor")]
     if instructors:
-        grant("instructors", instructors, *_instructor_rules(p))
+        grant("instructors", instructors, *_instructor_rules(p, [health, *served]))
     # A model worker joins the engine's pool under its own name only (its token and its
     # queryable), and may serve the shared key the engine queries while the pool is empty.
     for n in [i.name for i in lab.of("model_worker")] + [SERVER_IDENTITY]:
@@ -322,10 +351,19 @@ def write_lab(lab_path: str | os.PathLike[str], out_dir: str | os.PathLike[str],
 
 
 def _private(path: Path, text: str) -> Path:
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.chmod(path, 0o600)
+    """Writes ``text`` to ``path`` readable by its owner only, atomically: a new file (mode 0600
+    from the start) renamed over the old, so no reader sees a partial file and an old file's
+    looser mode never holds the new passwords."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
     return path
 
 

@@ -307,7 +307,7 @@ class SessionRecorder(FlushLoop):
         if self.path is not None:
             return
         try:
-            for r in self._z.get(self.keys["control"], payload=b'{"op":"info"}', timeout=1.0):
+            for r in self._z.get(self.keys["info"], timeout=1.0):
                 if r.ok is not None:
                     info = json.loads(r.ok.payload.to_bytes())
                     self.path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))

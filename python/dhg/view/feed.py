@@ -130,8 +130,8 @@ class SessionFeed:
 
     # -- queries ---------------------------------------------------------------------------
     def info(self, timeout_s: float = 2.0) -> dict[str, Any]:
-        """The session's info (its planned path, burr, guidance): a control ``info`` query."""
-        return get_json(self._z, self.keys["control"], {"op": "info"}, timeout_s)
+        """The session's info (its planned path, burr, guidance): its read-only ``info`` key."""
+        return get_json(self._z, self.keys["info"], None, timeout_s)
 
     def metrics(self, timeout_s: float = 2.0) -> dict[str, Any]:
         """The server's skill metrics of the attempt under way (``docs/protocol.md``)."""

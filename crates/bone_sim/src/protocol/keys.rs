@@ -6,9 +6,21 @@ use std::collections::BTreeMap;
 
 /// The leaves under a session's key `<prefix>/session/<id>`: what a client puts (`pose`), hears
 /// (`force`, `guidance`, `state`, `ticks`, the screens' `view/force` and `view/pose`) and asks
-/// (`control`, `metrics`, `xray/<view>`, `bone`).
-pub const SESSION_LEAVES: [&str; 11] =
-    ["pose", "force", "guidance", "state", "ticks", "control", "metrics", "xray", "view/force", "view/pose", "bone"];
+/// (`control`, and read-only `info`, `metrics`, `xray/<view>`, `bone`).
+pub const SESSION_LEAVES: [&str; 12] = [
+    "pose",
+    "force",
+    "guidance",
+    "state",
+    "ticks",
+    "control",
+    "info",
+    "metrics",
+    "xray",
+    "view/force",
+    "view/pose",
+    "bone",
+];
 /// The one leaf under a session's key that clients put on (the rest they query or hear).
 pub const CLIENT_PUT_LEAF: &str = "pose";
 /// The server's own queryables, under `<prefix>/server/`.

@@ -576,6 +576,9 @@ pub(crate) fn declare(session: &zenoh::Session, shared: &Arc<Shared>) -> SimResu
         .wait()
         .map_err(err("the pose subscriber"))?;
     session_queryable(session, shared, "control", |s, id, q| query_json(q).and_then(|req| apply(s, id, &req)))?;
+    // The session info alone, changing nothing: what a screen or a recorder asks, so that the lab's
+    // access control can let them read it without letting them change a session (`control`).
+    session_queryable(session, shared, "info", |s, id, _| session_info(s, id, None))?;
     session_queryable(session, shared, "metrics", |s, id, _| metrics(s, id).map(|m| json!(m)))?;
     let s = shared.clone();
     session
