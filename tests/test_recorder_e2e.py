@@ -359,6 +359,68 @@ def test_a_recorded_session_trains_a_model_that_the_server_then_serves(server, t
     assert all(np.all(np.isfinite(g["predicted_force_n"])) for g in guidance)
 
 
+def test_a_failed_flush_is_counted_and_the_next_one_retries():
+    """A full disk or a vanished folder fails a flush; the recorder goes on (what the flush held
+    stays for the next) instead of ending, and says so; a failing final flush is raised."""
+    import threading
+
+    from dhg.live.session_recorder import FlushLoop
+
+    class Flaky(FlushLoop):
+        def __init__(self, failures: int, final_fails: bool = False) -> None:
+            self.flush_every_s, self.failures, self.final_fails = 0.001, failures, final_fails
+            self.calls: list[bool] = []
+            self.stop = threading.Event()
+
+        def flush(self, final: bool = False) -> int:
+            self.calls.append(final)
+            if final and self.final_fails:
+                raise OSError(28, "No space left on device")
+            if not final and len(self.calls) <= self.failures:
+                raise OSError(28, "No space left on device")
+            if len(self.calls) >= self.failures + 2:
+                self.stop.set()
+            return 1
+
+    rec = Flaky(failures=3)
+    rec.run(rec.stop)
+    assert rec.flush_errors == 3 and "No space left" in rec.last_flush_error
+    assert rec.calls[:5] == [False] * 5 and rec.calls[-1] is True, rec.calls
+    doomed = Flaky(failures=0, final_fails=True)
+    with pytest.raises(OSError, match="No space left"):
+        doomed.run(doomed.stop)
+
+
+def test_each_attempt_is_measured_against_the_path_it_was_drilled_on(server, tmp_path):
+    """A set_path between attempts: the second attempt's metrics are against the new path (the
+    recorder asks the session's info again for each new attempt; it used to keep the first)."""
+    from dhg.data.dataset import load_dataset
+    from dhg.live.recorder import SessionRecorder
+
+    _, endpoint = server
+    rec = SessionRecorder(endpoint, "repath", tmp_path / "ds", flush_every_s=0.2)
+    try:
+        with TraineeClient(endpoint, "repath") as c:
+            a, d, q = _entry(c)
+            info = c.control("info")
+            line = a + d * np.linspace(-2e-3, 2e-3, 1500)[:, None]
+            _stream(c, line, q)
+            _wait(lambda: rec.records >= 10, 20.0, "the first attempt's records")
+            rec.flush()  # the first attempt is measured against the path it had
+            length = float(np.linalg.norm(np.array(info["target_m"]) - a))
+            c.control("set_path", entry_m=list(a), target_m=list(a + 0.04 * d))  # B 40 mm from A now
+            c.control("reset")
+            _stream(c, line, q)  # the same drilling, against the shorter path
+            _wait(lambda: rec.attempts >= 2 and rec.records >= 25, 20.0, "the second attempt's records")
+        rec.flush(final=True)
+    finally:
+        rec.close()
+    first, second = load_dataset(tmp_path / "ds").episodes
+    # The tip ends within 3 mm of A in both: its distance to B is the path's length, give or take.
+    assert abs(first.metrics["target_distance_m"] - length) < 3e-3, (first.metrics, length)
+    assert abs(second.metrics["target_distance_m"] - 0.04) < 3e-3, second.metrics
+
+
 def test_the_shared_server_stops_cleanly_after_serving_the_module(server):
     """Last in this module: the server every test above shared stops with exit 0 and says so."""
     stops_cleanly(server[0])

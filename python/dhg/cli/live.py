@@ -423,7 +423,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
             print(f"  {t:5.0f} s: nothing from session {args.session} yet ({where})", flush=True)
         else:
             ticks = f", {rec.raw_rows} ticks written" if args.raw else ""
-            print(f"  {t:5.0f} s: {rec.records} records in {rec.attempts} attempt(s){ticks}", flush=True)
+            failed = f"; {rec.flush_errors} failed flushes (last: {rec.last_flush_error})" if rec.flush_errors else ""
+            print(f"  {t:5.0f} s: {rec.records} records in {rec.attempts} attempt(s){ticks}{failed}", flush=True)
 
     _run_recorder(rec, args, status)
     print(f"recorded {rec.records} records in {rec.flushes} flushes to {args.out}{_left_out(rec)}")

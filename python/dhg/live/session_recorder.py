@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dhg.core import protocol
-from dhg.core.features import FEATURE_NAMES, RECORD_INDEX, RECORD_PERIOD_S
+from dhg.core.features import FEATURE_NAMES, RECORD_INDEX, RECORD_PERIOD_S, TICK_S
 from dhg.core.layers import Layer
 from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.skill import skill_metrics
@@ -102,6 +102,9 @@ class FlushLoop:
     """``run``: the flush loop both recorders share."""
 
     flush_every_s: float
+    flush_errors: int = 0
+    """Flushes that failed (a full disk, a folder gone, ...): what they held stays for the next."""
+    last_flush_error: str = ""
 
     def flush(self, final: bool = False) -> Any:
         raise NotImplementedError
@@ -125,7 +128,11 @@ class FlushLoop:
                 wake = min(wake, t0 + duration_s)
             if stop.wait(max(0.0, wake - now)):
                 break
-            self.flush()
+            try:
+                self.flush()
+            except Exception as exc:  # everything is still held: the next flush retries
+                self.flush_errors += 1
+                self.last_flush_error = str(exc)
             now = time.monotonic()
             if status is not None and status_every_s > 0 and now >= next_status:
                 status(now - t0)
@@ -238,7 +245,7 @@ class SessionRecorder(FlushLoop):
         m = self._decode("state", sample)
         if m is None:
             return
-        tick = round(m["time_s"] * 1e3) - 1  # the step that completed this record
+        tick = round(m["time_s"] / TICK_S) - 1  # the step that completed this record
         with self._lock:
             ep = self._split.place("state", tick)
             ep.records.append(m)
@@ -304,7 +311,9 @@ class SessionRecorder(FlushLoop):
                             self.about = about
             except Exception:  # as below: try again next flush
                 pass
-        if self.path is not None:
+        with self._lock:
+            unplaced = [ep for ep in self._split.episodes if ep.episode_id is not None and ep.path is None]
+        if self.path is not None and not unplaced:
             return
         try:
             for r in self._z.get(self.keys["info"], timeout=1.0):
@@ -313,7 +322,9 @@ class SessionRecorder(FlushLoop):
                     self.path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))
                     self.session_info = {k: info[k] for k in SESSION_INFO_KEYS if k in info}
         except Exception:  # zenoh errors, a closed session or a malformed reply: try again next flush
-            pass
+            return
+        for ep in unplaced:  # each new attempt: the session's path as asked after it began
+            ep.path = self.path
 
     def _take(
         self, final: bool
@@ -375,10 +386,11 @@ class SessionRecorder(FlushLoop):
             records = state_records(states)
             last = states[-1]
             metrics: dict[str, Any] = {}
-            if self.path is not None:
+            path = ep.path if ep.path is not None else self.path
+            if path is not None:
                 metrics = skill_metrics(
                     records,
-                    self.path,
+                    path,
                     rules,
                     final_tip_m=records[-1, RECORD_INDEX["tip_x_m"] : RECORD_INDEX["tip_x_m"] + 3],
                     drilling_s=float(np.count_nonzero(records[:, RECORD_INDEX["drill_on"]] > 0.5)) * RECORD_PERIOD_S,

@@ -55,6 +55,10 @@ class RecordingEpisode:
     jerk_sum: float = 0.0
     jerk_count: int = 0
     last_row: npt.NDArray[np.float64] | None = None
+    path: Any = None
+    """The planned path (:class:`dhg.core.path.PlannedPath`) its metrics are measured against:
+    the session's as the recorder asked after the attempt began (None: not asked yet); a
+    ``set_path`` between attempts gives the next attempt the new one."""
 
 
 class EpisodeSplitter:
