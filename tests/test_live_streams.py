@@ -248,3 +248,27 @@ def test_a_bad_ticks_batch_is_counted_and_left_out(tmp_path):
     with pytest.raises(ValueError, match="NaN or infinite position_m"):
         protocol.decode_ticks(bytes(nan))
     assert rec.decode_errors == 3 and not rec._split.episodes
+
+
+def test_a_pages_timeline_holds_what_the_hand_felt_at_each_record():
+    """The page's force plot: the device force on the hand and its guidance share as they were at
+    each record (the newest view/force then), not the bone's feedback alone, nor the newest
+    guidance message drawn flat across the 20 s."""
+    from dhg.core import protocol
+    from dhg.live.zenoh_config import open_zenoh, zenoh_config_json5
+    from dhg.view.feed import SessionFeed
+    from support import wait_until
+
+    z = open_zenoh(zenoh_config_json5(mode="peer"))
+    try:
+        feed = SessionFeed(z, "feed-1", prefix="feedtest")
+        keys = protocol.keys("feedtest", "feed-1")
+        for k, (hand, share) in enumerate(((1.0, 0.0), (2.0, 0.5))):
+            z.put(keys["view/force"], protocol.encode("force", force_n=(0.0, 0.0, hand), guidance_n=(0.0, share, 0.0)))
+            wait_until(lambda k=k: feed.forces > k, 10.0, "the force")
+            z.put(keys["state"], protocol.encode("state", record_seq=k + 1, time_s=0.1 * (k + 1)))
+            wait_until(lambda k=k: feed.states > k, 10.0, "the state")
+        got = [(s["hand_force_n"], s["guidance_share_n"]) for s in feed.timeline_states()]
+        assert got == [(1.0, 0.0), (2.0, 0.5)], got
+    finally:
+        z.close()

@@ -110,7 +110,16 @@ class SessionFeed:
             self.timeline.clear()
         if len(self.attempt) < 36_000:
             self.attempt.append(m)
-        self.timeline.append(m)
+        # What the hand felt at this record: the newest device force (the 50-60 Hz view stream),
+        # and its guidance share; the state's own force feature is the bone's feedback alone.
+        f = self.force
+        self.timeline.append(
+            m
+            | {
+                "hand_force_n": float(np.linalg.norm(f["force_n"])) if f else 0.0,
+                "guidance_share_n": float(np.linalg.norm(f["guidance_n"])) if f else 0.0,
+            }
+        )
         self.state, self.states = m, self.states + 1
 
     def snapshot(self) -> dict[str, Any]:

@@ -68,9 +68,13 @@ class InstructorPage:
         sid = self._protocol.session_of(self.prefix, str(sample.key_expr))
         if sid is None:
             return
+        from dhg.live.session_recorder import valid_message
+
         try:
             m = self._protocol.decode("state", sample.payload.to_bytes())
         except ValueError:
+            return
+        if not valid_message("state", m):  # a NaN or a layer no layer has would stop the table
             return
         with self._lock:
             if sid in self._states or len(self._states) < 1024:  # a flood of fake ids stays bounded
@@ -82,9 +86,16 @@ class InstructorPage:
         while not self._stop.is_set():
             try:
                 ids = server_sessions(self._z, self.prefix)
+                with self._lock:  # states of sessions gone: a long class's ids do not fill the 1024
+                    for gone in [sid for sid in self._states if sid not in ids]:
+                        del self._states[gone]
                 rows = []
                 for sid in ids:
-                    url = self.open_page(sid)
+                    try:
+                        url: str | None = self.open_page(sid)
+                    except Exception as exc:  # no page for this one (all taken): the rest still show
+                        log.warning("instructor page: no page for %s: %s", sid, exc)
+                        url = None
                     try:
                         met = get_json(self._z, self._protocol.session_key(self.prefix, sid, "metrics"), None, 2.0)
                     except Exception:
@@ -105,7 +116,7 @@ class InstructorPage:
             self._stop.wait(self.refresh_s)
 
     @staticmethod
-    def _row(sid: str, url: str, st: dict[str, Any] | None, met: dict[str, Any] | None) -> str:
+    def _row(sid: str, url: str | None, st: dict[str, Any] | None, met: dict[str, Any] | None) -> str:
         e = html.escape(sid)
         if st is None:
             live = "no state yet"
@@ -126,8 +137,13 @@ class InstructorPage:
             attempt = "no metrics yet"
         return (
             f'<div class="dhg-session" data-session="{e}" style="border-top:1px solid #ddd;padding:4px 0">'
-            f'<b>{e}</b> <a href="{html.escape(url)}" target="_blank" id="dhg-open-{e}">open its page</a>'
-            f'<div style="font-size:85%">{live}</div><div style="font-size:85%;color:#555">{attempt}</div></div>'
+            f"<b>{e}</b> "
+            + (
+                f'<a href="{html.escape(url)}" target="_blank" id="dhg-open-{e}">open its page</a>'
+                if url is not None
+                else "(no page: this viewer shows as many as it can)"
+            )
+            + f'<div style="font-size:85%">{live}</div><div style="font-size:85%;color:#555">{attempt}</div></div>'
         )
 
     def _show_tips(self, ids: list[str]) -> None:

@@ -187,9 +187,9 @@ class TraineePage:
         empty = np.zeros(0)
         out = {}
         for key, title, labels in (
-            ("force", "Force (N)", ("|F| device", "thrust", "guidance share")),
+            ("force", "Force (N)", ("|F| on the hand", "thrust", "guidance share")),
             ("temperature", "Tip temperature (°C)", ("temperature", f"{NECROSIS_C:g} °C")),
-            ("depth", "Depth and deviation (mm)", ("depth along A→B", "lateral deviation")),
+            ("depth", "Depth and deviation (mm)", ("depth along A→B", "deviation from A→B")),
         ):
             colours = ("#1f4e79", "#c0392b", "#e67e22")
             series = (uplot.Series(label="time (s)"),) + tuple(
@@ -227,7 +227,7 @@ class TraineePage:
                 "color:#c0392b;font-weight:bold" if hot else "",
             ),
             row("depth", "Depth along A→B", f"{f['depth_m'] * 1e3:.2f} mm"),
-            row("deviation", "Lateral deviation", f"{f['deviation_m'] * 1e3:.2f} mm"),
+            row("deviation", "Deviation from A→B", f"{f['deviation_m'] * 1e3:.2f} mm"),
             row("layer", "Layer at the tip", LAYER_NAMES.get(int(f["layer"]), "?")),
             row("removed", "Bone removed", f"{st['removed_volume_m3'] * 1e9:.1f} mm³" if st else "–"),
             row("breakthroughs", "Breakthroughs", str(int(f["breakthroughs"]))),
@@ -252,14 +252,11 @@ class TraineePage:
         feats = np.array([s["features"] for s in states], dtype=float)
         thrust = np.array([s["thrust_n"] for s in states])
         dev = np.array([s["deviation_m"] for s in states]) * 1e3
-        self._plots["force"].data = (t, np.linalg.norm(feats[:, 0:3], axis=1), thrust, self._guidance_norms(t))
+        hand = np.array([s["hand_force_n"] for s in states])
+        share = np.array([s["guidance_share_n"] for s in states])
+        self._plots["force"].data = (t, hand, thrust, share)
         self._plots["temperature"].data = (t, feats[:, FEATURE_INDEX["temperature_c"]], np.full_like(t, NECROSIS_C))
         self._plots["depth"].data = (t, feats[:, FEATURE_INDEX["depth_m"]] * 1e3, dev)
-
-    def _guidance_norms(self, t: np.ndarray) -> np.ndarray:
-        g = self.feed.snapshot()["guidance"]
-        # The guidance stream is 10 Hz like the states; its newest value stands for the window.
-        return np.full_like(t, float(np.linalg.norm(g["guidance_n"])) if g else 0.0)
 
     # -- actions ---------------------------------------------------------------------------
     def _take_xray(self, view: str) -> None:
