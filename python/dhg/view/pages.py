@@ -103,6 +103,7 @@ class TraineePage:
         self._info: dict[str, Any] | None = None
         self._metrics: dict[str, Any] | None = None
         self._last_metrics: dict[str, Any] | None = None  # the attempt before the last reset
+        self._metric_resets = 0  # resets the metrics poll has seen (its newest is of the new attempt)
         self._shown_attempts = 0
         self._last_removed = -1.0
         self._drawn: tuple[Any, ...] | None = None  # what the drill was last drawn from
@@ -390,6 +391,7 @@ class TraineePage:
         period = 1.0 / self.bone_hz
         last_metrics = 0.0
         while not self._stop.wait(period):
+            # Each step on its own: a bone snapshot refused must not stop the metrics, nor they it.
             try:
                 if self._info is None:
                     self._info = self.feed.info()
@@ -399,20 +401,29 @@ class TraineePage:
                     )
                 if self.watched:
                     self._update_bone()
-                if time.monotonic() - last_metrics >= 1.0:
-                    last_metrics = time.monotonic()
-                    m = self.feed.metrics()
-                    if self._metrics is not None and m["time_s"] < self._metrics["time_s"]:
-                        self._last_metrics = self._metrics  # the attempt that just ended
-                    self._metrics = m
-                if self.feed.attempts_finished > self._shown_attempts and self.watched:
-                    self._shown_attempts = self.feed.attempts_finished
-                    self._summarize(finished=True)
             except Exception as exc:  # no such session yet, a server restarting: try again
                 self.bone_errors += 1
                 log.debug("viewer bone: %s", exc)
                 if self.feed.state is None:
                     self._info = None
+            try:
+                if time.monotonic() - last_metrics >= 1.0:
+                    last_metrics = time.monotonic()
+                    m = self.feed.metrics()
+                    if self._metrics is not None and m["time_s"] < self._metrics["time_s"]:
+                        # The attempt that just ended, as of the poll before its end (up to 1 s short).
+                        self._last_metrics = self._metrics
+                        self._metric_resets += 1
+                    self._metrics = m
+                # Once both the states and the metrics poll have seen the reset: before the poll
+                # has, its newest metrics are still of the attempt before the one that ended.
+                ended = min(self.feed.attempts_finished, self._metric_resets)
+                if ended > self._shown_attempts and self.watched:
+                    self._shown_attempts = ended
+                    self._summarize(finished=True)
+            except Exception as exc:
+                self.bone_errors += 1
+                log.debug("viewer metrics: %s", exc)
 
     def _update_bone(self) -> None:
         st = self.feed.state
