@@ -391,6 +391,29 @@ def test_a_failed_flush_is_counted_and_the_next_one_retries():
         doomed.run(doomed.stop)
 
 
+def test_a_recorder_never_replaces_a_recording_it_did_not_write(tmp_path):
+    """A recorder restarted into its folder used to replace the recording there at its first flush:
+    one session's recorder refuses a folder that is not empty (unless overwrite), and the class
+    recorder puts a session whose folder holds a recording into <id>-2, <id>-3, ..."""
+    import types
+
+    from dhg.live.recorder import AllSessionsRecorder, SessionRecorder
+
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "card.json").write_text("{}")
+    with pytest.raises(InvalidInputError, match="is not empty: recording there would replace"):
+        SessionRecorder("tcp/127.0.0.1:9", "kept", tmp_path / "ds")
+    assert (tmp_path / "ds" / "card.json").read_text() == "{}"
+    root = tmp_path / "class"
+    (root / "s1").mkdir(parents=True)
+    (root / "s1" / "card.json").write_text("{}")
+    rec = types.SimpleNamespace(out_root=root, _folders=set())
+    free = AllSessionsRecorder._free_folder
+    assert free(rec, "s2") == root / "s2"  # type: ignore[arg-type]
+    assert free(rec, "s1") == root / "s1-2"  # type: ignore[arg-type]
+    assert free(rec, "s1") == root / "s1-3", "nor one this recorder writes already"  # type: ignore[arg-type]
+
+
 def test_each_attempt_is_measured_against_the_path_it_was_drilled_on(server, tmp_path):
     """A set_path between attempts: the second attempt's metrics are against the new path (the
     recorder asks the session's info again for each new attempt; it used to keep the first)."""

@@ -160,6 +160,12 @@ def _add_record(sub: Any, epilog: str) -> None:
     p.add_argument(
         "--raw", action="store_true", help="also keep the 1 kHz pose/force stream (raw.parquet, about 2 MB a minute)"
     )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="with --session, replace what --out holds (without it a folder that is not empty is refused; "
+        "--all never replaces: a session whose folder holds a recording goes to <id>-2, <id>-3, ...)",
+    )
     p.add_argument("--prefix", default="dhg", help="key prefix of the server (default dhg)")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config (TLS, credentials, ...)")
     p.set_defaults(func=_cmd_record)
@@ -413,6 +419,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         args.flush_every,
         zenoh_config_file=args.zenoh_config,
         raw=args.raw,
+        overwrite=args.overwrite,
     )
     print(f"recording session {args.session} into {args.out} (Ctrl-C to stop)", flush=True)
 

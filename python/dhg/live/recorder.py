@@ -79,6 +79,7 @@ class AllSessionsRecorder(FlushLoop):
         from dhg.live.zenoh_config import open_zenoh, zenoh_config_json5
 
         self.out_root = Path(out_root)
+        self._folders: set[Path] = set()  # the folders this recorder writes
         self.prefix, self.skill, self.raw = prefix, skill, raw
         self.flush_every_s = flush_every_s
         self.on_new_session = on_new_session
@@ -173,6 +174,17 @@ class AllSessionsRecorder(FlushLoop):
             if self._pending and not self._stop.is_set():
                 self.confirm()
 
+    def _free_folder(self, sid: str) -> Path:
+        """The folder of session ``sid``'s dataset: ``<out>/<sid>``, or ``<sid>-2``, ``-3``, ... where
+        that holds a recording already (a recorder restarted into the same ``--out``, or a session
+        id used again): nothing recorded before is replaced."""
+        folder, k = self.out_root / sid, 1
+        while folder.is_dir() and any(folder.iterdir()) or folder in self._folders:
+            k += 1
+            folder = self.out_root / f"{sid}-{k}"
+        self._folders.add(folder)
+        return folder
+
     def confirm(self, timeout_s: float = 1.0) -> int:
         """Asks the server which sessions it has; starts recording every waiting one it lists
         (with the messages it sent meanwhile) and drops those it did not list twice. Returns how
@@ -187,7 +199,7 @@ class AllSessionsRecorder(FlushLoop):
                     rec = SessionRecorder(
                         (),
                         sid,
-                        self.out_root / sid,
+                        self._free_folder(sid),
                         self.prefix,
                         skill=self.skill,
                         raw=self.raw,

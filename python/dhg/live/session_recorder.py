@@ -23,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dhg.core import protocol
+from dhg.core.errors import InvalidInputError
 from dhg.core.features import FEATURE_NAMES, RECORD_INDEX, RECORD_PERIOD_S, TICK_S
 from dhg.core.layers import Layer
 from dhg.core.path import PlannedPath, TaskRules
@@ -164,14 +165,22 @@ class SessionRecorder(FlushLoop):
         raw: bool = False,
         raw_part_rows: int = 10_000,
         zenoh_session: Any | None = None,
+        overwrite: bool = False,
     ) -> None:
         """``zenoh_session``: share an open Zenoh session instead of opening one; the recorder then
-        neither subscribes (its owner feeds :meth:`on_sample`) nor closes it."""
+        neither subscribes (its owner feeds :meth:`on_sample`) nor closes it. ``out_dir`` must be
+        new or empty unless ``overwrite``: the recorder's first flush replaces what is there (a
+        recorder restarted into its folder would lose the recording before it)."""
         from dhg.live.zenoh_config import open_zenoh, zenoh_config_json5
 
         protocol.check_session_id(session_id)
         self.session_id = session_id
         self.out_dir = Path(out_dir)
+        if not overwrite and self.out_dir.is_dir() and any(self.out_dir.iterdir()):
+            raise InvalidInputError(
+                f"{self.out_dir} is not empty: recording there would replace what it holds "
+                "(choose another folder, or pass --overwrite)"
+            )
         self.subject_id = subject_id or session_id
         self.skill = skill
         self.flush_every_s = flush_every_s
