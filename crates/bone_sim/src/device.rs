@@ -30,6 +30,13 @@ use crate::error::{positive, SimError, SimResult};
 /// Fraction of the continuous budget (`θ / F_c²`) up to which the peak force is allowed.
 const THERMAL_KNEE: f64 = 0.75;
 
+/// The Touch's continuous ("24 hours") force (N; 3D Systems, Touch device specifications): the
+/// default profile's, and the guidance share's default cap.
+pub const TOUCH_CONTINUOUS_FORCE_N: f64 = 0.88;
+/// The Touch's stiffness (N/m), the lower end of its quoted 0.4–0.7 N/mm: the default profile's
+/// rendering limit, and the guidance corridor's and brake's default stiffness.
+pub const TOUCH_STIFFNESS_N_PER_M: f64 = 400.0;
+
 /// Force and rate limits of a haptic device.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 // Python and the wire name the fields as here; a missing field takes its default, an unknown one
@@ -63,9 +70,9 @@ impl DeviceProfile {
     pub fn geomagic_touch() -> Self {
         Self {
             peak_force_n: 3.3,
-            continuous_force_n: 0.88,
+            continuous_force_n: TOUCH_CONTINUOUS_FORCE_N,
             thermal_time_constant_s: 20.0,
-            max_stiffness_n_per_m: 400.0,
+            max_stiffness_n_per_m: TOUCH_STIFFNESS_N_PER_M,
             max_force_rate_n_per_s: 200.0,
             stale_after_s: 0.05,
         }

@@ -67,6 +67,8 @@ pub const IDLE_WAKE: Duration = Duration::from_millis(20);
 ///
 /// Why this value: `docs/decisions/0005-pose-locked-schedule.md`.
 pub const TICK_PERIOD: Duration = Duration::from_millis(1);
+// The schedule's period and the simulation's step are one fact: a change to one must be made to both.
+const _: () = assert!(TICK_PERIOD.as_nanos() as f64 == crate::record::TICK_S * 1e9);
 
 /// Claims a slot if no other thread holds it (never waits). A tick that panicked left its slot
 /// consistent at each step, so a poisoned claim is taken over.

@@ -66,12 +66,16 @@ pub struct GuidanceParams {
     pub heat_buzz_hz: f64,
 }
 
+/// The Touch's continuous force and stiffness (N, N/m), the profile's (`DeviceProfile::geomagic_touch`).
+const TOUCH_CONTINUOUS_N: f64 = crate::device::TOUCH_CONTINUOUS_FORCE_N;
+const TOUCH_STIFFNESS_N_PER_M: f64 = crate::device::TOUCH_STIFFNESS_N_PER_M;
+
 impl Default for GuidanceParams {
     fn default() -> Self {
         Self {
             // The Touch's continuous force (3D Systems' specification, `DeviceProfile`): a share
             // the device can hold indefinitely.
-            max_n: 0.88,
+            max_n: TOUCH_CONTINUOUS_N,
             // Derived, not from a source: the whole 0.88 N in 0.11 s, about one 10 Hz model
             // period (Fekri et al. 2021's record rate), so a reply's step is spread over the
             // interval until the next one instead of felt as a jolt.
@@ -85,7 +89,7 @@ impl Default for GuidanceParams {
             // (docs/benchmarks.md): inside 0.5 mm the corridor leaves the hand alone.
             corridor_deadband_m: 0.5e-3,
             // 0.88 N at 2.7 mm off the line: at most the Touch's 400 N/m, so it is rendered stably.
-            corridor_stiffness_n_per_m: 400.0,
+            corridor_stiffness_n_per_m: TOUCH_STIFFNESS_N_PER_M,
             // The project's choice, not from a source: a tenth of the brake's, enough to take the
             // spring's overshoot off a 0.4 kg hand without dragging a lateral correction.
             corridor_damping_n_s_per_m: 2.0,
@@ -103,7 +107,7 @@ impl Default for GuidanceParams {
             brake_hold_n: 2.2,
             brake_decay_s: 0.4,
             // The Touch's 400 N/m stiffness limit (`DeviceProfile`), rendered stably.
-            brake_stiffness_n_per_m: 400.0,
+            brake_stiffness_n_per_m: TOUCH_STIFFNESS_N_PER_M,
             // The arm damping of `docs/fidelity.md`'s hand-held plunge model (the project's
             // choice): the brake resists a surge as the arm itself would.
             brake_damping_n_s_per_m: 20.0,
