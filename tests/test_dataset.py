@@ -329,3 +329,15 @@ def test_replaying_the_raw_poses_reproduces_the_forces(small, coarse_phantom):
         np.testing.assert_array_equal(replay.forces_n, forces)
         np.testing.assert_array_equal(replay.records, episodes[eid].records)
     assert set(np.unique(ids)) == {0, 1, 2}
+
+
+def test_the_timeline_shades_each_run_of_a_layer_once():
+    """One span per run of a layer (a record covers the 0.1 s before its time), broken where the
+    layer changes or records are missing; per record, an hour of records drew for minutes."""
+    from dhg.data.plots import _layer_spans
+
+    t = np.array([0.1, 0.2, 0.3, 0.4, 0.5, 0.9, 1.0])
+    layers = np.array([0, 0, 1, 1, 1, 1, 2], dtype=float)
+    got = [(int(layer), round(a, 6), round(b, 6)) for layer, a, b in _layer_spans(t, layers)]
+    assert got == [(0, 0.0, 0.2), (1, 0.2, 0.5), (1, 0.8, 0.9), (2, 0.9, 1.0)], got
+    assert _layer_spans(np.zeros(0), np.zeros(0)) == []

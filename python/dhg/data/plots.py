@@ -43,19 +43,17 @@ def plot_timeline(
     ticks or the 10 Hz records) with its guidance share |G| when given, and from the 10 Hz records
     (``times_s``, ``features`` in :data:`dhg.core.features.FEATURE_NAMES` order) the drill-tip
     temperature (°C) and the depth along A→B (mm), with the layer at the tip shaded behind."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
     from matplotlib.patches import Patch
 
     t_rec = np.asarray(times_s, dtype=float)
     feats = np.asarray(features, dtype=float)
-    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True, constrained_layout=True)
-    for ax in axes:
-        for i in range(len(t_rec)):
-            layer = Layer(int(feats[i, FEATURE_INDEX["layer"]]))
-            ax.axvspan(t_rec[i] - RECORD_PERIOD_S, t_rec[i], color=_LAYER_COLOURS[layer], lw=0)
+    # A Figure of its own, not pyplot's global state: pages plot from several threads at once.
+    fig = Figure(figsize=(9, 7), constrained_layout=True)
+    axes = fig.subplots(3, 1, sharex=True)
+    for layer, start_s, end_s in _layer_spans(t_rec, feats[:, FEATURE_INDEX["layer"]]):
+        for ax in axes:
+            ax.axvspan(start_s, end_s, color=_LAYER_COLOURS[layer], lw=0)
     t_f = np.asarray(force_t_s, dtype=float)
     axes[0].plot(t_f, np.linalg.norm(np.asarray(forces_n, dtype=float), axis=1), lw=0.8, color="#1f4e79", label="|F|")
     if guidance_n is not None:
@@ -81,6 +79,21 @@ def plot_timeline(
     return _save(fig, out)
 
 
+def _layer_spans(t_rec: npt.NDArray[np.float64], layers: npt.NDArray[np.float64]) -> list[tuple[Layer, float, float]]:
+    """The records' layer as runs (layer, start s, end s): each record covers the period before
+    its time; a run ends where the layer changes or a record is missing. One span per run, not
+    per record (an hour of records drew for minutes)."""
+    if len(t_rec) == 0:
+        return []
+    breaks = np.flatnonzero((np.diff(layers) != 0) | (np.diff(t_rec) > 1.5 * RECORD_PERIOD_S)) + 1
+    starts = np.concatenate([[0], breaks])
+    ends = np.concatenate([breaks, [len(t_rec)]]) - 1
+    return [
+        (Layer(int(layers[a])), float(t_rec[a] - RECORD_PERIOD_S), float(t_rec[b]))
+        for a, b in zip(starts, ends, strict=True)
+    ]
+
+
 def _save(fig, out: str | os.PathLike[str]) -> Path:
     """Writes a figure as PNG atomically and closes it."""
     import matplotlib.pyplot as plt
@@ -89,7 +102,8 @@ def _save(fig, out: str | os.PathLike[str]) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
     fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    if fig.canvas.manager is not None:  # one of pyplot's: let it go
+        plt.close(fig)
     os.replace(tmp, path)
     return path
 
