@@ -269,6 +269,13 @@ impl CommandSender {
         self.waker.wake();
         Ok(())
     }
+
+    /// Commands the ring can take now (its one producer is this sender, so no other push can
+    /// take them before this sender's next).
+    #[must_use]
+    pub fn free(&self) -> usize {
+        self.ring.slots()
+    }
 }
 
 /// How the tick and comm threads wait for their next event.

@@ -371,6 +371,7 @@ pub(crate) fn apply(shared: &Shared, id: &str, body: &Value) -> SimResult<Value>
                 };
                 let gain = guidance_gain.map(check_gain).transpose()?;
                 let burr = burr_radius_m.map(check_burr_radius).transpose()?;
+                reg.room_for(3)?; // Activate, SetGuidance, SetBurr: all or none
                 let (s, created) = reg.open(id, path)?;
                 if guidance_mode.is_some() || gain.is_some() {
                     set_guidance(&mut reg, s, guidance_mode, gain)?;
@@ -384,6 +385,7 @@ pub(crate) fn apply(shared: &Shared, id: &str, body: &Value) -> SimResult<Value>
             }
             ControlRequest::Reset => {
                 let s = slot(&reg)?;
+                reg.room_for(2)?; // Reset and a fading schedule's SetGuidance: both or none
                 reset(&mut reg, s)?;
             }
             ControlRequest::SetFading { fading } => {
@@ -662,6 +664,30 @@ mod tests {
         assert_eq!(attempt, reg.slots[0].attempt, "the registry's count is the engine's");
         assert!(reg.slots[0].add_record(&msg, attempt, 3));
         assert_eq!((reg.slots[0].metrics.records(), reg.slots[0].attempt_first_window), (1, Some(3)));
+    }
+
+    #[test]
+    fn a_request_of_several_commands_is_refused_whole_when_the_ring_cannot_take_them() {
+        use super::super::registry::{Owners, Registry};
+        use crate::engine::{build, EngineConfig};
+        use crate::volume::{layer::Layer, test_support::uniform_block};
+        use nalgebra::Point3;
+
+        let vol = Arc::new(uniform_block(24, 0.5e-3, Layer::Cortical, 1500.0, 4));
+        let path = PlannedPath::new(Point3::new(6e-3, 6e-3, 1e-3), Point3::new(6e-3, 6e-3, 10e-3)).unwrap();
+        let mut cfg = EngineConfig::new(path.clone());
+        (cfg.max_sessions, cfg.reserve_bricks) = (2, 64);
+        let (_core, link) = build(&vol, &cfg).unwrap(); // no tick thread: nothing takes the commands
+        let mut reg =
+            Registry::new(link.commands, link.poses, path, (GuidanceMode::default(), 1.0), 1.25e-3, Owners::default());
+        reg.open("a", None).unwrap();
+        while reg.room_for(3).is_ok() {
+            set_guidance(&mut reg, 0, None, Some(0.5)).unwrap();
+        }
+        assert!(reg.room_for(2).is_ok(), "two places left");
+        // A create needs three: it is refused before the session exists.
+        assert!(reg.room_for(3).is_err());
+        assert_eq!(reg.slot_of("b"), None);
     }
 
     #[allow(clippy::needless_pass_by_value)] // the tests read better with json!(...) by value

@@ -250,6 +250,18 @@ impl Registry {
         self.commands.push(cmd)
     }
 
+    /// Checks that the command ring can take `n` commands, so that a request that sends several
+    /// is refused whole, before it changes anything, rather than half applied.
+    ///
+    /// # Errors
+    /// The ring has fewer free places (the tick thread is stalled).
+    pub fn room_for(&self, n: usize) -> SimResult<()> {
+        if self.commands.free() < n {
+            return Err(SimError::Engine("the engine's command ring is full: try again".into()));
+        }
+        Ok(())
+    }
+
     /// The slot of `id`, if it has one.
     #[must_use]
     pub fn slot_of(&self, id: &str) -> Option<u16> {
