@@ -247,6 +247,10 @@ def test_a_page_draws_only_while_someone_watches_it(server):
             hand.move(a + d * np.linspace(8e-3, 11e-3, 600)[:, None])
             wait_for(lambda: page.feed.states >= states + 10 and hand.idle(), 60, "the states of the new cut")
             assert (page.frames, page.bone_updates, page.watched_s) == (frames, bone, watched_s)
+            # A drill swapped (or a path set) after the page started: the page follows it.
+            assert page._info is not None and page._info["burr_radius_m"] == 1.25e-3
+            c.control("set_drill", burr_radius_m=2e-3)
+            wait_for(lambda: page._info["burr_radius_m"] == 2e-3, 30, "the page's info following the new drill")
         finally:
             hand.stop()
             viewer.close()

@@ -60,6 +60,12 @@ def _png_array(png: bytes) -> np.ndarray:
         return np.asarray(im.convert("RGB"))
 
 
+INFO_REFRESH_S = 2.0
+"""How often a page asks its session's info again (s), to follow a changed path, burr or guidance."""
+_DRAWN_INFO = ("entry_m", "target_m", "burr_radius_m", "guidance_mode")
+"""The fields of the session info a page draws."""
+
+
 class TraineePage:
     """One session's page: the bone's layers (re-meshed where drilled), the planned path A→B,
     the drill at the tip's pose (``frame_hz``), force and guidance arrows, the numbers a hand
@@ -389,16 +395,21 @@ class TraineePage:
 
     def _bone_loop(self) -> None:
         period = 1.0 / self.bone_hz
-        last_metrics = 0.0
+        last_metrics = last_info = 0.0
         while not self._stop.wait(period):
             # Each step on its own: a bone snapshot refused must not stop the metrics, nor they it.
             try:
-                if self._info is None:
-                    self._info = self.feed.info()
-                    self._show_path(self._info)
-                    self._title.content = (
-                        f"**Session `{html.escape(self.session_id)}`**: {self._info['guidance_mode']} guidance"
-                    )
+                # Asked again every INFO_REFRESH_S: a set_path, set_drill or set_guidance (or the
+                # session made anew under its id) redraws the path, the burr and the title.
+                if self._info is None or time.monotonic() - last_info >= INFO_REFRESH_S:
+                    last_info = time.monotonic()
+                    info = self.feed.info()
+                    if self._info is None or any(info[k] != self._info[k] for k in _DRAWN_INFO):
+                        self._show_path(info)
+                        self._title.content = (
+                            f"**Session `{html.escape(self.session_id)}`**: {info['guidance_mode']} guidance"
+                        )
+                    self._info = info
                 if self.watched:
                     self._update_bone()
             except Exception as exc:  # no such session yet, a server restarting: try again
