@@ -252,14 +252,8 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
         else:
             connect = list(options.connect) or ([] if options.listen else [DEFAULT_ENDPOINT])
             run.endpoints = list(options.listen) or connect
-            # A worker that only connects is a client: as a peer it also listened (plain TCP, every
-            # interface, Zenoh's default) and dialled the peers it heard of, a lab's TLS aside.
             py_conf = zenoh_config_json5(
-                options.listen,
-                connect,
-                options.zenoh_config,
-                mode="peer" if options.listen else "client",
-                max_message_bytes=SERVER_MAX_MESSAGE_BYTES,
+                options.listen, connect, options.zenoh_config, mode="peer", max_message_bytes=SERVER_MAX_MESSAGE_BYTES
             )
         try:
             run.zenoh = open_zenoh(py_conf)
