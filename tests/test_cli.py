@@ -75,6 +75,7 @@ def test_demo_drills_and_reports(tmp_path):
         (["demo", "--out", "{tmp}/d", "--feed-mm-s", "0"], 3, "--feed-mm-s must be a feed rate > 0"),
         (["demo", "--out", "{tmp}/d", "--feed-mm-s", "nan"], 2, "'nan' is not a finite number"),
         (["demo", "--out", "{tmp}/d", "--rpm", "5000"], 3, "--rpm must be a spindle speed"),
+        (["demo", "--out", "{tmp}/d", "--feed-mm-s", "0.01"], 3, "--feed-mm-s 0.01 would drill for longer"),
         (["trainee", "--duration", "inf"], 2, "'inf' is not a finite number"),
         (["trainee", "--duration", "7200"], 3, "--duration must be > 0 and at most 3600 s"),
         (["record", "--session", "a", "--out", "{tmp}/r", "--duration", "-1"], 3, "--duration must be > 0"),

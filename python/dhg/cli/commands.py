@@ -48,6 +48,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from dhg.bone.planning import layer_runs
     from dhg.bone.xray import auto_windows, render_views, write_views
     from dhg.core.session import MAX_SPINDLE_RPM, DrillingSession, SessionConfig, StepResult
+    from dhg.core.surgeon import MAX_ATTEMPT_S
     from dhg.data.plots import plot_drilling
     from dhg.operators.scripted import scripted_stylus
 
@@ -65,6 +66,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     session = DrillingSession(vol, path, SessionConfig(burr_radius_m=args.burr_mm * 1e-3 / 2))
     windows = auto_windows(vol.xray())
     duration_s = (path.length_m + 5e-3) / (args.feed_mm_s * 1e-3) + 5.0
+    if duration_s > MAX_ATTEMPT_S:
+        slowest = (path.length_m + 5e-3) / (MAX_ATTEMPT_S - 5.0) * 1e3
+        raise ValueError(
+            f"--feed-mm-s {args.feed_mm_s:g} would drill for longer than an attempt may last "
+            f"({MAX_ATTEMPT_S:g} s): at least {slowest:.3f} mm/s on this path"
+        )
     rows = scripted_stylus(path, duration_s, feed_m_s=args.feed_mm_s * 1e-3, spindle_rpm=args.rpm)
     prog, update = _progress("drilling A→B at 1 kHz")
     t1 = time.perf_counter()

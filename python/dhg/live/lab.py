@@ -9,11 +9,13 @@ a Zenoh configuration that
 * authenticates every client by user name and password (the server holds the dictionary),
 * and gives the server an access-control list (deny by default) in which
 
-  - a **station** may publish only its own poses, query only its own control, metrics and
-    X-rays (and the server's health, volume and about), and hear only its own outputs. Its
-    sessions are named ``<station>`` or ``<station>-<anything>``;
-  - an **instructor** may read every session (subscribe to every output, query every session and
-    the server's health, recover the recorded streams) and publish nothing;
+  - a **station** may publish only its own poses, query only its own control, info, metrics,
+    X-rays and bone (and the server's health, volume and about), and hear (and recover) only its
+    own outputs. Its sessions are named ``<station>`` or ``<station>-<anything>``, so no station
+    may be named another's name plus ``-...``;
+  - an **instructor** may read every session (subscribe to every output and recover the recorded
+    streams, query every session's read-only keys, info, metrics, X-rays and bone, and the
+    server's health, volume and about) and change none: no pose, no control, no model query;
   - a **model worker** may join the engine's worker pool under its own name (the liveliness
     token ``<prefix>/model/workers/<name>`` and the queryable below it), serve the shared
     ``<prefix>/model/predict``, and nothing else;

@@ -324,16 +324,19 @@ class SessionRecorder(FlushLoop):
             unplaced = [ep for ep in self._split.episodes if ep.episode_id is not None and ep.path is None]
         if self.path is not None and not unplaced:
             return
+        answered = False
         try:
             for r in self._z.get(self.keys["info"], timeout=1.0):
                 if r.ok is not None:
                     info = json.loads(r.ok.payload.to_bytes())
                     self.path = PlannedPath(np.array(info["entry_m"]), np.array(info["target_m"]))
                     self.session_info = {k: info[k] for k in SESSION_INFO_KEYS if k in info}
+                    answered = True
         except Exception:  # zenoh errors, a closed session or a malformed reply: try again next flush
             return
-        for ep in unplaced:  # each new attempt: the session's path as asked after it began
-            ep.path = self.path
+        if answered:  # each new attempt: the session's path as asked after it began (no answer: ask again)
+            for ep in unplaced:
+                ep.path = self.path
 
     def _take(
         self, final: bool

@@ -1,7 +1,7 @@
 """What a viewer hears of the server: one session's live streams and queries, and the volume.
 
 A viewer is one more Zenoh client. It subscribes to a session's ``force``, ``pose``, ``state``
-and ``guidance`` keys and asks the ``bone``, ``xray``, ``metrics`` and ``control`` (``info``)
+and ``guidance`` keys and asks the read-only ``bone``, ``xray``, ``metrics`` and ``info``
 queryables (``docs/protocol.md``). Nothing here blocks the server: its publishers drop rather
 than wait for a slow subscriber, and the bone query copies the session's drilled bricks between
 two ticks. Messages that cannot be true (NaN, infinite) are counted and never drawn.

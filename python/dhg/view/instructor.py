@@ -41,6 +41,7 @@ class InstructorPage:
 
         self._z, self.prefix, self.open_page, self.refresh_s = z, prefix, open_page, refresh_s
         self._states: dict[str, dict[str, Any]] = {}
+        self._pageless: set[str] = set()  # sessions told to have no page (told once)
         self._lock = threading.Lock()
         self.refreshes = 0
         self.sessions: list[str] = []
@@ -94,7 +95,9 @@ class InstructorPage:
                     try:
                         url: str | None = self.open_page(sid)
                     except Exception as exc:  # no page for this one (all taken): the rest still show
-                        log.warning("instructor page: no page for %s: %s", sid, exc)
+                        if sid not in self._pageless:  # once a session, not at every refresh
+                            self._pageless.add(sid)
+                            log.warning("instructor page: no page for %s: %s", sid, exc)
                         url = None
                     try:
                         met = get_json(self._z, self._protocol.session_key(self.prefix, sid, "metrics"), None, 2.0)

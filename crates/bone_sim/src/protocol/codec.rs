@@ -267,7 +267,7 @@ pub fn encode_guidance(m: &GuidanceMsg) -> [u8; GUIDANCE.size] {
     w.u64(8, m.pose_client_time_ns);
     w.u64(16, m.tick);
     w.vec3_f32(24, &m.predicted_force_n);
-    w.vec3_f32(36, &m.guidance_n);
+    w.force_f32(36, &m.guidance_n); // a share of the hand's force: never over its cap on the wire
     w.f32(48, m.model_latency_s);
     w.f32(52, m.gain);
     buf

@@ -327,6 +327,7 @@ fn set_guidance(
 /// Resets `slot` for a new attempt; with fading, an attempt that drilled (poses arrived and were
 /// recorded) ends here and sets the next one's gain.
 fn reset(reg: &mut super::registry::Registry, slot: u16) -> SimResult<()> {
+    reg.room_for(2)?; // Reset and a fading schedule's SetGuidance: both or none
     reg.send(Command::Reset { slot })?;
     let info = &mut reg.slots[slot as usize];
     let drilled = info.poses_received > info.attempt_first_pose && info.metrics.records() > 0;
@@ -342,6 +343,28 @@ fn reset(reg: &mut super::registry::Registry, slot: u16) -> SimResult<()> {
         Some(gain) => set_guidance(reg, slot, None, Some(gain)),
         None => Ok(()),
     }
+}
+
+/// Opens (or finds) session `id` with its checked settings; returns (slot, created). Refused whole
+/// when the command ring cannot take every command it sends.
+fn create(
+    reg: &mut super::registry::Registry,
+    id: &str,
+    path: Option<PlannedPath>,
+    mode: Option<GuidanceMode>,
+    gain: Option<f64>,
+    burr_radius_m: Option<f64>,
+) -> SimResult<(u16, bool)> {
+    reg.room_for(3)?; // Activate, SetGuidance, SetBurr: all or none
+    let (s, created) = reg.open(id, path)?;
+    if mode.is_some() || gain.is_some() {
+        set_guidance(reg, s, mode, gain)?;
+    }
+    if let Some(radius_m) = burr_radius_m {
+        reg.send(Command::SetBurr { slot: s, radius_m })?;
+        reg.slots[s as usize].burr_radius_m = radius_m;
+    }
+    Ok((s, created))
 }
 
 /// Starts (`Some` params) or stops (`None`) the fading schedule of `slot`.
@@ -371,21 +394,12 @@ pub(crate) fn apply(shared: &Shared, id: &str, body: &Value) -> SimResult<Value>
                 };
                 let gain = guidance_gain.map(check_gain).transpose()?;
                 let burr = burr_radius_m.map(check_burr_radius).transpose()?;
-                reg.room_for(3)?; // Activate, SetGuidance, SetBurr: all or none
-                let (s, created) = reg.open(id, path)?;
-                if guidance_mode.is_some() || gain.is_some() {
-                    set_guidance(&mut reg, s, guidance_mode, gain)?;
-                }
-                if let Some(radius_m) = burr {
-                    reg.send(Command::SetBurr { slot: s, radius_m })?;
-                    reg.slots[s as usize].burr_radius_m = radius_m;
-                }
+                let (_, created) = create(&mut reg, id, path, guidance_mode, gain, burr)?;
                 drop(reg);
                 return session_info(shared, id, Some(created));
             }
             ControlRequest::Reset => {
                 let s = slot(&reg)?;
-                reg.room_for(2)?; // Reset and a fading schedule's SetGuidance: both or none
                 reset(&mut reg, s)?;
             }
             ControlRequest::SetFading { fading } => {
@@ -681,13 +695,20 @@ mod tests {
         let mut reg =
             Registry::new(link.commands, link.poses, path, (GuidanceMode::default(), 1.0), 1.25e-3, Owners::default());
         reg.open("a", None).unwrap();
-        while reg.room_for(3).is_ok() {
+        set_fading(&mut reg, 0, Some(FadingParams::default())).unwrap();
+        while reg.room_for(2).is_ok() {
             set_guidance(&mut reg, 0, None, Some(0.5)).unwrap();
         }
-        assert!(reg.room_for(2).is_ok(), "two places left");
-        // A create needs three: it is refused before the session exists.
-        assert!(reg.room_for(3).is_err());
+        // One place left. A create needs three: refused, it opens nothing.
+        let err = create(&mut reg, "b", None, Some(GuidanceMode::Brake), Some(0.5), Some(1e-3)).unwrap_err();
+        assert!(err.to_string().contains("command ring is full"), "{err}");
         assert_eq!(reg.slot_of("b"), None);
+        // A reset needs two (the fading schedule's next gain): refused, the attempt goes on.
+        let attempt = reg.slots[0].attempt;
+        assert!(reset(&mut reg, 0).is_err());
+        assert_eq!(reg.slots[0].attempt, attempt, "a refused reset changed the registry");
+        // One command still goes: a lone set_guidance.
+        assert!(set_guidance(&mut reg, 0, None, Some(0.25)).is_ok());
     }
 
     #[allow(clippy::needless_pass_by_value)] // the tests read better with json!(...) by value

@@ -11,8 +11,9 @@ use crate::error::{finite, positive, SimError, SimResult};
 
 /// Largest number of voxels a grid may hold (4 Gi would overflow the `u32` brick tables).
 pub const MAX_VOXELS: usize = 1 << 31;
-/// Voxel spacings a grid takes (m): 1 µm (beyond micro-CT) to 10 cm. Below it a point a tenth of
-/// a metre away has an index coordinate beyond any integer type's reach.
+/// Voxel spacings a grid takes (m): 1 µm (beyond micro-CT) to 10 cm, a plausibility range (a
+/// spacing of 1e-20 m was taken). What guards the integer casts of index coordinates is
+/// [`FAR_INDEX`].
 pub const SPACING_RANGE_M: [f64; 2] = [1e-6, 0.1];
 /// Index coordinates beyond ±this (voxels) are outside every grid (a side holds at most
 /// `MAX_VOXELS`): readers treat them as outside before casting them to integers.
