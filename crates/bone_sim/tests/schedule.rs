@@ -5,7 +5,7 @@ mod common;
 
 use bone_sim::engine::handoff::{Output, PoseSample};
 use bone_sim::engine::{
-    off_grid_ms, ticks_to_grid, EngineLink, PoseTick, TickCore, CLAIM_RETRY, GRACE_PERIODS, HOLD_BURST_PERIODS,
+    off_grid_ticks, ticks_to_grid, EngineLink, PoseTick, TickCore, CLAIM_RETRY, GRACE_PERIODS, HOLD_BURST_PERIODS,
     HOLD_LOOK_PERIODS,
 };
 use common::engine::*;
@@ -698,7 +698,7 @@ fn the_grid_puts_a_sessions_next_record_at_the_next_100_ms_mark() {
     // Before the grid (not in the engine, whose grid is its start): as at the grid.
     assert_eq!(ticks_to_grid(grid + MS, grid), 1);
     for (into_us, off) in [(0, 0.0), (1_500, 1.5), (49_000, 49.0), (51_000, -49.0), (99_600, -0.4), (100_000, 0.0)] {
-        assert!((off_grid_ms(grid, grid + us(into_us)) - off).abs() < 1e-9, "{into_us} µs into the grid");
+        assert!((off_grid_ticks(grid, grid + us(into_us)) - off).abs() < 1e-9, "{into_us} µs into the grid");
     }
 }
 

@@ -43,7 +43,7 @@ use crate::volume::drilled::DrilledVolume;
 use crate::volume::Volume;
 use handoff::{Command, Output, PoseSample};
 pub use schedule::{
-    off_grid_ms, ticks_to_grid, EARLY_PERIODS, FAST_CLIENT_POSES_PER_TICK, GRACE_PERIODS, HOLD_BURST_PERIODS,
+    off_grid_ticks, ticks_to_grid, EARLY_PERIODS, FAST_CLIENT_POSES_PER_TICK, GRACE_PERIODS, HOLD_BURST_PERIODS,
     HOLD_LOOK_PERIODS, LOCK_MIN_GAP_PERIODS, LOCK_RATE, MAX_POSE_WAIT_PERIODS, WAKE_SLACK_PERIODS,
 };
 use schedule::{Schedule, SlotState};

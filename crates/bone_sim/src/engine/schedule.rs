@@ -338,12 +338,12 @@ pub fn ticks_to_grid(grid: Instant, now: Instant) -> u64 {
     periods_left + 1
 }
 
-/// How far `now` is past the nearest mark of the record grid that starts at `grid` (ms, −50 to 50;
-/// negative: before it).
+/// How far `now` is past the nearest mark of the record grid that starts at `grid`, in tick
+/// periods (−50 to 50 at 1 kHz; negative: before it).
 #[must_use]
-pub fn off_grid_ms(grid: Instant, now: Instant) -> f64 {
+pub fn off_grid_ticks(grid: Instant, now: Instant) -> f64 {
     let into = (now.saturating_duration_since(grid).as_nanos() % RECORD_GRID_NS) as f64;
     let period = RECORD_GRID_NS as f64;
     let past = if into * 2.0 < period { into } else { into - period };
-    past * 1e-6
+    past / TICK_PERIOD.as_nanos() as f64
 }

@@ -36,9 +36,9 @@ pub(crate) struct Slot {
     record_grid: Instant,
 }
 
-/// How far off the record grid (ms) a record may come before the next is moved towards it: a
-/// session on the grid records within half a tick of its marks, one a stall put off it further.
-const GRID_TOLERANCE_MS: f64 = 1.5;
+/// How far off the record grid (tick periods) a record may come before the next is moved towards
+/// it: a session on the grid records within half a tick of its marks, one a stall put off it further.
+const GRID_TOLERANCE_TICKS: f64 = 1.5;
 /// The most (ticks) one record interval is shortened or lengthened to bring a session back to
 /// the grid: a stall that skipped 40 ticks is made up within four records, while each window the
 /// model reads keeps its records 90–110 ms apart. Why: `docs/decisions/0028-records-on-one-grid.md`.
@@ -162,9 +162,9 @@ impl Slot {
     /// After a record made at `now`: if it came off the grid (a stall skipped ticks), the next
     /// comes up to [`GRID_SLEW_TICKS`] sooner or later, towards the grid.
     fn keep_records_on_grid(&mut self, now: Instant) {
-        let off_ms = super::off_grid_ms(self.record_grid, now);
-        if off_ms.abs() > GRID_TOLERANCE_MS {
-            let next = RECORD_PERIOD_TICKS as f64 - off_ms.round().clamp(-GRID_SLEW_TICKS, GRID_SLEW_TICKS);
+        let off = super::off_grid_ticks(self.record_grid, now);
+        if off.abs() > GRID_TOLERANCE_TICKS {
+            let next = RECORD_PERIOD_TICKS as f64 - off.round().clamp(-GRID_SLEW_TICKS, GRID_SLEW_TICKS);
             // 90 to 110 ticks, within the allowed range.
             let _ = self.session.set_next_record_in(next as u64);
         }
