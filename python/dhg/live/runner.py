@@ -154,6 +154,8 @@ class RunningServer:
                 if m["queries"]
                 else "model idle"
             )
+            if h.get("tick_thread_failed"):
+                parts.append("TICK THREAD STOPPED by an error (a bug, printed above): restart dhg-serve")
             parts.append(
                 f"sessions {h['sessions']}/{h['max_sessions']} | tick{' (rt)' if h['tick_realtime'] else ''}"
                 f"{' (spin)' if h['tick_wait'] == 'spin' else ''} "

@@ -132,6 +132,9 @@ pub struct TickStats {
     pub dropped_outputs: AtomicU64,
     /// Whether the tick thread got real-time scheduling (`SCHED_FIFO`); 0 = no, 1 = yes.
     pub realtime: AtomicU64,
+    /// 1 once a panic (a bug) ended the tick thread: commands are no longer applied, and sessions
+    /// tick only on their poses' threads.
+    pub tick_thread_failed: AtomicU64,
     /// Whether the tick thread, without `SCHED_FIFO`, got the short EEVDF slice
     /// (`realtime::LATENCY_SLICE_NS`); 0 = no, 1 = yes.
     pub short_slice: AtomicU64,
@@ -158,6 +161,7 @@ impl Default for TickStats {
             sessions: AtomicU64::new(0),
             dropped_outputs: AtomicU64::new(0),
             realtime: AtomicU64::new(0),
+            tick_thread_failed: AtomicU64::new(0),
             short_slice: AtomicU64::new(0),
             pose_to_tick: Histogram::new(10_000),
             pose_to_put: Histogram::new(10_000),

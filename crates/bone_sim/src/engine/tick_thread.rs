@@ -1,13 +1,23 @@
 //! The tick thread: runs a [`TickCore`] on its own thread, sleeping (or spinning) until the
 //! next slot is due, or a pose or a command wakes it (when a slot is due: `engine/schedule.rs`).
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::thread::{self, JoinHandle, Thread};
 use std::time::Instant;
 
 use super::{realtime, TickCore, TickWaker, WaitMode};
 use crate::error::{SimError, SimResult};
+
+/// Runs a thread's `body`; a panic in it (a bug) is caught and recorded in `failed` (1), which the
+/// health report shows, instead of ending the thread unseen. The panic's message still goes to
+/// standard error (the default hook).
+pub(crate) fn guarded(failed: &AtomicU64, body: impl FnOnce()) {
+    if catch_unwind(AssertUnwindSafe(body)).is_err() {
+        failed.store(1, Ordering::Relaxed);
+    }
+}
 
 /// The running tick thread.
 #[derive(Debug)]
@@ -34,7 +44,7 @@ impl TickThread {
     ///
     /// # Errors
     /// The thread could not be spawned.
-    pub fn spawn(mut core: TickCore, notify: Option<Thread>, wait: WaitMode, realtime: bool) -> SimResult<Self> {
+    pub fn spawn(core: TickCore, notify: Option<Thread>, wait: WaitMode, realtime: bool) -> SimResult<Self> {
         let stop = Arc::new(AtomicBool::new(false));
         let flag = stop.clone();
         let waker = core.waker().clone();
@@ -43,47 +53,61 @@ impl TickThread {
         let handle = thread::Builder::new()
             .name("dhg-tick".into())
             .spawn(move || {
-                core.waker().register();
-                // Never both: the kernel's real-time throttling (sched_rt_runtime_us, 95 % by
-                // default) would stop a spinning SCHED_FIFO thread for 50 ms every second.
-                let rt = realtime && wait == WaitMode::Sleep && realtime::promote();
-                core.stats.realtime.store(u64::from(rt), Ordering::Relaxed);
-                // Without it, at least preempt a longer-sliced thread on waking (no privilege).
-                let slice = !rt && realtime::short_slice(0);
-                core.stats.short_slice.store(u64::from(slice), Ordering::Relaxed);
-                let _ = ready_tx.send(());
-                let mut wake = Instant::now();
-                while !flag.load(Ordering::Relaxed) {
-                    let now = Instant::now();
-                    if now < wake {
-                        // With no session there is nothing to be fast for: sleep, even when
-                        // spinning (a first pose or command unparks the thread).
-                        if wait == WaitMode::Spin && core.stats.sessions.load(Ordering::Relaxed) > 0 {
-                            // `tick_due` is cheap when nothing is due (a few ns per slot) and
-                            // sees a fresh pose or command the moment it lands.
-                            std::hint::spin_loop();
-                        } else {
-                            // Woken early by a pose or a command (or spuriously: the loop checks).
-                            thread::park_timeout(wake - now);
-                            core.stats.wakes.fetch_add(1, Ordering::Relaxed);
-                        }
-                    }
-                    let woke = Instant::now();
-                    let (ticked, next) = core.tick_due(woke);
-                    if ticked > 0 {
-                        core.stats.busy.record(woke.elapsed().as_nanos() as u64);
-                    }
-                    if ticked > 0 || core.applied > 0 {
-                        if let Some(t) = &notify {
-                            t.unpark();
-                        }
-                    }
-                    wake = next;
-                }
+                let stats = core.stats.clone();
+                guarded(&stats.tick_thread_failed, move || {
+                    Self::run(core, notify.as_ref(), wait, realtime, &flag, &ready_tx);
+                });
             })
             .map_err(|e| SimError::Engine(format!("cannot start the tick thread: {e}")))?;
         let _ = ready_rx.recv(); // an error means the thread ended first: nothing to wait for
         Ok(Self { stop, waker, handle: Some(handle) })
+    }
+
+    fn run(
+        mut core: TickCore,
+        notify: Option<&Thread>,
+        wait: WaitMode,
+        realtime: bool,
+        flag: &AtomicBool,
+        ready_tx: &std::sync::mpsc::SyncSender<()>,
+    ) {
+        core.waker().register();
+        // Never both: the kernel's real-time throttling (sched_rt_runtime_us, 95 % by
+        // default) would stop a spinning SCHED_FIFO thread for 50 ms every second.
+        let rt = realtime && wait == WaitMode::Sleep && realtime::promote();
+        core.stats.realtime.store(u64::from(rt), Ordering::Relaxed);
+        // Without it, at least preempt a longer-sliced thread on waking (no privilege).
+        let slice = !rt && realtime::short_slice(0);
+        core.stats.short_slice.store(u64::from(slice), Ordering::Relaxed);
+        let _ = ready_tx.send(());
+        let mut wake = Instant::now();
+        while !flag.load(Ordering::Relaxed) {
+            let now = Instant::now();
+            if now < wake {
+                // With no session there is nothing to be fast for: sleep, even when
+                // spinning (a first pose or command unparks the thread).
+                if wait == WaitMode::Spin && core.stats.sessions.load(Ordering::Relaxed) > 0 {
+                    // `tick_due` is cheap when nothing is due (a few ns per slot) and
+                    // sees a fresh pose or command the moment it lands.
+                    std::hint::spin_loop();
+                } else {
+                    // Woken early by a pose or a command (or spuriously: the loop checks).
+                    thread::park_timeout(wake - now);
+                    core.stats.wakes.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+            let woke = Instant::now();
+            let (ticked, next) = core.tick_due(woke);
+            if ticked > 0 {
+                core.stats.busy.record(woke.elapsed().as_nanos() as u64);
+            }
+            if ticked > 0 || core.applied > 0 {
+                if let Some(t) = notify {
+                    t.unpark();
+                }
+            }
+            wake = next;
+        }
     }
 
     /// Stops the thread and waits for it (at most one tick).
@@ -99,5 +123,24 @@ impl TickThread {
 impl Drop for TickThread {
     fn drop(&mut self) {
         self.stop();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::{AtomicU64, Ordering};
+
+    use super::guarded;
+
+    #[test]
+    fn a_panic_in_a_guarded_thread_is_recorded_not_lost() {
+        let failed = AtomicU64::new(0);
+        guarded(&failed, || {});
+        assert_eq!(failed.load(Ordering::Relaxed), 0);
+        let t = std::thread::spawn(move || {
+            guarded(&failed, || panic!("a bug on the tick thread (this test's)"));
+            failed.load(Ordering::Relaxed)
+        });
+        assert_eq!(t.join().unwrap(), 1, "the thread ended normally, with the panic recorded");
     }
 }

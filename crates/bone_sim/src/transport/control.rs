@@ -521,6 +521,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
         tick_lateness_max_s: n(&shared.stats.max_lateness_ns) as f64 * 1e-9,
         dropped_outputs: n(&shared.stats.dropped_outputs),
         tick_realtime: n(&shared.stats.realtime) == 1,
+        tick_thread_failed: n(&shared.stats.tick_thread_failed) == 1,
         short_slices: ShortSlices {
             tick: n(&shared.stats.short_slice) == 1,
             comm: n(&c.comm_short_slice) == 1,

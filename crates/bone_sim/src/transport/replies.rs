@@ -191,6 +191,8 @@ pub struct HealthReply {
     pub dropped_outputs: u64,
     /// Whether the tick thread got `SCHED_FIFO`.
     pub tick_realtime: bool,
+    /// Whether a panic (a bug) ended the tick thread: restart the server.
+    pub tick_thread_failed: bool,
     /// Which threads run on Linux 6.12's short time slice.
     pub short_slices: ShortSlices,
     /// `"sleep"` or `"spin"` (`dhg-serve --wait`).
