@@ -104,15 +104,23 @@ def hold_until(
     return found[0]
 
 
-def wait_until(cond: Callable[[], object], timeout_s: float, what: str = "condition") -> None:
-    """Polls ``cond`` every 5 ms until it is true; fails the test after ``timeout_s`` (a generous
-    deadline, not a speed target)."""
+def settle_until(cond: Callable[[], object], timeout_s: float) -> bool:
+    """Polls ``cond`` every 5 ms until it is true or ``timeout_s`` (a generous deadline, not a
+    speed target) has passed; returns whether it came true. For waits whose test asserts less
+    than the condition (most of a stream's messages waited for, one required)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if cond():
-            return
+            return True
         time.sleep(0.005)
-    raise AssertionError(f"{what} not met within {timeout_s} s")
+    return False
+
+
+def wait_until(cond: Callable[[], object], timeout_s: float, what: str = "condition") -> None:
+    """Polls ``cond`` every 5 ms until it is true; fails the test after ``timeout_s`` (a generous
+    deadline, not a speed target)."""
+    if not settle_until(cond, timeout_s):
+        raise AssertionError(f"{what} not met within {timeout_s} s")
 
 
 def schema_fields(schema: dict) -> set[str]:

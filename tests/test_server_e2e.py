@@ -16,7 +16,7 @@ import dhg
 from dhg.core import protocol
 from dhg.core.errors import EngineError, InvalidInputError
 from dhg.live.client import TraineeClient
-from support import PEAK_FORCE_N, hold_until, reply_fields, schema_fields, stops_cleanly
+from support import PEAK_FORCE_N, hold_until, reply_fields, schema_fields, settle_until, stops_cleanly
 from support import entry as _entry
 from support import stream as _stream
 from support import wait_until as _wait
@@ -52,9 +52,7 @@ def test_a_1khz_client_gets_its_forces_and_10hz_guidance(server):
         # the 20 marks in 2 s of poses), so a slow forward pass is not taken for a missing message.
         # Not their count: on a loaded machine a reply later than the model timeout is dropped
         # (see the trainee test below); the rate is the benchmarks'.
-        deadline = time.monotonic() + 10.0
-        while len(in_window()) < 18 and time.monotonic() < deadline:
-            time.sleep(0.01)
+        settle_until(lambda: len(in_window()) >= 18, 10.0)
         guidance = in_window()
         assert guidance, "no guidance for 2 s of poses"
         forces = np.array([c.force["force_n"]])
