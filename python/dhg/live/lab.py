@@ -189,12 +189,18 @@ def _rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> d
     return {"id": rid, "messages": messages, "flows": flows, "permission": "allow", "key_exprs": keys}
 
 
+def _recovery_keys(sessions: list[str]) -> list[str]:
+    """What a recorder of ``sessions`` (session key roots) queries and is answered on to recover
+    the recorded streams: below each stream, and its advanced publisher's ``@adv/...`` keys."""
+    return [f"{s}/{leaf}/{tail}" for s in sessions for leaf in _RECOVERABLE for tail in ("**", "@adv/**")]
+
+
 def _station_rules(p: str, n: str, server: list[str]) -> list[dict[str, Any]]:
     """Station ``n``'s rules under prefix ``p``: it drives and reads only its own sessions (``n``
     and ``n-*``), and asks the server's keys ``server`` (health, volume, about)."""
     own = [session_key(p, n), session_key(p, f"{n}-$*")]
     rid = f"station:{n}"  # rule ids are unique across roles (a station may be named "instructor")
-    recover = [f"{s}/{leaf}/{tail}" for s in own for leaf in _RECOVERABLE for tail in ("**", "@adv/**")]
+    recover = _recovery_keys(own)
     return [
         _rule(f"{rid}:pose", ["put"], ["ingress"], [f"{s}/pose" for s in own]),
         _rule(
@@ -227,7 +233,7 @@ def _instructor_rules(p: str, server: list[str]) -> list[dict[str, Any]]:
     every = session_key(p, "*")
     heard = [f"{every}/{leaf}" for leaf in _HEARD]
     asked = server + [f"{every}/{leaf}" for leaf in _READ]
-    recover = [f"{every}/{leaf}/{tail}" for leaf in _RECOVERABLE for tail in ("**", "@adv/**")]
+    recover = _recovery_keys([every])
     return [
         _rule(
             "instructors:read",
