@@ -1,17 +1,20 @@
 //! The real-time promise: a tick never allocates, on the tick thread or on the thread a pose
 //! arrived on. A counting global allocator watches 3000 ticks of 4 sessions drilling through
-//! cortex and cancellous bone (two of them ticked by their poses, as `dhg-serve` does), with model
-//! replies arriving, snapshots taken, a burr swapped and every output drained. Its own test binary, so no other test allocates
-//! while it counts.
+//! cortex and cancellous bone (their poses found by session id and handed on through the routes,
+//! and two of them ticked by their poses, as `dhg-serve` does), with model replies arriving,
+//! snapshots taken, a burr swapped and every output drained. Its own test binary, so no other
+//! test allocates while it counts.
 
 mod common;
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
-use bone_sim::engine::handoff::{Command, PoseSample};
+use bone_sim::engine::handoff::Command;
 use bone_sim::engine::{build, EngineConfig};
 use bone_sim::guidance::GuidanceMode;
+use bone_sim::protocol::PoseMsg;
+use bone_sim::transport::routes::{Route, Routes};
 use bone_sim::{Layer, PlannedPath, Pose};
 use common::{slab, H};
 use nalgebra::{Point3, UnitQuaternion};
@@ -55,6 +58,12 @@ fn ticks_do_not_allocate() {
     cfg.max_sessions = 4;
     cfg.reserve_bricks = 256;
     let (mut core, mut link) = build(&vol, &cfg).unwrap();
+    let routes = Routes::new(std::mem::take(&mut link.poses));
+    let ids = ["s0", "s1", "s2", "s3"];
+    for slot in 0..4u16 {
+        routes.assign(slot, 1, std::time::Instant::now());
+    }
+    routes.publish(ids.iter().enumerate().map(|(slot, id)| (*id, Route { slot: slot as u16, generation: 1 })));
     for slot in 0..4u16 {
         link.commands
             .push(Command::Activate { slot, generation: 1, path: None, mode: GuidanceMode::Shaped, gain: 1.0 })
@@ -73,15 +82,10 @@ fn ticks_do_not_allocate() {
             let now = t0 + std::time::Duration::from_millis(u64::from(k));
             // Feed from 2 mm above the surface into the bone at 5 mm/s.
             let z = surface - 2e-3 + 5e-3 * f64::from(k) * 1e-3;
-            for (slot, input) in link.poses.iter_mut().enumerate() {
-                let sample = PoseSample {
-                    pose: Some(pose(z + slot as f64 * 0.1e-3)),
-                    seq: k,
-                    client_time_ns: u64::from(k),
-                    generation: 1,
-                    received: Some(std::time::Instant::now()),
-                };
-                input.write(sample);
+            for (slot, id) in ids.iter().enumerate() {
+                let msg = PoseMsg { seq: k, client_time_ns: u64::from(k), pose: pose(z + slot as f64 * 0.1e-3) };
+                let route = routes.find(id).unwrap();
+                routes.pose(route, &msg, std::time::Instant::now()).unwrap();
                 if slot % 2 == 1 {
                     // The pose's own thread: ticks the slot and queues what it made.
                     let _ = ticker.tick(slot as u16, 1, now, u64::MAX, true);

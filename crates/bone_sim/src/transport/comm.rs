@@ -56,9 +56,12 @@ impl Comm {
             let key = |leaf: &str| keys::session_leaf(&self.shared.prefix, &id, leaf);
             let force = Outlet::declare_force(&self.session, key("force"), generation)?;
             // From now on the session's poses put their own forces (if they tick it).
-            match lock(&self.shared.registry).slots.get_mut(i) {
-                Some(info) if info.generation == generation => info.force = Some(force.clone()),
-                _ => return None,
+            {
+                let reg = lock(&self.shared.registry);
+                match reg.slots.get(i) {
+                    Some(info) if info.generation == generation => reg.set_force(slot, force.clone()),
+                    _ => return None,
+                }
             }
             self.outlets[i] = Some(Outlet::declare(&self.session, key, generation, force)?);
         }

@@ -1,7 +1,7 @@
 //! The inputs: the pose subscriber, the catch-all that counts unknown keys, and the JSON
 //! queryables (session control, session metrics, server health).
 
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -18,6 +18,7 @@ use super::replies::{
     Closed, ErrorReply, HealthReply, MetricsReply, ModelHealth, PathLayer, PosesToTickThread, Refused, SessionInfo,
     ShortSlices,
 };
+use super::routes::Missed;
 use super::{lock, Shared};
 use crate::engine::handoff::{Command, Output};
 use crate::engine::{PoseTick, TickOn};
@@ -28,6 +29,10 @@ use crate::protocol::{self, Refusal};
 use crate::session::{check_burr_radius, DrillingSession};
 
 use crate::protocol::keys::{self, CLIENT_PUT_LEAF};
+
+fn bump(counter: &AtomicU64) {
+    counter.fetch_add(1, Ordering::Relaxed);
+}
 
 fn count_refusal(shared: &Shared, r: Refusal) {
     let c = &shared.counters;
@@ -71,16 +76,24 @@ fn on_pose(shared: &Shared, id: &str, sample: &Sample, received: std::time::Inst
         Ok(m) => m,
         Err(r) => return count_refusal(shared, r),
     };
-    let mut reg = lock(&shared.registry);
-    let Ok((slot, _)) = reg.open(id, None) else {
-        shared.counters.sessions_refused.fetch_add(1, Ordering::Relaxed);
-        return;
+    // The routes, not the registry: nothing a pose does waits on the registry's lock (decision
+    // 0039), but its session's first pose, which opens the session.
+    let route = if let Some(route) = shared.routes.find(id) {
+        route
+    } else {
+        let mut reg = lock(&shared.registry);
+        let Ok((slot, _)) = reg.open(id, None) else {
+            shared.counters.sessions_refused.fetch_add(1, Ordering::Relaxed);
+            return;
+        };
+        reg.route(slot)
     };
-    reg.pose(slot, &msg, received);
-    let info = &reg.slots[usize::from(slot)];
-    let (generation, force) =
-        (info.generation, info.force.as_ref().filter(|f| f.generation == info.generation).cloned());
-    drop(reg);
+    let (slot, generation) = (route.slot, route.generation);
+    let force = match shared.routes.pose(route, &msg, received) {
+        Ok(force) => force,
+        Err(Missed::Busy) => return bump(&shared.counters.poses_concurrent),
+        Err(Missed::Ended) => return bump(&shared.counters.poses_ended),
+    };
     shared.counters.poses.fetch_add(1, Ordering::Relaxed);
     if shared.config.tick_on == TickOn::Pose {
         let out_up_to = shared.put_done.get(usize::from(slot)).map_or(0, |n| n.load(Ordering::Acquire));
@@ -291,7 +304,7 @@ fn session_info(shared: &Shared, id: &str, created: Option<bool>) -> SimResult<V
             burr_radius_m: info.burr_radius_m,
             entry_m: [a.x, a.y, a.z],
             target_m: [b.x, b.y, b.z],
-            poses_received: info.poses_received,
+            poses_received: reg.poses_received(slot),
             planned_breakthrough_depth_m: None,
             path_layer_step_m: PATH_LAYER_STEP_M,
             path_layers: Vec::new(),
@@ -329,8 +342,9 @@ fn set_guidance(
 fn reset(reg: &mut super::registry::Registry, slot: u16) -> SimResult<()> {
     reg.room_for(2)?; // Reset and a fading schedule's SetGuidance: both or none
     reg.send(Command::Reset { slot })?;
+    let poses_received = reg.poses_received(slot);
     let info = &mut reg.slots[slot as usize];
-    let drilled = info.poses_received > info.attempt_first_pose && info.metrics.records() > 0;
+    let drilled = poses_received > info.attempt_first_pose && info.metrics.records() > 0;
     let next_gain = match info.fading.as_mut() {
         Some(f) if drilled => {
             let (plunge_m, deviation_m) = info.metrics.worst_m(&info.path);
@@ -338,7 +352,7 @@ fn reset(reg: &mut super::registry::Registry, slot: u16) -> SimResult<()> {
         }
         _ => None,
     };
-    info.new_attempt();
+    info.new_attempt(poses_received);
     match next_gain {
         Some(gain) => set_guidance(reg, slot, None, Some(gain)),
         None => Ok(()),
@@ -438,7 +452,7 @@ pub(crate) fn apply(shared: &Shared, id: &str, body: &Value) -> SimResult<Value>
             ControlRequest::Info => {}
         }
         if let Some(s) = reg.slot_of(id) {
-            reg.slots[s as usize].last_seen = std::time::Instant::now();
+            reg.seen(s);
         }
     }
     session_info(shared, id, None)
@@ -537,6 +551,8 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
             oversized: n(&c.oversized),
             unknown_key: n(&c.unknown_key),
             sessions: n(&c.sessions_refused),
+            concurrent: n(&c.poses_concurrent),
+            ended: n(&c.poses_ended),
         },
         model: ModelHealth {
             available,
@@ -637,7 +653,7 @@ mod tests {
             };
             let mut states = Vec::new();
             for _ in 0..n {
-                let seq = u32::try_from(reg.slots[0].poses_received).unwrap() + 1;
+                let seq = u32::try_from(reg.poses_received(0)).unwrap() + 1;
                 reg.pose(0, &PoseMsg { seq, client_time_ns: 0, pose }, Instant::now());
                 core.tick();
                 while let Some(out) = outputs.pop() {

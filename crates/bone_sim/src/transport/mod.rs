@@ -22,6 +22,7 @@ mod outlet;
 mod pool;
 pub mod registry;
 pub mod replies;
+pub mod routes;
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
@@ -219,6 +220,10 @@ pub struct Counters {
     pub unknown_key: AtomicU64,
     /// Sessions refused because every slot was taken (or the id was bad).
     pub sessions_refused: AtomicU64,
+    /// Poses dropped because another pose of their session was being handed on at that instant.
+    pub poses_concurrent: AtomicU64,
+    /// Poses of a session that closed while they were handed on.
+    pub poses_ended: AtomicU64,
     /// Windows sent to the model.
     pub model_queries: AtomicU64,
     /// Model queries sent (each holds one or more windows).
@@ -256,6 +261,8 @@ pub struct ModelStats {
 pub struct Shared {
     pub(crate) prefix: String,
     pub(crate) registry: Mutex<Registry>,
+    /// What a pose reads of its session, without the registry's lock (decision 0039).
+    pub(crate) routes: Arc<routes::Routes>,
     pub(crate) counters: Counters,
     pub(crate) model: Mutex<ModelStats>,
     /// The model workers whose liveliness tokens are alive.
@@ -409,6 +416,7 @@ impl Server {
         );
         let shared = Arc::new(Shared {
             prefix: config.prefix.clone(),
+            routes: registry.routes().clone(),
             registry: Mutex::new(registry),
             counters: Counters::default(),
             model: Mutex::new(ModelStats::default()),
@@ -508,5 +516,84 @@ impl Server {
 impl Drop for Server {
     fn drop(&mut self) {
         self.stop();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::AtomicU32;
+    use std::thread;
+
+    use nalgebra::{Point3, UnitQuaternion};
+
+    use super::*;
+    use crate::protocol::{self, PoseMsg, FORCE};
+    use crate::session::Pose;
+    use crate::volume::{layer::Layer, test_support::uniform_block};
+
+    /// Nothing a pose of an open session does waits on the registry's lock (decision 0039): while
+    /// another thread holds it, as the control, metrics and health queries, the model's replies
+    /// and the comm thread do, the session's poses still get their forces.
+    #[test]
+    fn an_open_sessions_poses_get_their_forces_while_the_registry_is_held() {
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let conf = |mode: &str, side: &str| {
+            format!(
+                r#"{{"mode": "{mode}", "{side}": {{"endpoints": ["tcp/127.0.0.1:{port}"]}}, "scouting": {{"multicast": {{"enabled": false}}, "gossip": {{"enabled": false}}}}}}"#
+            )
+        };
+        let vol = Arc::new(uniform_block(24, 0.5e-3, Layer::Cortical, 1500.0, 4));
+        let path = PlannedPath::new(Point3::new(6e-3, 6e-3, 1e-3), Point3::new(6e-3, 6e-3, 10e-3)).unwrap();
+        let mut engine = EngineConfig::new(path);
+        (engine.max_sessions, engine.reserve_bricks) = (2, 64);
+        let config = ServerConfig {
+            prefix: "t".into(),
+            idle_timeout_s: 60.0,
+            model_timeout_s: DEFAULT_MODEL_TIMEOUT_S,
+            zenoh_json5: conf("router", "listen"),
+            owners: registry::Owners::default(),
+            tick_on: TickOn::Pose,
+        };
+        let mut server = Server::start(&vol, &engine, config).unwrap();
+        let client = zenoh::open(zenoh::Config::from_json5(&conf("client", "connect")).unwrap()).wait().unwrap();
+        // The newest pose whose force came back (the force's `pose_seq`).
+        let answered = Arc::new(AtomicU32::new(0));
+        let seen = answered.clone();
+        let at = FORCE.fields.iter().find(|f| f.name == "pose_seq").unwrap().offset;
+        let _forces = client
+            .declare_subscriber("t/session/a/force")
+            .callback(move |s| {
+                let b = s.payload().to_bytes();
+                seen.fetch_max(u32::from_le_bytes(b[at..at + 4].try_into().unwrap()), Ordering::AcqRel);
+            })
+            .wait()
+            .unwrap();
+        let poses = client.declare_publisher("t/session/a/pose").wait().unwrap();
+        let pose = Pose {
+            position_m: Point3::new(6e-3, 6e-3, 0.0), // in the air above the block
+            orientation: UnitQuaternion::identity(),
+            drill_on: false,
+            spindle_rpm: 0.0,
+        };
+        let mut seq = 0u32;
+        // Sends poses at about 1 kHz until `done`, for at most 10 s.
+        let mut stream_until = |what: &str, done: &dyn Fn() -> bool| {
+            let deadline = Instant::now() + Duration::from_secs(10);
+            while !done() {
+                assert!(Instant::now() < deadline, "waited 10 s for {what}");
+                seq += 1;
+                let msg = PoseMsg { seq, client_time_ns: u64::from(seq) * 1_000_000, pose };
+                poses.put(protocol::encode_pose(&msg).to_vec()).wait().unwrap();
+                thread::sleep(Duration::from_millis(1));
+            }
+            seq
+        };
+        // The first pose opens the session (under the registry's lock); then its forces flow.
+        stream_until("the session's first forces", &|| answered.load(Ordering::Acquire) > 0);
+        let from = stream_until("", &|| true);
+        let held = lock(&server.shared.registry);
+        stream_until("forces while the registry is held", &|| answered.load(Ordering::Acquire) >= from + 20);
+        drop(held);
+        server.stop();
     }
 }

@@ -1,8 +1,11 @@
 //! Which trainee holds which engine slot. Lives on the comm side behind one mutex that the
-//! subscriber, queryable and reply callbacks share; the tick thread never touches it. The mutex
-//! also owns the single producer of the command ring.
+//! queryable and reply callbacks and the comm thread share; the tick thread never touches it, and
+//! a pose reads only its [`Routes`], which the registry keeps beside its slot table (a pose takes
+//! the mutex once, to open its session). The mutex also owns the single producer of the command
+//! ring.
 
 use std::collections::HashMap;
+use std::sync::Arc;
 use std::time::Instant;
 
 use crate::engine::handoff::{Command, PoseSample};
@@ -13,6 +16,7 @@ use crate::path::PlannedPath;
 use crate::protocol::{GuidanceMsg, PoseMsg, StateMsg};
 
 use super::metrics::SessionMetrics;
+use super::routes::{Route, Routes};
 
 /// Poses keep their session alive only while they are a stream: each within this long (s) of
 /// the one before (4 Hz; a haptic device sends 1 kHz, and even a stalled client's poses come in
@@ -84,12 +88,6 @@ pub struct SlotInfo {
     pub id: Option<String>,
     /// Bumped at every (re)assignment.
     pub generation: u32,
-    /// Newest-pose writer.
-    pub poses: triple_buffer::Input<PoseSample>,
-    /// When the last pose (or control request) arrived.
-    pub last_seen: Instant,
-    /// Poses received.
-    pub poses_received: u64,
     /// Planned path in effect.
     pub path: PlannedPath,
     /// Guidance mode in effect.
@@ -107,10 +105,9 @@ pub struct SlotInfo {
     /// in order and counts the same way, so the two agree. A state of another attempt is a
     /// straggler of one that ended.
     pub attempt: u32,
-    /// `poses_received` when the current attempt began (a reset or the session's start).
+    /// The poses received ([`Routes::received`]) when the current attempt began (a reset or the
+    /// session's start).
     pub attempt_first_pose: u64,
-    /// When the last pose arrived (None: none yet in this assignment).
-    pub last_pose_at: Option<Instant>,
     /// The window sequence number of the newest model reply applied in this assignment: a reply
     /// to an older window (however late it comes) is ignored.
     pub applied_window_seq: Option<u32>,
@@ -118,17 +115,15 @@ pub struct SlotInfo {
     /// recorded yet: a reset or the session's start). A reply to an earlier window is of the
     /// attempt before, and is not applied.
     pub attempt_first_window: Option<u32>,
-    /// The session's force publisher, once the comm thread has declared it.
-    pub force: Option<std::sync::Arc<ForcePublisher>>,
 }
 
 impl SlotInfo {
-    /// The engine was sent `Activate` or `Reset` for this slot: a new attempt, with no metrics
-    /// and no record yet.
-    pub fn new_attempt(&mut self) {
+    /// The engine was sent `Activate` or `Reset` for this slot, which has received
+    /// `poses_received` poses: a new attempt, with no metrics and no record yet.
+    pub fn new_attempt(&mut self, poses_received: u64) {
         self.attempt = self.attempt.wrapping_add(1);
         self.metrics = SessionMetrics::default();
-        self.attempt_first_pose = self.poses_received;
+        self.attempt_first_pose = poses_received;
         // Until the attempt's first record, any model reply is to a window of the one before.
         self.attempt_first_window = None;
     }
@@ -166,6 +161,8 @@ pub struct Registry {
     pub by_id: HashMap<String, u16>,
     /// The slots.
     pub slots: Vec<SlotInfo>,
+    /// What the poses' threads read of the slots, without this registry's lock.
+    routes: Arc<Routes>,
     default_path: PlannedPath,
     default_mode: GuidanceMode,
     default_gain: f64,
@@ -207,15 +204,10 @@ impl Registry {
         default_burr_m: f64,
         owners: Owners,
     ) -> Self {
-        let now = Instant::now();
-        let slots = poses
-            .into_iter()
-            .map(|poses| SlotInfo {
+        let slots = (0..poses.len())
+            .map(|_| SlotInfo {
                 id: None,
                 generation: 0,
-                poses,
-                last_seen: now,
-                poses_received: 0,
                 path: default_path.clone(),
                 mode: default_mode,
                 gain: default_gain,
@@ -226,20 +218,41 @@ impl Registry {
                 attempt_first_pose: 0,
                 applied_window_seq: None,
                 attempt_first_window: None,
-                last_pose_at: None,
-                force: None,
             })
             .collect();
         Self {
             commands,
             by_id: HashMap::new(),
             slots,
+            routes: Arc::new(Routes::new(poses)),
             default_path,
             default_mode,
             default_gain,
             default_burr_m,
             owners,
         }
+    }
+
+    /// The routes of the open sessions' poses (shared with the threads that receive them).
+    #[must_use]
+    pub fn routes(&self) -> &Arc<Routes> {
+        &self.routes
+    }
+
+    /// The route of the session in `slot` (open or not).
+    #[must_use]
+    pub fn route(&self, slot: u16) -> Route {
+        Route { slot, generation: self.slots[usize::from(slot)].generation }
+    }
+
+    /// Poses the session in `slot` has received.
+    #[must_use]
+    pub fn poses_received(&self, slot: u16) -> u64 {
+        self.routes.received(slot)
+    }
+
+    fn publish_routes(&self) {
+        self.routes.publish(self.by_id.iter().map(|(id, &slot)| (id.as_str(), self.route(slot))));
     }
 
     /// Sends a command to the tick thread.
@@ -299,42 +312,37 @@ impl Registry {
             mode,
             gain,
         })?;
+        self.routes.assign(slot as u16, generation, Instant::now());
         let info = &mut self.slots[slot];
         info.id = Some(id.to_owned());
         info.generation = generation;
-        info.last_seen = Instant::now();
-        info.poses_received = 0;
         info.path = path;
         info.mode = mode;
         info.gain = gain;
         info.burr_radius_m = self.default_burr_m;
         info.fading = None;
-        info.new_attempt();
+        info.new_attempt(0);
         info.applied_window_seq = None;
-        info.last_pose_at = None;
-        info.force = None;
         self.by_id.insert(id.to_owned(), slot as u16);
+        self.publish_routes();
         Ok((slot as u16, true))
     }
 
-    /// Hands a decoded pose, `received` when its sample arrived, to the tick thread.
-    pub fn pose(&mut self, slot: u16, msg: &PoseMsg, received: Instant) {
-        let info = &mut self.slots[slot as usize];
-        info.poses.write(PoseSample {
-            pose: Some(msg.pose),
-            seq: msg.seq,
-            client_time_ns: msg.client_time_ns,
-            generation: info.generation,
-            received: Some(received),
-        });
-        // Only a stream keeps a session: a pose within STREAM_GAP_S of the one before. Isolated
-        // poses (one every few seconds to many ids) would otherwise hold every slot.
-        let now = Instant::now();
-        if info.last_pose_at.is_some_and(|t| now.duration_since(t).as_secs_f64() <= STREAM_GAP_S) {
-            info.last_seen = now;
-        }
-        info.last_pose_at = Some(now);
-        info.poses_received += 1;
+    /// Hands a decoded pose, `received` when its sample arrived, to the tick thread, as a pose's
+    /// thread does through the [`Routes`] (tests drive a session with it).
+    pub fn pose(&self, slot: u16, msg: &PoseMsg, received: Instant) {
+        let _ = self.routes.pose(self.route(slot), msg, received);
+    }
+
+    /// The comm thread has declared the force publisher of the session in `slot`: its poses put
+    /// their forces with it from now on.
+    pub fn set_force(&self, slot: u16, publisher: Arc<ForcePublisher>) {
+        self.routes.set_force(slot, publisher);
+    }
+
+    /// A control request keeps the session in `slot` alive.
+    pub fn seen(&self, slot: u16) {
+        self.routes.seen(slot, Instant::now());
     }
 
     /// Frees the session `id`.
@@ -346,16 +354,18 @@ impl Registry {
         self.send(Command::Release { slot })?;
         self.by_id.remove(id);
         self.slots[slot as usize].id = None;
+        self.publish_routes();
         Ok(())
     }
 
     /// Frees every session silent for longer than `timeout_s`; returns their ids.
     pub fn sweep_idle(&mut self, timeout_s: f64) -> Vec<String> {
+        let now = Instant::now();
         let idle: Vec<String> = self
-            .slots
+            .by_id
             .iter()
-            .filter(|s| s.last_seen.elapsed().as_secs_f64() > timeout_s)
-            .filter_map(|s| s.id.clone())
+            .filter(|(_, &slot)| self.routes.silent_for(slot, now).as_secs_f64() > timeout_s)
+            .map(|(id, _)| id.clone())
             .collect();
         for id in &idle {
             let _ = self.close(id);
