@@ -354,6 +354,7 @@ impl Registry {
         self.send(Command::Release { slot })?;
         self.by_id.remove(id);
         self.slots[slot as usize].id = None;
+        self.routes.retire(slot);
         self.publish_routes();
         Ok(())
     }

@@ -233,11 +233,12 @@ pub struct Refused {
     pub unknown_key: u64,
     /// A session refused (bad id, every slot taken).
     pub sessions: u64,
-    /// A pose that came while another pose of its session was being handed on, on another of
-    /// Zenoh's threads: two clients publishing under one session id. Dropped, not waited for.
+    /// A pose dropped (not waited for) because another thread held its session's pose writer at
+    /// that instant: two clients publishing under one session id, or the server opening or
+    /// closing a session in that slot.
     pub concurrent: u64,
-    /// A pose of a session that closed while it was being handed on (its next pose opens a new
-    /// session).
+    /// A pose of a session that closed between finding its session and being handed on (the next
+    /// pose of that id opens a new session).
     pub ended: u64,
 }
 

@@ -1,13 +1,13 @@
 //! What a pose needs of its session, kept outside the registry's mutex: the slot and generation of
 //! a session id, the slot's newest-pose writer and force publisher, and the stream bookkeeping that
 //! the idle sweep reads. The registry writes them as sessions open and close; a pose's thread only
-//! reads them and writes its slot's pose. So a pose never waits on the registry, which the control,
-//! metrics and health queries, the model's replies and the comm thread take: no client's queries
-//! can hold up another's forces, and the 1 kHz path takes no lock
-//! (`docs/decisions/0039-poses-route-without-the-registry.md`).
+//! reads them and writes its slot's pose. So a pose of an open session never waits on the
+//! registry, which the control, metrics and health queries, the model's replies and the comm
+//! thread take, and the pose's own path takes no lock (the comm thread still takes the registry
+//! for each 10 Hz state; `docs/decisions/0039-poses-route-without-the-registry.md`).
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, TryLockError};
 use std::time::{Duration, Instant};
 
@@ -32,8 +32,9 @@ pub struct Route {
 pub enum Missed {
     /// The session closed (and its slot may hold another) since the route was looked up.
     Ended,
-    /// Another thread was writing a pose of the same session at that instant: a second client
-    /// publishing under the same session id. The pose is dropped rather than waited for.
+    /// Another thread held the session's pose writer at that instant: a second client publishing
+    /// under the same session id, or the registry opening or closing a session in that slot. The
+    /// pose is dropped rather than waited for.
     Busy,
 }
 
@@ -41,6 +42,8 @@ pub enum Missed {
 #[derive(Debug)]
 struct SlotRoute {
     generation: AtomicU32,
+    /// Whether the slot holds a session (set by `assign`, cleared by `retire`).
+    open: AtomicBool,
     /// The newest-pose writer (single producer). Only ever `try_lock`ed: a second writer at the
     /// same instant drops its pose instead of waiting.
     writer: Mutex<triple_buffer::Input<PoseSample>>,
@@ -74,6 +77,7 @@ impl Routes {
             .into_iter()
             .map(|w| SlotRoute {
                 generation: AtomicU32::new(0),
+                open: AtomicBool::new(false),
                 writer: Mutex::new(w),
                 force: ArcSwapOption::empty(),
                 last_pose_ns: AtomicU64::new(0),
@@ -106,9 +110,10 @@ impl Routes {
             Err(TryLockError::WouldBlock) => return Err(Missed::Busy),
             Err(TryLockError::Poisoned(p)) => p.into_inner(),
         };
-        // Checked while holding the writer: `assign` changes the generation before the new
-        // session's id is published, so a pose of the old session written after it is refused.
-        if s.generation.load(Ordering::Acquire) != route.generation {
+        // Checked while holding the writer: `retire` (the session closed) and `assign` (the slot
+        // given to a new session, before its id is published) take it, so a pose of a session
+        // that has ended is refused here, whenever its route was looked up.
+        if !s.open.load(Ordering::Acquire) || s.generation.load(Ordering::Acquire) != route.generation {
             return Err(Missed::Ended);
         }
         writer.write(PoseSample {
@@ -118,7 +123,8 @@ impl Routes {
             generation: route.generation,
             received: Some(received),
         });
-        drop(writer);
+        // Counted while still holding the writer, which `assign` and `retire` take: so a pose of
+        // a session that ends now is counted (and keeps it seen) before that, never for the next.
         // Only a stream keeps a session: a pose within STREAM_GAP_S of the one before. Isolated
         // poses (one every few seconds to many ids) would otherwise hold every slot.
         let now = self.ns(received);
@@ -127,6 +133,7 @@ impl Routes {
             s.last_seen_ns.fetch_max(now, Ordering::Relaxed);
         }
         s.received.fetch_add(1, Ordering::Relaxed);
+        drop(writer);
         Ok(s.force.load_full().filter(|f| f.generation == route.generation))
     }
 
@@ -135,13 +142,23 @@ impl Routes {
     pub fn assign(&self, slot: u16, generation: u32, now: Instant) {
         let s = &self.slots[usize::from(slot)];
         // Under the writer, so that a pose of the slot's previous session being written now ends
-        // before the counts restart (and any later one sees the new generation and is refused).
+        // (counted) before the counts restart, and any later one sees the new generation.
         let writer = s.writer.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         s.generation.store(generation, Ordering::Release);
+        s.open.store(true, Ordering::Release);
         s.force.store(None);
         s.last_pose_ns.store(0, Ordering::Relaxed);
         s.last_seen_ns.store(self.ns(now), Ordering::Relaxed);
         s.received.store(0, Ordering::Relaxed);
+        drop(writer);
+    }
+
+    /// The session in `slot` has closed (the registry, holding its lock): its poses are refused
+    /// from now on, also those whose route was looked up before the id left the map.
+    pub fn retire(&self, slot: u16) {
+        let s = &self.slots[usize::from(slot)];
+        let writer = s.writer.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        s.open.store(false, Ordering::Release);
         drop(writer);
     }
 
@@ -222,6 +239,18 @@ mod tests {
         assert_eq!(r.received(0), 0, "counted for the new session");
         assert_eq!(out.read().generation, 0, "written for the new session");
         assert_eq!(r.find("a"), None);
+    }
+
+    #[test]
+    fn a_pose_routed_just_before_its_session_closed_is_refused() {
+        let (r, mut out) = routes();
+        r.assign(0, 1, Instant::now());
+        r.publish([("a", Route { slot: 0, generation: 1 })].into_iter());
+        let route = r.find("a").unwrap(); // looked up, then "a" closed: the slot holds nobody
+        r.retire(0);
+        r.publish(std::iter::empty());
+        assert_eq!(r.pose(route, &msg(1), Instant::now()).unwrap_err(), Missed::Ended);
+        assert_eq!((r.received(0), out.read().seq), (0, 0), "counted or written for a closed session");
     }
 
     #[test]
