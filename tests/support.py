@@ -3,6 +3,7 @@ pose, 1 kHz pose streams, waits on conditions (never on fixed times) and the fie
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -299,4 +300,59 @@ def column_encodings(path: str | Path) -> dict[str, tuple[set[str], set[str]]]:
             compressions, encodings = out.setdefault(col.path_in_schema, (set(), set()))
             compressions.add(col.compression)
             encodings.update(col.encodings)
+    return out
+
+
+class AnsweringSession:
+    """A stand-in for a recorder's Zenoh session (``SessionRecorder(zenoh_session=...)``, which then
+    subscribes to nothing): ``get`` answers the server's ``about`` and the session's ``info``
+    (entry A at the origin, target B 60 mm along z), as a server would."""
+
+    def __init__(self, session_id: str, prefix: str = "dhg") -> None:
+        from dhg.core import protocol
+
+        keys = protocol.keys(prefix, session_id)
+        self.replies = {
+            keys["about"]: {"dhg_version": "stand-in"},
+            keys["info"]: {"entry_m": [0.0, 0.0, 0.0], "target_m": [0.0, 0.0, 0.06]},
+        }
+
+    def get(self, key: str, timeout: float = 1.0) -> list[Any]:
+        import types
+
+        body = json.dumps(self.replies.get(key, {})).encode()
+        payload = types.SimpleNamespace(to_bytes=lambda: body)
+        return [types.SimpleNamespace(ok=types.SimpleNamespace(payload=payload))]
+
+
+def state_sample(payload: bytes) -> Any:
+    """A Zenoh sample as a recorder's ``on_sample`` reads it."""
+    import types
+
+    return types.SimpleNamespace(payload=types.SimpleNamespace(to_bytes=lambda: payload))
+
+
+def attempt_states(n: int, seed: int = 0) -> list[bytes]:
+    """One attempt's ``state`` payloads (10 Hz, from time 0.1 s): the tip advancing 0.2 mm a record
+    along z through cortex, drill on, a noisy force, plunge 1 mm, 40 °C."""
+    from dhg.core import protocol
+    from dhg.core.layers import Layer
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(1, n + 1):
+        # force (N), tip (m), layer, depth along A→B (m), temperature (°C)
+        features = [*rng.normal(0.0, 1.0, 3), 0.0, 0.0, 2e-4 * k, float(Layer.CORTICAL), 2e-4 * k, 40.0]
+        out.append(
+            protocol.encode(
+                "state",
+                flags=protocol.FLAGS["drill_on"],
+                record_seq=k,
+                time_s=0.1 * k,
+                features=features,
+                peak_temperature_c=40.0 + 0.01 * k,
+                plunge_depth_m=1e-3,
+                guidance_gain=1.0,
+            )  # fmt: skip
+        )
     return out

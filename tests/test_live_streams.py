@@ -38,7 +38,7 @@ def test_an_attempt_too_short_for_a_record_is_passed_over_by_the_states():
     assert _ids(s, "force", [0, 30]) == [1, 1]  # reset, then reset again after 31 ms: no state
     assert _ids(s, "force", [0, 120]) == [2, 2]
     assert _ids(s, "state", [99]) == [2]  # not the short episode 1
-    assert s.episodes[1].records == [] and s.at("state") == 2
+    assert len(s.episodes[1].records) == 0 and s.at("state") == 2
 
 
 def test_a_late_state_of_an_episode_stays_with_it_even_past_a_few_dropped_forces():

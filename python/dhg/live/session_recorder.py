@@ -31,8 +31,7 @@ from dhg.core.skill import skill_metrics
 from dhg.core.version import __version__
 from dhg.data.dataset import EpisodeInput, write_dataset
 from dhg.data.synth import attempt_score
-from dhg.live.streams import EpisodeSplitter, RawParts, RecordingEpisode, force_jerk
-from dhg.live.trainee import state_records
+from dhg.live.streams import STATE_COLUMNS, EpisodeSplitter, RawParts, RecordingEpisode, force_jerk
 
 __all__ = [
     "MAX_SESSION_TIME_S",
@@ -49,6 +48,12 @@ _LAYER_IDS = frozenset(float(layer) for layer in Layer)
 
 MAX_SESSION_TIME_S = 7 * 24 * 3600.0
 """A session clock past a week (s) is not a session's: such a state is refused."""
+
+
+_RECORD_WIDTH = 11
+"""A record's columns (time, the nine features, drill on): the first of :data:`STATE_COLUMNS`."""
+_STATE = {name: k + (8 if k > STATE_COLUMNS.index("features") else 0) for k, name in enumerate(STATE_COLUMNS)}
+"""Each of :data:`STATE_COLUMNS`' column in a state row (``features`` spans nine)."""
 
 
 def recorded_subscriber(z: Any, key: str, callback: Callable[[Any], None], on_miss: Callable[[int], None]) -> Any:
@@ -147,9 +152,11 @@ class SessionRecorder(FlushLoop):
     """Records ``session_id`` on the server at ``connect`` into the dataset folder ``out_dir``.
 
     ``skill`` labels the subject (``expert`` demonstrations are what training uses). Records are
-    kept in memory (about 100 bytes per 10 Hz record, so hours fit easily) and the records are
-    rewritten on each flush. With ``raw``, the 1 kHz rows wait in memory only until their flush
-    (``raw_part_rows`` rows make a part).
+    kept in memory (a 10 Hz state takes 15 float64, twice that once its attempt's metrics are kept
+    between flushes: an hour of one session about 9 MB) and ``records.parquet`` is rewritten whole
+    on each flush, so a flush's cost grows with the recording (``docs/benchmarks.md``). An attempt's
+    skill metrics are computed again only when it changed. With ``raw``, the 1 kHz rows wait in
+    memory only until their flush (``raw_part_rows`` rows make a part).
     """
 
     def __init__(
@@ -257,7 +264,7 @@ class SessionRecorder(FlushLoop):
         tick = round(m["time_s"] / TICK_S) - 1  # the step that completed this record
         with self._lock:
             ep = self._split.place("state", tick)
-            ep.records.append(m)
+            ep.records.append(m, drill_on=bool(m["flags"] & _DRILL_ON))
             if ep.episode_id is None:
                 ep.episode_id, self._next_id = self._next_id, self._next_id + 1
             self._dirty = True
@@ -341,12 +348,14 @@ class SessionRecorder(FlushLoop):
     def _take(
         self, final: bool
     ) -> tuple[
-        list[tuple[RecordingEpisode, list[dict[str, Any]]]], list[tuple[RecordingEpisode, npt.NDArray[np.float64]]]
+        list[tuple[RecordingEpisode, npt.NDArray[np.float64] | None]],
+        list[tuple[RecordingEpisode, npt.NDArray[np.float64]]],
     ]:
-        """Under the lock: the episodes with records (and a copy of them), and the raw rows now
-        ready to write. Rows of an episode the states passed by without a record are dropped;
-        an episode still waiting for its first record holds back its rows and every later one's
-        (written by the next flush that has its record)."""
+        """Under the lock: the episodes with records (with a copy of their states, or ``None``
+        where the last write had them all), and the raw rows now ready to write. Rows of an
+        episode the states passed by without a record are dropped; an episode still waiting for
+        its first record holds back its rows and every later one's (written by the next flush
+        that has its record)."""
         state_at = self._split.at("state")
         ready: list[tuple[RecordingEpisode, npt.NDArray[np.float64]]] = []
         waiting = False
@@ -362,7 +371,11 @@ class SessionRecorder(FlushLoop):
                 ready.append((ep, np.concatenate(ep.rows)))
                 ep.rows = []
         self._dirty = waiting
-        episodes = [(ep, list(ep.records)) for ep in self._split.episodes if ep.episode_id is not None]
+        episodes = [
+            (ep, None if ep.written is not None and len(ep.written[1]) == len(ep.records) else ep.records.array())
+            for ep in self._split.episodes
+            if ep.episode_id is not None
+        ]
         return episodes, ready
 
     def flush(self, final: bool = False) -> bool:
@@ -390,31 +403,13 @@ class SessionRecorder(FlushLoop):
             self._finished = final
             return True
 
-    def _write(self, episodes: list[tuple[RecordingEpisode, list[dict[str, Any]]]], final: bool) -> None:
+    def _write(self, episodes: list[tuple[RecordingEpisode, npt.NDArray[np.float64] | None]], final: bool) -> None:
         self._fetch_path()
         rules = TaskRules()
         inputs = []
         for attempt, (ep, states) in enumerate(episodes):
-            records = state_records(states)
-            last = states[-1]
-            metrics: dict[str, Any] = {}
-            path = ep.path if ep.path is not None else self.path
-            if path is not None:
-                metrics = skill_metrics(
-                    records,
-                    path,
-                    rules,
-                    final_tip_m=records[-1, RECORD_INDEX["tip_x_m"] : RECORD_INDEX["tip_x_m"] + 3],
-                    drilling_s=float(np.count_nonzero(records[:, RECORD_INDEX["drill_on"]] > 0.5)) * RECORD_PERIOD_S,
-                    plunge_depth_m=max(s["plunge_depth_m"] for s in states),
-                    peak_temperature_c=last["peak_temperature_c"],
-                    time_above_47_s=last["time_above_47_s"],
-                )
-                if ep.jerk_count:  # the device force at 1 kHz, as a virtual surgeon's raw stream gives it
-                    metrics["force_jerk_n_per_s"] = math.sqrt(ep.jerk_sum / ep.jerk_count)
-            # The gain the attempt was drilled at (a fading schedule sets it per attempt; 0 on a probe).
-            metrics["guidance_gain"] = float(last.get("guidance_gain", 0.0))
-            inputs.append(EpisodeInput(self.subject_id, self.skill, attempt, records, metrics))
+            records, metrics = self._episode(ep, states, rules)
+            inputs.append(EpisodeInput(self.subject_id, self.skill, attempt, records, dict(metrics)))
         if inputs:  # the paper trains on each subject's best attempt
             scored = [i for i, ep in enumerate(inputs) if "completed" in ep.metrics]
             best = min(scored, key=lambda i: attempt_score(inputs[i].metrics)) if scored else len(inputs) - 1
@@ -451,6 +446,40 @@ class SessionRecorder(FlushLoop):
         if self._parts is not None and not final:
             self._parts.written(parts)
         self.flushes += 1
+
+    def _episode(
+        self, ep: RecordingEpisode, states: npt.NDArray[np.float64] | None, rules: TaskRules
+    ) -> tuple[npt.NDArray[np.float64], dict[str, Any]]:
+        """An episode's records and skill metrics from its ``states`` (:data:`STATE_COLUMNS`;
+        ``None``: those of the last write). They are the last write's while the states, the path
+        and the 1 kHz force count are the same: a long recording's ended attempts are not
+        computed again at every flush (``bench_recorder_flush.py``)."""
+        if states is None:
+            states = ep.written[1]
+        path = ep.path if ep.path is not None else self.path
+        if ep.written is not None:
+            (n, seen_path, jerks), _, records, metrics = ep.written
+            if n == len(states) and seen_path is path and jerks == ep.jerk_count:
+                return records, metrics
+        records, last = states[:, :_RECORD_WIDTH], states[-1]
+        metrics = {}
+        if path is not None:
+            metrics = skill_metrics(
+                records,
+                path,
+                rules,
+                final_tip_m=records[-1, RECORD_INDEX["tip_x_m"] : RECORD_INDEX["tip_x_m"] + 3],
+                drilling_s=float(np.count_nonzero(records[:, RECORD_INDEX["drill_on"]] > 0.5)) * RECORD_PERIOD_S,
+                plunge_depth_m=float(states[:, _STATE["plunge_depth_m"]].max()),
+                peak_temperature_c=float(last[_STATE["peak_temperature_c"]]),
+                time_above_47_s=float(last[_STATE["time_above_47_s"]]),
+            )
+            if ep.jerk_count:  # the device force at 1 kHz, as a virtual surgeon's raw stream gives it
+                metrics["force_jerk_n_per_s"] = math.sqrt(ep.jerk_sum / ep.jerk_count)
+        # The gain the attempt was drilled at (a fading schedule sets it per attempt; 0 on a probe).
+        metrics["guidance_gain"] = float(last[_STATE["guidance_gain"]])
+        ep.written = ((len(states), path, ep.jerk_count), states, records, metrics)
+        return records, metrics
 
     @property
     def attempts(self) -> int:

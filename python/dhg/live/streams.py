@@ -15,6 +15,7 @@ the step with tick ``k`` ends at session time ``(k + 1)`` ms, so its force messa
 
 from __future__ import annotations
 
+import array
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -25,7 +26,15 @@ import numpy.typing as npt
 from dhg.core.features import TICK_S
 from dhg.data.dataset import RAW_FILE, RAW_PART_FILE, RawPart, raw_parquet_bytes, raw_schema
 
-__all__ = ["RAW_COLUMNS", "RecordingEpisode", "EpisodeSplitter", "RawParts", "force_jerk"]
+__all__ = [
+    "RAW_COLUMNS",
+    "STATE_COLUMNS",
+    "EpisodeSplitter",
+    "RawParts",
+    "RecordingEpisode",
+    "StateRows",
+    "force_jerk",
+]
 
 RAW_COLUMNS = len(raw_schema().names) - 1
 """Columns of a raw row as the recorder holds it: the schema's less ``episode_id``."""
@@ -38,6 +47,44 @@ would take the state; that needs 20 dropped forces in a row at a reset)."""
 
 Stream = Literal["force", "state"]
 
+STATE_COLUMNS = (
+    "time_s",
+    "features",
+    "drill_on",
+    "plunge_depth_m",
+    "peak_temperature_c",
+    "time_above_47_s",
+    "guidance_gain",
+)
+"""What the recorder keeps of a state message, in this order (``features`` is nine columns): its
+record (time, the nine features, drill on) and the values the attempt's metrics take from it."""
+
+_WIDTH = len(STATE_COLUMNS) - 1 + 9
+
+
+class StateRows:
+    """An attempt's states as the recorder keeps them: :data:`STATE_COLUMNS`, 15 float64 a state
+    (120 bytes; the decoded message, a dict, took about 1 KB), appended as they arrive."""
+
+    __slots__ = ("_buf",)
+
+    def __init__(self) -> None:
+        self._buf = array.array("d")
+
+    def append(self, m: dict[str, Any], drill_on: bool) -> None:
+        """Appends a decoded ``state`` message."""
+        self._buf.extend(
+            (m["time_s"], *m["features"], float(drill_on), m["plunge_depth_m"], m["peak_temperature_c"],
+             m["time_above_47_s"], m["guidance_gain"])
+        )  # fmt: skip
+
+    def __len__(self) -> int:
+        return len(self._buf) // _WIDTH
+
+    def array(self) -> npt.NDArray[np.float64]:
+        """A copy, (N, 15): the record (time, nine features, drill on) is its first 11 columns."""
+        return np.array(self._buf, dtype=np.float64).reshape(-1, _WIDTH)
+
 
 @dataclass
 class RecordingEpisode:
@@ -45,8 +92,8 @@ class RecordingEpisode:
 
     last: dict[str, int] = field(default_factory=dict)
     """Newest tick each stream put in it."""
-    records: list[dict[str, Any]] = field(default_factory=list)
-    """Decoded state messages, in order."""
+    records: StateRows = field(default_factory=StateRows)
+    """Its states, in order."""
     rows: list[npt.NDArray[np.float64]] = field(default_factory=list)
     """Ticks not yet written, in blocks of raw rows (:data:`RAW_COLUMNS` columns each: tick, the
     pose, force, guidance)."""
@@ -59,6 +106,10 @@ class RecordingEpisode:
     """The planned path (:class:`dhg.core.path.PlannedPath`) its metrics are measured against:
     the session's as the recorder asked after the attempt began (None: not asked yet); a
     ``set_path`` between attempts gives the next attempt the new one."""
+    written: Any = None
+    """What the last write made of it: ((state count, path, 1 kHz force count), its states, records
+    and metrics). A later write reuses it while those three are the same, so an attempt that has
+    ended is computed once."""
 
 
 class EpisodeSplitter:
