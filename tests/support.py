@@ -334,7 +334,9 @@ def state_sample(payload: bytes) -> Any:
 
 def attempt_states(n: int, seed: int = 0) -> list[bytes]:
     """One attempt's ``state`` payloads (10 Hz, from time 0.1 s): the tip advancing 0.2 mm a record
-    along z through cortex, drill on, a noisy force, plunge 1 mm, 40 °C."""
+    along z through cortex with a noisy force; the drill off now and then; plunge, peak
+    temperature, time above 47 °C and guidance gain that wander (so a metric taken from the wrong
+    state, or the largest where the last is meant, shows)."""
     from dhg.core import protocol
     from dhg.core.layers import Layer
 
@@ -346,13 +348,14 @@ def attempt_states(n: int, seed: int = 0) -> list[bytes]:
         out.append(
             protocol.encode(
                 "state",
-                flags=protocol.FLAGS["drill_on"],
+                flags=protocol.FLAGS["drill_on"] if rng.random() > 0.1 else 0,
                 record_seq=k,
                 time_s=0.1 * k,
                 features=features,
-                peak_temperature_c=40.0 + 0.01 * k,
-                plunge_depth_m=1e-3,
-                guidance_gain=1.0,
-            )  # fmt: skip
+                peak_temperature_c=rng.uniform(40.0, 50.0),
+                plunge_depth_m=rng.uniform(0.0, 3e-3),
+                time_above_47_s=rng.uniform(0.0, 2.0),
+                guidance_gain=rng.uniform(0.0, 2.0),
+            )
         )
     return out
