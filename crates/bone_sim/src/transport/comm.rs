@@ -6,7 +6,7 @@
 
 use std::collections::VecDeque;
 use std::sync::atomic::Ordering;
-use std::sync::Arc;
+use std::sync::{Arc, TryLockError};
 use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
 
@@ -28,11 +28,46 @@ use crate::protocol::keys;
 /// it, only to be added to the recorders' batches, so it takes them in this often.
 pub(crate) const IDLE_WAKE: Duration = Duration::from_millis(20);
 
+/// While the registry is held by another thread, how often the comm thread tries it again
+/// (a force queued meanwhile wakes it sooner).
+const REGISTRY_RETRY: Duration = Duration::from_micros(100);
+
 struct Comm {
     session: zenoh::Session,
     shared: Arc<Shared>,
     outlets: Vec<Option<Outlet>>,
     model: ModelQueries,
+    queue: ForcesFirst,
+}
+
+/// The ticks' outputs as the comm thread takes them: forces first. A state's model query or a
+/// guidance message takes tens of µs (up to ms), and a force queued behind it would wait for it.
+/// So every waiting force, including those that arrive meanwhile, goes out before each of the
+/// other outputs, which keep their order. Why: `docs/decisions/0008-forces-first.md`.
+struct ForcesFirst {
+    outputs: Arc<OutputQueue>,
+    /// Outputs other than forces, in order, waiting for every force to be out (kept across
+    /// wake-ups, so its capacity is reused).
+    later: VecDeque<Output>,
+}
+
+impl ForcesFirst {
+    /// The next waiting force; the other outputs taken on the way wait behind those already
+    /// waiting.
+    fn next_force(&mut self) -> Option<Output> {
+        while let Some(out) = self.outputs.pop() {
+            if matches!(out, Output::Force { .. }) {
+                return Some(out);
+            }
+            self.later.push_back(out);
+        }
+        None
+    }
+
+    /// The oldest waiting output that is not a force (take it once no force waits).
+    fn next_other(&mut self) -> Option<Output> {
+        self.later.pop_front()
+    }
 }
 
 impl Comm {
@@ -93,11 +128,12 @@ impl Comm {
                 // A record of the session's current attempt is counted, and the model asked about
                 // its window; a straggler of an attempt a reset ended is neither (a reply to it
                 // would not be applied).
-                let current = lock(&self.shared.registry)
-                    .slots
-                    .get_mut(slot as usize)
-                    .filter(|info| info.generation == generation)
-                    .is_some_and(|info| info.add_record(&msg, attempt, asked.seq));
+                let current = self.with_registry(|reg| {
+                    reg.slots
+                        .get_mut(slot as usize)
+                        .filter(|info| info.generation == generation)
+                        .is_some_and(|info| info.add_record(&msg, attempt, asked.seq))
+                });
                 if current {
                     self.model.ask(slot, generation, asked.seq, pose_time_ns, &asked.window);
                 }
@@ -106,15 +142,51 @@ impl Comm {
                 if let Some(o) = self.outlet(slot, generation) {
                     o.publish_guidance(&msg);
                 }
-                if let Some(info) = lock(&self.shared.registry).slots.get_mut(slot as usize) {
-                    if info.generation == generation {
+                self.with_registry(|reg| {
+                    if let Some(info) = reg.slots.get_mut(slot as usize).filter(|info| info.generation == generation) {
                         info.add_guidance(&msg);
                     }
-                }
+                });
             }
             Output::Snapshot { .. } => {
                 self.shared.snapshot_seq.fetch_add(1, Ordering::AcqRel);
             }
+        }
+    }
+
+    /// Runs `f` on the registry for a state's or a guidance message's bookkeeping. While another
+    /// thread holds the registry (a control, metrics or health query, a model reply), this thread
+    /// goes on putting the forces that arrive meanwhile, so that no force, and no later force of
+    /// its session (which must follow it out), waits for the registry
+    /// (`docs/decisions/0039-poses-route-without-the-registry.md`).
+    fn with_registry<R>(&mut self, f: impl FnOnce(&mut super::registry::Registry) -> R) -> R {
+        let shared = self.shared.clone();
+        loop {
+            match shared.registry.try_lock() {
+                Ok(mut reg) => return f(&mut reg),
+                Err(TryLockError::Poisoned(p)) => return f(&mut p.into_inner()),
+                Err(TryLockError::WouldBlock) => {
+                    self.put_waiting_forces();
+                    // Woken at once by the next output a tick queues; else it looks again soon.
+                    thread::park_timeout(REGISTRY_RETRY);
+                }
+            }
+        }
+    }
+
+    /// Puts every waiting force ([`ForcesFirst`]).
+    fn put_waiting_forces(&mut self) {
+        while let Some(force) = self.queue.next_force() {
+            self.handle(force);
+        }
+    }
+
+    /// Handles every waiting output, forces first ([`ForcesFirst`]).
+    fn drain_forces_first(&mut self) {
+        loop {
+            self.put_waiting_forces();
+            let Some(out) = self.queue.next_other() else { return };
+            self.handle(out);
         }
     }
 
@@ -130,17 +202,15 @@ impl Comm {
         let s = sample(&self.shared);
         lock(&self.shared.history).push(s);
         let idle = self.shared.config.idle_timeout_s;
-        lock(&self.shared.registry).sweep_idle(idle);
+        self.with_registry(|reg| reg.sweep_idle(idle));
     }
 
-    fn run(&mut self, outputs: &OutputQueue, wait: WaitMode) {
+    fn run(&mut self, wait: WaitMode) {
         // A force waits for this thread's wake-up: preempt longer-sliced threads (no privilege).
         let slice = realtime::short_slice(0);
         self.shared.counters.comm_short_slice.store(u64::from(slice), Ordering::Relaxed);
         let mut io_sessions = None;
         let mut next_housekeeping = Instant::now();
-        // Outputs other than forces, handled once every waiting force is out.
-        let mut later = VecDeque::with_capacity(4 * self.outlets.len());
         while !self.shared.stopping.load(Ordering::Acquire) {
             if wait == WaitMode::Spin && self.shared.stats.sessions.load(Ordering::Relaxed) > 0 {
                 std::hint::spin_loop();
@@ -150,7 +220,7 @@ impl Comm {
                 let nap = self.model.deadline().map_or(IDLE_WAKE, |due| due.saturating_duration_since(Instant::now()));
                 thread::park_timeout(nap);
             }
-            drain_forces_first(outputs, &mut later, |out| self.handle(out));
+            self.drain_forces_first();
             let now = Instant::now();
             self.model.send_if_due(now);
             for o in self.outlets.iter_mut().flatten() {
@@ -167,25 +237,6 @@ impl Comm {
         }
         self.outlets.clear();
         self.model.drop_burst(); // the windows of a stopping server go unasked
-    }
-}
-
-/// Handles every output in `outputs`, forces first: a state's model query or a guidance message
-/// takes tens of µs (up to ms), and a force queued behind it would wait for it. So every waiting
-/// force, including those that arrive meanwhile, goes out before each of the other outputs, which
-/// wait in `later` (kept across calls, so its capacity is reused). Why:
-/// `docs/decisions/0008-forces-first.md`.
-fn drain_forces_first(outputs: &OutputQueue, later: &mut VecDeque<Output>, mut handle: impl FnMut(Output)) {
-    loop {
-        while let Some(out) = outputs.pop() {
-            if matches!(out, Output::Force { .. }) {
-                handle(out);
-            } else {
-                later.push_back(out);
-            }
-        }
-        let Some(out) = later.pop_front() else { return };
-        handle(out);
     }
 }
 
@@ -223,10 +274,16 @@ pub(crate) fn spawn(
 ) -> SimResult<JoinHandle<()>> {
     let model = ModelQueries::declare(&session, &shared)?;
     let slots = lock(&shared.registry).slots.len();
-    let mut comm = Comm { session, shared, outlets: (0..slots).map(|_| None).collect(), model };
+    let mut comm = Comm {
+        session,
+        shared,
+        outlets: (0..slots).map(|_| None).collect(),
+        model,
+        queue: ForcesFirst { outputs, later: VecDeque::with_capacity(4 * slots) },
+    };
     thread::Builder::new()
         .name("dhg-comm".into())
-        .spawn(move || comm.run(&outputs, wait))
+        .spawn(move || comm.run(wait))
         .map_err(|e| SimError::Engine(format!("cannot start the comm thread: {e}")))
 }
 
@@ -261,20 +318,31 @@ mod tests {
 
     #[test]
     fn forces_go_out_before_other_outputs_even_those_that_arrive_meanwhile() {
-        let queue = OutputQueue::new(16);
+        let outputs = Arc::new(OutputQueue::new(16));
         for out in [other(0), force(1), other(2), force(3)] {
-            queue.push(out).unwrap();
+            outputs.push(out).unwrap();
         }
-        let mut later = VecDeque::new();
+        let mut queue = ForcesFirst { outputs: outputs.clone(), later: VecDeque::new() };
         let mut order = Vec::new();
-        drain_forces_first(&queue, &mut later, |out| {
-            // While the first slow output is handled, a tick emits another force.
+        // The comm thread's loop (`Comm::drain_forces_first`).
+        loop {
+            while let Some(f) = queue.next_force() {
+                order.push(name(&f));
+            }
+            let Some(out) = queue.next_other() else { break };
             if matches!(out, Output::Snapshot { slot: 0, .. }) {
-                queue.push(force(4)).unwrap();
+                // While the first slow output is handled, a tick emits another force, and the
+                // handler (waiting for the registry, say) puts the forces that came meanwhile;
+                // an output other than a force that came too waits behind the older ones.
+                outputs.push(force(4)).unwrap();
+                outputs.push(other(5)).unwrap();
+                while let Some(f) = queue.next_force() {
+                    order.push(name(&f));
+                }
             }
             order.push(name(&out));
-        });
-        assert_eq!(order, ["F1", "F3", "S0", "F4", "S2"]);
-        assert!(later.is_empty() && queue.is_empty());
+        }
+        assert_eq!(order, ["F1", "F3", "F4", "S0", "S2", "S5"]);
+        assert!(queue.later.is_empty() && outputs.is_empty());
     }
 }

@@ -531,14 +531,14 @@ mod tests {
     use crate::session::Pose;
     use crate::volume::{layer::Layer, test_support::uniform_block};
 
-    /// Nothing a pose of an open session does waits on the registry's lock (decision 0039): while
-    /// another thread holds it, as the control, metrics and health queries, the model's replies
-    /// and the comm thread do, the server keeps taking the session's poses (each handed to the
-    /// engine and counted). Forces are not asserted during the hold: the comm thread takes the
-    /// registry for the 10 Hz states, and a force left to it (a tick without a pose, after a gap)
-    /// then waits for the hold to end. They are asserted after it.
+    /// No force of an open session waits on the registry's lock (decision 0039): while another
+    /// thread holds it, as the control, metrics and health queries and the model's replies do,
+    /// the server takes the session's poses (handed to the engine and counted) and its forces go
+    /// on, also those of ticks without a pose, which leave from the comm thread while it waits
+    /// for the registry at each 10 Hz state.
     #[test]
-    fn an_open_sessions_poses_are_taken_while_the_registry_is_held() {
+    fn an_open_sessions_poses_and_forces_go_on_while_the_registry_is_held() {
+        const MS: Duration = Duration::from_millis(1);
         let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
         let conf = |mode: &str, side: &str| {
             format!(
@@ -579,27 +579,34 @@ mod tests {
             spindle_rpm: 0.0,
         };
         let mut seq = 0u32;
-        // Sends poses at about 1 kHz until `done`, for at most 10 s.
-        let mut stream_until = |what: &str, done: &dyn Fn() -> bool| {
+        // Sends poses `gap` apart until `done`, for at most 10 s.
+        let mut stream_until = |what: &str, gap: Duration, done: &dyn Fn() -> bool| {
             let deadline = Instant::now() + Duration::from_secs(10);
             while !done() {
                 assert!(Instant::now() < deadline, "waited 10 s for {what}");
                 seq += 1;
                 let msg = PoseMsg { seq, client_time_ns: u64::from(seq) * 1_000_000, pose };
                 poses.put(protocol::encode_pose(&msg).to_vec()).wait().unwrap();
-                thread::sleep(Duration::from_millis(1));
+                thread::sleep(gap);
             }
             seq
         };
         // The first pose opens the session (under the registry's lock); then its forces flow.
-        stream_until("the session's first forces", &|| answered.load(Ordering::Acquire) > 0);
+        stream_until("the session's first forces", MS, &|| answered.load(Ordering::Acquire) > 0);
         let taken = || server.shared.counters.poses.load(Ordering::Acquire);
         let before = taken();
         let held = lock(&server.shared.registry);
-        stream_until("20 poses taken while the registry is held", &|| taken() >= before + 20);
+        stream_until("20 poses taken while the registry is held", MS, &|| taken() >= before + 20);
+        // Now 5 ms between poses: the ticks between them run without a pose, and their forces
+        // leave from the comm thread, which meets the held registry at each 10 Hz state. It puts
+        // the forces that come while it waits, so the session's forces go on (60 poses: 0.3 s).
+        let from = stream_until("", MS, &|| true);
+        stream_until("forces of gappy poses while the registry is held", 5 * MS, &|| {
+            answered.load(Ordering::Acquire) >= from + 60
+        });
         drop(held);
-        let last = stream_until("", &|| true);
-        stream_until("the forces after the hold", &|| answered.load(Ordering::Acquire) >= last);
+        let last = stream_until("", MS, &|| true);
+        stream_until("the forces after the hold", MS, &|| answered.load(Ordering::Acquire) >= last);
         server.stop();
     }
 }
