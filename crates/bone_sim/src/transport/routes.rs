@@ -3,8 +3,8 @@
 //! the idle sweep reads. The registry writes them as sessions open and close; a pose's thread only
 //! reads them and writes its slot's pose. So a pose of an open session never waits on the
 //! registry, which the control, metrics and health queries, the model's replies and the comm
-//! thread take, and the pose's own path takes no lock (the comm thread still takes the registry
-//! for each 10 Hz state; `docs/decisions/0039-poses-route-without-the-registry.md`).
+//! thread take, and the pose's own path takes no lock (the comm thread, for its part, puts forces
+//! while it waits for the registry; `docs/decisions/0039-poses-route-without-the-registry.md`).
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
