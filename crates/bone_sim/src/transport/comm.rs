@@ -68,6 +68,11 @@ impl ForcesFirst {
     fn next_other(&mut self) -> Option<Output> {
         self.later.pop_front()
     }
+
+    /// Whether no output waits.
+    fn is_empty(&self) -> bool {
+        self.later.is_empty() && self.outputs.is_empty()
+    }
 }
 
 impl Comm {
@@ -80,23 +85,28 @@ impl Comm {
             if let Some(mut old) = self.outlets[i].take() {
                 old.publish_ticks();
             }
-            let id = {
-                let reg = lock(&self.shared.registry);
-                let info = &reg.slots[i];
-                if info.generation != generation {
-                    return None; // the slot moved on; drop what is left of the old session
+            // The session's id from the routes, not the registry, so that the first outputs of a
+            // session do not wait for a query holding the registry (decision 0039).
+            let routes = &self.shared.routes;
+            let id: String = match routes.id_of(slot, generation) {
+                Some(id) => id,
+                // Being opened at this instant (its id not yet published): the registry, held
+                // by the opening for microseconds, has it.
+                None if routes.is_current(slot, generation) => {
+                    let reg = lock(&self.shared.registry);
+                    let info = &reg.slots[i];
+                    if info.generation != generation {
+                        return None;
+                    }
+                    info.id.clone()?
                 }
-                info.id.clone()?
+                None => return None, // the slot moved on; drop what is left of the old session
             };
             let key = |leaf: &str| keys::session_leaf(&self.shared.prefix, &id, leaf);
             let force = Outlet::declare_force(&self.session, key("force"), generation)?;
             // From now on the session's poses put their own forces (if they tick it).
-            {
-                let reg = lock(&self.shared.registry);
-                match reg.slots.get(i) {
-                    Some(info) if info.generation == generation => reg.set_force(slot, force.clone()),
-                    _ => return None,
-                }
+            if !self.shared.routes.set_force(slot, generation, force.clone()) {
+                return None;
             }
             self.outlets[i] = Some(Outlet::declare(&self.session, key, generation, force)?);
         }
@@ -216,9 +226,13 @@ impl Comm {
                 std::hint::spin_loop();
             } else {
                 // A tick unparks this thread when it queued output to publish; a burst's query
-                // leaves at most `model_query::BURST_WAIT` after its first window.
+                // leaves at most `model_query::BURST_WAIT` after its first window. Not when
+                // output waits already: a wait for the registry (`with_registry`) may have taken
+                // the unpark that came with it.
                 let nap = self.model.deadline().map_or(IDLE_WAKE, |due| due.saturating_duration_since(Instant::now()));
-                thread::park_timeout(nap);
+                if self.queue.is_empty() {
+                    thread::park_timeout(nap);
+                }
             }
             self.drain_forces_first();
             let now = Instant::now();
@@ -344,5 +358,24 @@ mod tests {
         }
         assert_eq!(order, ["F1", "F3", "F4", "S0", "S2", "S5"]);
         assert!(queue.later.is_empty() && outputs.is_empty());
+
+        // With the registry free, a force that comes while a slow output is handled leaves after
+        // it and before the next one.
+        for out in [other(0), force(1), other(2), force(3)] {
+            outputs.push(out).unwrap();
+        }
+        order.clear();
+        loop {
+            while let Some(f) = queue.next_force() {
+                order.push(name(&f));
+            }
+            let Some(out) = queue.next_other() else { break };
+            if matches!(out, Output::Snapshot { slot: 0, .. }) {
+                outputs.push(force(4)).unwrap();
+            }
+            order.push(name(&out));
+        }
+        assert_eq!(order, ["F1", "F3", "S0", "F4", "S2"]);
+        assert!(queue.is_empty());
     }
 }

@@ -334,12 +334,6 @@ impl Registry {
         let _ = self.routes.pose(self.route(slot), msg, received);
     }
 
-    /// The comm thread has declared the force publisher of the session in `slot`: its poses put
-    /// their forces with it from now on.
-    pub fn set_force(&self, slot: u16, publisher: Arc<ForcePublisher>) {
-        self.routes.set_force(slot, publisher);
-    }
-
     /// A control request keeps the session in `slot` alive.
     pub fn seen(&self, slot: u16) {
         self.routes.seen(slot, Instant::now());

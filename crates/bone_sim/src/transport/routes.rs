@@ -168,9 +168,34 @@ impl Routes {
     }
 
     /// The session of `generation` in `slot` now puts its forces with `publisher` (the comm thread,
-    /// once it has declared it).
-    pub(crate) fn set_force(&self, slot: u16, publisher: Arc<ForcePublisher>) {
-        self.slots[usize::from(slot)].force.store(Some(publisher));
+    /// once it has declared it); `false`, and nothing set, if that session has ended.
+    pub(crate) fn set_force(&self, slot: u16, generation: u32, publisher: Arc<ForcePublisher>) -> bool {
+        let s = &self.slots[usize::from(slot)];
+        // Under the writer, as `assign` and `retire` change the slot: a publisher is never set
+        // for a session after its slot was given to the next.
+        let writer = s.writer.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let current = s.open.load(Ordering::Acquire) && s.generation.load(Ordering::Acquire) == generation;
+        if current {
+            s.force.store(Some(publisher));
+        }
+        drop(writer);
+        current
+    }
+
+    /// The id of the session of `generation` in `slot`, once published (a copy; `None` when that
+    /// session has ended or is being opened at this instant).
+    #[must_use]
+    pub fn id_of(&self, slot: u16, generation: u32) -> Option<String> {
+        let ids = self.ids.load();
+        let want = Route { slot, generation };
+        ids.iter().find(|(_, r)| **r == want).map(|(id, _)| id.to_string())
+    }
+
+    /// Whether `slot` holds the session of `generation` (open, its id published or about to be).
+    #[must_use]
+    pub fn is_current(&self, slot: u16, generation: u32) -> bool {
+        let s = &self.slots[usize::from(slot)];
+        s.open.load(Ordering::Acquire) && s.generation.load(Ordering::Acquire) == generation
     }
 
     /// A control request keeps the session in `slot` alive, as of `now`.
