@@ -330,52 +330,46 @@ mod tests {
         }
     }
 
+    /// The comm thread's loop (`Comm::drain_forces_first`) over `queue`, running `slow` while the
+    /// first slow output (`S0`) is handled; the order the outputs were handled in.
+    fn drain(queue: &mut ForcesFirst, mut slow: impl FnMut(&mut ForcesFirst, &mut Vec<String>)) -> Vec<String> {
+        let mut order = Vec::new();
+        loop {
+            while let Some(f) = queue.next_force() {
+                order.push(name(&f));
+            }
+            let Some(out) = queue.next_other() else { return order };
+            if matches!(out, Output::Snapshot { slot: 0, .. }) {
+                slow(queue, &mut order);
+            }
+            order.push(name(&out));
+        }
+    }
+
     #[test]
     fn forces_go_out_before_other_outputs_even_those_that_arrive_meanwhile() {
         let outputs = Arc::new(OutputQueue::new(16));
-        for out in [other(0), force(1), other(2), force(3)] {
-            outputs.push(out).unwrap();
-        }
         let mut queue = ForcesFirst { outputs: outputs.clone(), later: VecDeque::new() };
-        let mut order = Vec::new();
-        // The comm thread's loop (`Comm::drain_forces_first`).
-        loop {
-            while let Some(f) = queue.next_force() {
-                order.push(name(&f));
+        let fill = || {
+            for out in [other(0), force(1), other(2), force(3)] {
+                outputs.push(out).unwrap();
             }
-            let Some(out) = queue.next_other() else { break };
-            if matches!(out, Output::Snapshot { slot: 0, .. }) {
-                // While the first slow output is handled, a tick emits another force, and the
-                // handler (waiting for the registry, say) puts the forces that came meanwhile;
-                // an output other than a force that came too waits behind the older ones.
-                outputs.push(force(4)).unwrap();
-                outputs.push(other(5)).unwrap();
-                while let Some(f) = queue.next_force() {
-                    order.push(name(&f));
-                }
-            }
-            order.push(name(&out));
-        }
-        assert_eq!(order, ["F1", "F3", "F4", "S0", "S2", "S5"]);
-        assert!(queue.later.is_empty() && outputs.is_empty());
-
-        // With the registry free, a force that comes while a slow output is handled leaves after
-        // it and before the next one.
-        for out in [other(0), force(1), other(2), force(3)] {
-            outputs.push(out).unwrap();
-        }
-        order.clear();
-        loop {
-            while let Some(f) = queue.next_force() {
-                order.push(name(&f));
-            }
-            let Some(out) = queue.next_other() else { break };
-            if matches!(out, Output::Snapshot { slot: 0, .. }) {
-                outputs.push(force(4)).unwrap();
-            }
-            order.push(name(&out));
-        }
+        };
+        // A force that comes while a slow output is handled leaves after it, before the next.
+        fill();
+        let order = drain(&mut queue, |_, _| outputs.push(force(4)).unwrap());
         assert_eq!(order, ["F1", "F3", "S0", "F4", "S2"]);
+        // A slow output waiting for the registry puts the forces that come meanwhile; another
+        // output that came too waits behind the older ones.
+        fill();
+        let order = drain(&mut queue, |q, order| {
+            outputs.push(force(4)).unwrap();
+            outputs.push(other(5)).unwrap();
+            while let Some(f) = q.next_force() {
+                order.push(name(&f));
+            }
+        });
+        assert_eq!(order, ["F1", "F3", "F4", "S0", "S2", "S5"]);
         assert!(queue.is_empty());
     }
 }
