@@ -235,7 +235,7 @@ pub struct Refused {
     pub sessions: u64,
     /// A pose dropped (not waited for) because another thread held its session's pose writer at
     /// that instant: two clients publishing under one session id, or the server opening or
-    /// closing a session in that slot.
+    /// closing a session in that slot or declaring its force publisher.
     pub concurrent: u64,
     /// A pose of a session that closed between finding its session and being handed on (the next
     /// pose of that id opens a new session).

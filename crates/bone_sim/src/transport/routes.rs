@@ -33,8 +33,8 @@ pub enum Missed {
     /// The session closed (and its slot may hold another) since the route was looked up.
     Ended,
     /// Another thread held the session's pose writer at that instant: a second client publishing
-    /// under the same session id, or the registry opening or closing a session in that slot. The
-    /// pose is dropped rather than waited for.
+    /// under the same session id, or the server opening or closing a session in that slot or
+    /// declaring its force publisher. The pose is dropped rather than waited for.
     Busy,
 }
 
