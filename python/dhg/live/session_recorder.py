@@ -24,14 +24,14 @@ import numpy.typing as npt
 
 from dhg.core import protocol
 from dhg.core.errors import InvalidInputError
-from dhg.core.features import FEATURE_NAMES, RECORD_INDEX, RECORD_PERIOD_S, TICK_S
+from dhg.core.features import FEATURE_NAMES, RECORD_COLUMNS, RECORD_INDEX, RECORD_PERIOD_S, TICK_S
 from dhg.core.layers import Layer
 from dhg.core.path import PlannedPath, TaskRules
 from dhg.core.skill import skill_metrics
 from dhg.core.version import __version__
 from dhg.data.dataset import EpisodeInput, write_dataset
 from dhg.data.synth import attempt_score
-from dhg.live.streams import STATE_COLUMNS, EpisodeSplitter, RawParts, RecordingEpisode, force_jerk
+from dhg.live.streams import STATE_INDEX, EpisodeSplitter, RawParts, RecordingEpisode, force_jerk
 
 __all__ = [
     "MAX_SESSION_TIME_S",
@@ -48,12 +48,6 @@ _LAYER_IDS = frozenset(float(layer) for layer in Layer)
 
 MAX_SESSION_TIME_S = 7 * 24 * 3600.0
 """A session clock past a week (s) is not a session's: such a state is refused."""
-
-
-_RECORD_WIDTH = 11
-"""A record's columns (time, the nine features, drill on): the first of :data:`STATE_COLUMNS`."""
-_STATE = {name: k + (8 if k > STATE_COLUMNS.index("features") else 0) for k, name in enumerate(STATE_COLUMNS)}
-"""Each of :data:`STATE_COLUMNS`' column in a state row (``features`` spans nine)."""
 
 
 def recorded_subscriber(z: Any, key: str, callback: Callable[[Any], None], on_miss: Callable[[int], None]) -> Any:
@@ -450,7 +444,7 @@ class SessionRecorder(FlushLoop):
     def _episode(
         self, ep: RecordingEpisode, states: npt.NDArray[np.float64] | None, rules: TaskRules
     ) -> tuple[npt.NDArray[np.float64], dict[str, Any]]:
-        """An episode's records and skill metrics from its ``states`` (:data:`STATE_COLUMNS`;
+        """An episode's records and skill metrics from its ``states`` (:data:`dhg.live.streams.STATE_COLUMNS`;
         ``None``: those of the last write). They are the last write's while the states, the path
         and the 1 kHz force count are the same: a long recording's ended attempts are not
         computed again at every flush (``bench_recorder_flush.py``)."""
@@ -461,7 +455,7 @@ class SessionRecorder(FlushLoop):
             (n, seen_path, jerks), _, records, metrics = ep.written
             if n == len(states) and seen_path is path and jerks == ep.jerk_count:
                 return records, metrics
-        records, last = states[:, :_RECORD_WIDTH], states[-1]
+        records, last = states[:, : len(RECORD_COLUMNS)], states[-1]
         metrics = {}
         if path is not None:
             metrics = skill_metrics(
@@ -470,14 +464,14 @@ class SessionRecorder(FlushLoop):
                 rules,
                 final_tip_m=records[-1, RECORD_INDEX["tip_x_m"] : RECORD_INDEX["tip_x_m"] + 3],
                 drilling_s=float(np.count_nonzero(records[:, RECORD_INDEX["drill_on"]] > 0.5)) * RECORD_PERIOD_S,
-                plunge_depth_m=float(states[:, _STATE["plunge_depth_m"]].max()),
-                peak_temperature_c=float(last[_STATE["peak_temperature_c"]]),
-                time_above_47_s=float(last[_STATE["time_above_47_s"]]),
+                plunge_depth_m=float(states[:, STATE_INDEX["plunge_depth_m"]].max()),
+                peak_temperature_c=float(last[STATE_INDEX["peak_temperature_c"]]),
+                time_above_47_s=float(last[STATE_INDEX["time_above_47_s"]]),
             )
             if ep.jerk_count:  # the device force at 1 kHz, as a virtual surgeon's raw stream gives it
                 metrics["force_jerk_n_per_s"] = math.sqrt(ep.jerk_sum / ep.jerk_count)
         # The gain the attempt was drilled at (a fading schedule sets it per attempt; 0 on a probe).
-        metrics["guidance_gain"] = float(last[_STATE["guidance_gain"]])
+        metrics["guidance_gain"] = float(last[STATE_INDEX["guidance_gain"]])
         ep.written = ((len(states), path, ep.jerk_count), states, records, metrics)
         return records, metrics
 

@@ -23,12 +23,13 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from dhg.core.features import TICK_S
+from dhg.core.features import RECORD_COLUMNS, TICK_S
 from dhg.data.dataset import RAW_FILE, RAW_PART_FILE, RawPart, raw_parquet_bytes, raw_schema
 
 __all__ = [
     "RAW_COLUMNS",
     "STATE_COLUMNS",
+    "STATE_INDEX",
     "EpisodeSplitter",
     "RawParts",
     "RecordingEpisode",
@@ -47,19 +48,18 @@ would take the state; that needs 20 dropped forces in a row at a reset)."""
 
 Stream = Literal["force", "state"]
 
-STATE_COLUMNS = (
-    "time_s",
-    "features",
-    "drill_on",
+STATE_COLUMNS: tuple[str, ...] = (
+    *RECORD_COLUMNS,
     "plunge_depth_m",
     "peak_temperature_c",
     "time_above_47_s",
     "guidance_gain",
 )
-"""What the recorder keeps of a state message, in this order (``features`` is nine columns): its
-record (time, the nine features, drill on) and the values the attempt's metrics take from it."""
+"""What the recorder keeps of a state message, in this order: its record (:data:`RECORD_COLUMNS`:
+time, the nine features, drill on) and the values the attempt's metrics take from it."""
 
-_WIDTH = len(STATE_COLUMNS) - 1 + 9
+STATE_INDEX: dict[str, int] = {name: i for i, name in enumerate(STATE_COLUMNS)}
+"""A column of a :class:`StateRows` array, by name."""
 
 
 class StateRows:
@@ -79,11 +79,11 @@ class StateRows:
         )  # fmt: skip
 
     def __len__(self) -> int:
-        return len(self._buf) // _WIDTH
+        return len(self._buf) // len(STATE_COLUMNS)
 
     def array(self) -> npt.NDArray[np.float64]:
-        """A copy, (N, 15): the record (time, nine features, drill on) is its first 11 columns."""
-        return np.array(self._buf, dtype=np.float64).reshape(-1, _WIDTH)
+        """A copy, (N, 15): the record (:data:`RECORD_COLUMNS`) is its first 11 columns."""
+        return np.array(self._buf, dtype=np.float64).reshape(-1, len(STATE_COLUMNS))
 
 
 @dataclass
