@@ -288,6 +288,30 @@ def thread_nices(pid: int) -> set[int]:
     return nices
 
 
+def listening_tcp_ports(pid: int) -> set[int]:
+    """The TCP ports process ``pid`` listens on (Linux: its sockets' inodes in ``/proc/PID/fd``
+    against the LISTEN rows of ``/proc/net/tcp`` and ``tcp6``)."""
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:  # closed meanwhile
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[len("socket:[") : -1])
+    ports = set()
+    for table in ("tcp", "tcp6"):
+        try:
+            rows = Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]
+        except OSError:  # no IPv6
+            continue
+        for row in rows:
+            cols = row.split()
+            if cols[3] == "0A" and cols[9] in inodes:  # st 0A: LISTEN
+                ports.add(int(cols[1].rsplit(":", 1)[1], 16))
+    return ports
+
+
 def column_encodings(path: str | Path) -> dict[str, tuple[set[str], set[str]]]:
     """Each column's compressions and Parquet encodings, over every row group of the file."""
     import pyarrow.parquet as pq

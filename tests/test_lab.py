@@ -20,7 +20,7 @@ from dhg.core.errors import InvalidInputError, TransportError
 from dhg.live.client import TraineeClient
 from dhg.live.lab import acl, load_lab, write_lab
 from dhg.live.process import ServerProcess, free_port
-from support import Stylus, said, stream
+from support import Stylus, listening_tcp_ports, said, stream
 from support import wait_until as _wait
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl to create certificates")
@@ -79,6 +79,9 @@ def test_the_lab_file_gives_each_identity_only_its_own_keys(lab):
     assert acl(parsed)["default_permission"] == "deny"
     for f in (root / "out").iterdir():  # passwords inside: the owner's only
         assert stat.S_IMODE(f.stat().st_mode) == 0o600
+    # The keys --make-certs created are the owner's only, the certificates everyone's.
+    modes = {f.name: stat.S_IMODE(f.stat().st_mode) for f in (root / "certs").glob("*.pem")}
+    assert modes == {"ca.pem": 0o644, "ca-key.pem": 0o600, "server.pem": 0o644, "server-key.pem": 0o600}
     conf = json.loads((root / "out" / "station-1.json5").read_text())
     assert conf["transport"]["auth"]["usrpwd"]["user"] == "station-1" and conf["mode"] == "client"
 
@@ -218,6 +221,9 @@ def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_pat
             # The worker may ask the server's about, to check the engine's corridor is its model's.
             agree = "note: the engine's corridor follows this model's expert profiles"
             _wait(lambda: agree in worker.lines, 30.0, "the worker's corridor check")
+            # It listens on no port of its own: none in the clear, past the router's TLS,
+            # passwords and access control (it connects to the server as a client).
+            assert listening_tcp_ports(worker.proc.pid) == set()
             # Station 2 heard its own forces only: none of station 1's forgeries.
             assert len(seen_by_2) > 1000 and not any(abs(f[2] - 0.123) < 1e-6 for f in seen_by_2)
             # Station 1 cannot reset, re-gain or query station 2.

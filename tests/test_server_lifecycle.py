@@ -21,7 +21,7 @@ from dhg.learning.weights import default_model_path
 from dhg.live.client import TraineeClient
 from dhg.live.process import free_port
 from dhg.live.services import MODEL_NICE
-from support import ctrl_c, read_until, readline_within, record_process, thread_nices
+from support import ctrl_c, listening_tcp_ports, read_until, readline_within, record_process, thread_nices
 from support import entry as _entry
 from support import serve as _serve
 from support import stream as _stream
@@ -163,6 +163,9 @@ def test_killing_the_model_worker_fades_guidance_and_a_restart_brings_it_back():
             assert any("(onnxruntime)" in line for line in worker.lines), worker.lines
             # The worker's forward passes run at MODEL_NICE (decisions 0026, 0038); its other threads keep 0.
             assert thread_nices(worker.proc.pid) == {0, MODEL_NICE}
+            # It reached the engine as a client: it opened no port that could be reached around it.
+            assert listening_tcp_ports(worker.proc.pid) == set()
+            assert listening_tcp_ports(engine.proc.pid), "the check can tell"
             worker.proc.send_signal(signal.SIGKILL)
             assert worker.stop() == -signal.SIGKILL
             _wait(lambda: not c.force["flags"] & protocol.FLAGS["model_available"], 15.0, "model unavailable")

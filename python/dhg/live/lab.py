@@ -390,8 +390,10 @@ def make_certs(lab: Lab, days: int = 825) -> None:
         f.parent.mkdir(parents=True, exist_ok=True)
 
     def run(*args: str, stdin: str | None = None) -> None:
+        # umask 077: a private key is the owner's alone from the instant openssl creates it (a
+        # chmod afterwards would leave a moment in which others could read it).
         try:
-            subprocess.run(["openssl", *args], check=True, capture_output=True, text=True, input=stdin)
+            subprocess.run(["openssl", *args], check=True, capture_output=True, text=True, input=stdin, umask=0o077)
         except FileNotFoundError:
             raise InvalidInputError("openssl is not installed: create the certificates yourself") from None
         except subprocess.CalledProcessError as exc:
@@ -400,7 +402,7 @@ def make_certs(lab: Lab, days: int = 825) -> None:
     if not lab.ca_certificate.is_file():
         run("req", "-x509", "-newkey", "rsa:3072", "-nodes", "-keyout", str(ca_key), "-out", str(lab.ca_certificate),
             "-days", str(days), "-subj", "/CN=DHG lab CA")  # fmt: skip
-        os.chmod(ca_key, 0o600)
+        os.chmod(lab.ca_certificate, 0o644)  # a certificate is public: every member gets a copy
     host = _host(lab.endpoint)
     alt = {
         "DNS:localhost",
@@ -420,7 +422,6 @@ def make_certs(lab: Lab, days: int = 825) -> None:
         "-subj",
         f"/CN={host}",
     )
-    os.chmod(lab.private_key, 0o600)
     ext = (
         f"subjectAltName={','.join(sorted(alt))}\nbasicConstraints=CA:FALSE\n"
         "keyUsage=digitalSignature,keyEncipherment\n"
@@ -429,5 +430,6 @@ def make_certs(lab: Lab, days: int = 825) -> None:
     ext_file.write_text(ext)
     run("x509", "-req", "-in", str(csr), "-CA", str(lab.ca_certificate), "-CAkey", str(ca_key), "-CAcreateserial",
         "-out", str(lab.certificate), "-days", str(days), "-extfile", str(ext_file))  # fmt: skip
+    os.chmod(lab.certificate, 0o644)
     csr.unlink()
     ext_file.unlink()

@@ -254,8 +254,16 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
         else:
             connect = list(options.connect) or ([] if options.listen else [DEFAULT_ENDPOINT])
             run.endpoints = list(options.listen) or connect
+            # A worker that connects to the engine is a client: it opens no port of its own. As a
+            # peer, Zenoh would listen on a random port of every interface, in the clear and
+            # without the router's access control, even with a lab's TLS file (whose client
+            # files name no listen endpoint). A peer only where it is told to listen.
             py_conf = zenoh_config_json5(
-                options.listen, connect, options.zenoh_config, mode="peer", max_message_bytes=SERVER_MAX_MESSAGE_BYTES
+                options.listen,
+                connect,
+                options.zenoh_config,
+                mode="peer" if options.listen else "client",
+                max_message_bytes=SERVER_MAX_MESSAGE_BYTES,
             )
         try:
             run.zenoh = open_zenoh(py_conf)
