@@ -61,7 +61,7 @@ fn ticks_do_not_allocate() {
     let routes = Routes::new(std::mem::take(&mut link.poses));
     let ids = ["s0", "s1", "s2", "s3"];
     for slot in 0..4u16 {
-        routes.assign(slot, 1, std::time::Instant::now());
+        routes.assign(slot, 1, ids[usize::from(slot)], std::time::Instant::now());
     }
     routes.publish(ids.iter().enumerate().map(|(slot, id)| (*id, Route { slot: slot as u16, generation: 1 })));
     for slot in 0..4u16 {

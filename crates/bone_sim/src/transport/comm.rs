@@ -86,22 +86,9 @@ impl Comm {
                 old.publish_ticks();
             }
             // The session's id from the routes, not the registry, so that the first outputs of a
-            // session do not wait for a query holding the registry (decision 0039).
-            let routes = &self.shared.routes;
-            let id: String = match routes.id_of(slot, generation) {
-                Some(id) => id,
-                // Being opened at this instant (its id not yet published): the registry, held
-                // by the opening for microseconds, has it.
-                None if routes.is_current(slot, generation) => {
-                    let reg = lock(&self.shared.registry);
-                    let info = &reg.slots[i];
-                    if info.generation != generation {
-                        return None;
-                    }
-                    info.id.clone()?
-                }
-                None => return None, // the slot moved on; drop what is left of the old session
-            };
+            // session do not wait for a query holding the registry (decision 0039). None: the
+            // slot has moved on; what is left of the old session is dropped.
+            let id = self.shared.routes.id_of(slot, generation)?;
             let key = |leaf: &str| keys::session_leaf(&self.shared.prefix, &id, leaf);
             let force = Outlet::declare_force(&self.session, key("force"), generation)?;
             // From now on the session's poses put their own forces (if they tick it).

@@ -305,14 +305,14 @@ impl Registry {
         let generation = info.generation.wrapping_add(1);
         let path = path.unwrap_or_else(|| self.default_path.clone());
         let (mode, gain) = (self.default_mode, self.default_gain);
-        self.commands.push(Command::Activate {
-            slot: slot as u16,
-            generation,
-            path: Some(path.clone()),
-            mode,
-            gain,
-        })?;
-        self.routes.assign(slot as u16, generation, Instant::now());
+        // Named in the routes before the engine can tick it, so that the comm thread finds the
+        // id of the session's first outputs there.
+        self.routes.assign(slot as u16, generation, id, Instant::now());
+        let activate = Command::Activate { slot: slot as u16, generation, path: Some(path.clone()), mode, gain };
+        if let Err(e) = self.commands.push(activate) {
+            self.routes.retire(slot as u16);
+            return Err(e);
+        }
         let info = &mut self.slots[slot];
         info.id = Some(id.to_owned());
         info.generation = generation;

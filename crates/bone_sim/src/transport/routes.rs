@@ -47,6 +47,9 @@ struct SlotRoute {
     /// The newest-pose writer (single producer). Only ever `try_lock`ed: a second writer at the
     /// same instant drops its pose instead of waiting.
     writer: Mutex<triple_buffer::Input<PoseSample>>,
+    /// The id of the session the slot was last given to, with that session's generation (one
+    /// pointer, so a reader never pairs one session's id with another's generation).
+    id: ArcSwapOption<SlotId>,
     force: ArcSwapOption<ForcePublisher>,
     /// When the last pose arrived, in ns since [`Routes::epoch`] plus 1 (0: none yet).
     last_pose_ns: AtomicU64,
@@ -54,6 +57,13 @@ struct SlotRoute {
     last_seen_ns: AtomicU64,
     /// Poses received in the current assignment.
     received: AtomicU64,
+}
+
+/// A slot's session: its id, as of its generation.
+#[derive(Debug)]
+struct SlotId {
+    generation: u32,
+    id: Box<str>,
 }
 
 /// Every slot's route, and the session ids' map to them.
@@ -79,6 +89,7 @@ impl Routes {
                 generation: AtomicU32::new(0),
                 open: AtomicBool::new(false),
                 writer: Mutex::new(w),
+                id: ArcSwapOption::empty(),
                 force: ArcSwapOption::empty(),
                 last_pose_ns: AtomicU64::new(0),
                 last_seen_ns: AtomicU64::new(1),
@@ -137,13 +148,15 @@ impl Routes {
         Ok(s.force.load_full().filter(|f| f.generation == route.generation))
     }
 
-    /// Gives `slot` to a new session of `generation` (the registry, holding its lock, before it
-    /// publishes the session's id): no pose, no force publisher, seen `now`.
-    pub fn assign(&self, slot: u16, generation: u32, now: Instant) {
+    /// Gives `slot` to the new session `id` of `generation` (the registry, holding its lock,
+    /// before the engine activates the slot and before the id's route is published): no pose, no
+    /// force publisher, seen `now`.
+    pub fn assign(&self, slot: u16, generation: u32, id: &str, now: Instant) {
         let s = &self.slots[usize::from(slot)];
         // Under the writer, so that a pose of the slot's previous session being written now ends
         // (counted) before the counts restart, and any later one sees the new generation.
         let writer = s.writer.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        s.id.store(Some(Arc::new(SlotId { generation, id: Box::from(id) })));
         s.generation.store(generation, Ordering::Release);
         s.open.store(true, Ordering::Release);
         s.force.store(None);
@@ -182,13 +195,20 @@ impl Routes {
         current
     }
 
-    /// The id of the session of `generation` in `slot`, once published (a copy; `None` when that
-    /// session has ended or is being opened at this instant).
+    /// The id of the session of `generation` in `slot` while it is open (a copy; `None` once that
+    /// session has ended or its slot was given to another). The comm thread names a session's
+    /// outputs with it: set by `assign`, before the engine can tick the session, so it never
+    /// waits for the registry (decision 0039).
     #[must_use]
     pub fn id_of(&self, slot: u16, generation: u32) -> Option<String> {
-        let ids = self.ids.load();
-        let want = Route { slot, generation };
-        ids.iter().find(|(_, r)| **r == want).map(|(id, _)| id.to_string())
+        let s = &self.slots[usize::from(slot)];
+        let named = s.id.load();
+        let named = named.as_ref().filter(|n| n.generation == generation)?;
+        // Checked after the id: `retire` clears `open` without touching the id, and the next
+        // `assign` replaces the id first, so a slot seen open here still holds `named`'s session
+        // or has just moved on (its outputs are then dropped by `set_force`, as for any session
+        // that ends while its publisher is declared).
+        self.is_current(slot, generation).then(|| named.id.to_string())
     }
 
     /// Whether `slot` holds the session of `generation` (open, its id published or about to be).
@@ -242,7 +262,7 @@ mod tests {
     fn a_pose_reaches_its_slot_through_the_published_route() {
         let (r, mut out) = routes();
         assert_eq!(r.find("a"), None);
-        r.assign(0, 7, Instant::now());
+        r.assign(0, 7, "a", Instant::now());
         r.publish([("a", Route { slot: 0, generation: 7 })].into_iter());
         let route = r.find("a").unwrap();
         assert_eq!(route, Route { slot: 0, generation: 7 });
@@ -255,10 +275,10 @@ mod tests {
     #[test]
     fn a_pose_of_an_ended_session_is_refused_after_its_slot_is_reassigned() {
         let (r, mut out) = routes();
-        r.assign(0, 1, Instant::now());
+        r.assign(0, 1, "a", Instant::now());
         r.publish([("a", Route { slot: 0, generation: 1 })].into_iter());
         let old = r.find("a").unwrap(); // a pose's thread looked the route up...
-        r.assign(0, 2, Instant::now()); // ...then "a" closed and "b" took the slot
+        r.assign(0, 2, "b", Instant::now()); // ...then "a" closed and "b" took the slot
         r.publish([("b", Route { slot: 0, generation: 2 })].into_iter());
         assert_eq!(r.pose(old, &msg(1), Instant::now()).unwrap_err(), Missed::Ended);
         assert_eq!(r.received(0), 0, "counted for the new session");
@@ -267,9 +287,25 @@ mod tests {
     }
 
     #[test]
+    fn a_sessions_id_is_known_from_its_assignment_until_it_ends() {
+        let (r, _out) = routes();
+        assert_eq!(r.id_of(0, 1), None, "never assigned");
+        r.assign(0, 1, "a", Instant::now());
+        // Before its route is published: the comm thread names the first outputs without the
+        // registry.
+        assert_eq!(r.find("a"), None);
+        assert_eq!(r.id_of(0, 1).as_deref(), Some("a"));
+        assert_eq!(r.id_of(0, 2), None, "another generation");
+        r.retire(0);
+        assert_eq!(r.id_of(0, 1), None, "ended");
+        r.assign(0, 2, "b", Instant::now());
+        assert_eq!((r.id_of(0, 1), r.id_of(0, 2).as_deref()), (None, Some("b")));
+    }
+
+    #[test]
     fn a_pose_routed_just_before_its_session_closed_is_refused() {
         let (r, mut out) = routes();
-        r.assign(0, 1, Instant::now());
+        r.assign(0, 1, "a", Instant::now());
         r.publish([("a", Route { slot: 0, generation: 1 })].into_iter());
         let route = r.find("a").unwrap(); // looked up, then "a" closed: the slot holds nobody
         r.retire(0);
@@ -281,7 +317,7 @@ mod tests {
     #[test]
     fn a_second_writer_at_the_same_instant_drops_its_pose_instead_of_waiting() {
         let (r, _out) = routes();
-        r.assign(0, 1, Instant::now());
+        r.assign(0, 1, "a", Instant::now());
         let route = Route { slot: 0, generation: 1 };
         let held = r.slots[0].writer.lock().unwrap(); // another thread in the middle of a write
         assert_eq!(r.pose(route, &msg(1), Instant::now()).unwrap_err(), Missed::Busy);
@@ -294,7 +330,7 @@ mod tests {
     fn only_a_stream_of_poses_keeps_a_session_seen() {
         let (r, _out) = routes();
         let t0 = Instant::now();
-        r.assign(0, 1, t0);
+        r.assign(0, 1, "a", t0);
         let route = Route { slot: 0, generation: 1 };
         let at = |s: f64| t0 + Duration::from_secs_f64(s);
         // An isolated pose, 3 s in: not a stream, the session was last seen at its start.
