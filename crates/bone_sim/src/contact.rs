@@ -21,11 +21,16 @@ use crate::volume::layer::Layer;
 
 /// Probe points on the burr.
 pub const PROBE_POINTS: usize = 64;
-/// cos(59°): probe directions at least this aligned with the axis form the cutting cap.
+/// cos(59°): probe directions at least this aligned with the axis form the cutting cap. 59° is
+/// half a 118° point angle, the standard twist drill's, which Saha, Pal & Albright (1982, J.
+/// Biomech. Eng. 104:245) kept for their improved surgical drill (many orthopaedic drills are
+/// ground to 90°); the cap then covers the lips that cut, not the flanks.
 pub const CAP_COS: f64 = 0.515;
-/// Material fraction from which a probe point counts as touching bone.
+/// Material fraction from which a probe point counts as touching bone: half a voxel, the
+/// project's choice (the surface of a partly drilled voxel is where its material halves).
 const SOLID: f64 = 0.5;
-/// Material fraction above which a cutting-cap point counts as bone ahead of the drill.
+/// Material fraction above which a cutting-cap point counts as bone ahead of the drill: the
+/// project's choice, low so that a thin rim of bone left by the burr still cuts.
 const PRESENT: f64 = 0.05;
 
 /// What the probe points inside the burr's contact shell found.

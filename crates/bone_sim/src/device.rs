@@ -27,7 +27,10 @@ use nalgebra::Vector3;
 
 use crate::error::{positive, SimError, SimResult};
 
-/// Fraction of the continuous budget (`θ / F_c²`) up to which the peak force is allowed.
+/// Fraction of the continuous budget (`θ / F_c²`) up to which the peak force is allowed: the
+/// project's choice (the makers publish no thermal model, see [`DeviceProfile::geomagic_touch`]),
+/// so that derating starts with a quarter of the budget in hand and ramps the force down rather
+/// than cutting it at the budget's edge.
 const THERMAL_KNEE: f64 = 0.75;
 
 /// The Touch's continuous ("24 hours") force (N; 3D Systems, Touch device specifications): the

@@ -74,7 +74,7 @@ pub const WARNING_FEED_M_S: f64 = 0.5e-3;
 pub const VELOCITY_FILTER_S: f64 = 5e-3;
 
 /// Time constant of the feed the warning and the brake's model cue compare with
-/// `warning_feed_m_s` (s). The tip can advance in steps, tick by tick 0 or tens of mm/s, never
+/// `warning_feed_m_s` (s); the project's choice, for the reason below. The tip can advance in steps, tick by tick 0 or tens of mm/s, never
 /// the 0.5–1 mm/s of a feed, so a law that scales by feed needs the feed over tens of
 /// milliseconds. Read from the 1 kHz tip velocity, the warning flickered between nothing and its
 /// full force from one tick to the next, a buzz in the handle.

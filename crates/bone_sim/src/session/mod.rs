@@ -57,6 +57,9 @@ use crate::volume::layer::Layer;
 use crate::volume::Volume;
 use breakthrough::Breakthrough;
 
+// The breakthrough detector's and the proxy's thresholds below are the project's tuning on the
+// phantom and the virtual surgeons (no source gives them); each says what it separates. The
+// published figures they are checked against (plunge depths, feeds) are in docs/fidelity.md.
 /// Cutting-zone density (kg/m³) at or below which the cap counts as empty: any real bone or
 /// marrow in the cap engages the cutting law.
 const EMPTY_CAP_KG_M3: f64 = 2.0;

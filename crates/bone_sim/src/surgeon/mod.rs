@@ -54,6 +54,9 @@ use crate::volume::layer::Layer;
 /// (Fekri et al. 2021), and the task's rules give up at 240 s ([`crate::skill::TaskRules`]); the
 /// bound keeps a mistyped duration from sizing an attempt's buffers by it.
 pub const MAX_ATTEMPT_S: f64 = 3600.0;
+// The approach and the reaction to a breakthrough below are the virtual surgeon's tuning, the
+// project's choice (its reaction delays, which have a source, come with its style from
+// `dhg.operators.styles`).
 /// Where the hand starts along A→B (m): 25 mm before the entry.
 pub const START_S_M: f64 = -25e-3;
 /// Where the approach ends and the drill is aligned (m along A→B): 3 mm before the entry.

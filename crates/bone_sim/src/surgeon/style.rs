@@ -21,8 +21,10 @@ pub const TRACK_STIFFNESS_N_PER_M: f64 = 300.0;
 /// [`SurgeonStyle::lateral_stiffness_n_per_m`]; the project's choice.
 pub const LATERAL_STIFFNESS_N_PER_M: f64 = 250.0;
 /// Tip depth at which a surgeon without a plan expects the first cortex to give (m): about
-/// 3.5 mm of cortex less a 2.5 mm burr's reach.
+/// 3.5 mm of cortex less a 2.5 mm burr's reach; the project's choice, between the phantom's
+/// 1.8 mm metaphyseal and 4.5 mm diaphyseal cortex (`dhg.bone.phantom`).
 pub const GENERIC_BREAKTHROUGH_DEPTH_M: f64 = 2.2e-3;
+// The push and the yielding below are the virtual surgeon's tuning too, the project's choice.
 /// Time constant (s) with which the arm's aim follows the felt hand position.
 pub const AIM_FOLLOW_S: f64 = 0.5;
 /// How much harder than the resistance they feel (N, one reaction delay ago) a subject pushes.
