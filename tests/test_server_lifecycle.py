@@ -19,9 +19,9 @@ from dhg.learning.model_file import read_model_meta
 from dhg.learning.profiles import DemoProfiles
 from dhg.learning.weights import default_model_path
 from dhg.live.client import TraineeClient
-from dhg.live.process import free_port
+from dhg.live.process import ServerProcess, free_port
 from dhg.live.services import MODEL_NICE
-from support import ctrl_c, listening_tcp_ports, read_until, readline_within, record_process, thread_nices
+from support import ctrl_c, hold_until, listening_tcp_ports, read_until, readline_within, record_process, thread_nices
 from support import entry as _entry
 from support import serve as _serve
 from support import stream as _stream
@@ -341,3 +341,29 @@ def test_a_worker_warns_when_the_engines_corridor_is_another_models(tmp_path):
         if worker is not None:
             assert worker.stop() == 0
         assert engine.stop() == 0
+
+
+def test_one_worker_started_before_its_engines_serves_both_and_listens_nowhere():
+    """A model worker may start first and serve several engines (`--connect` repeated): it reaches
+    each once it is up, and opens no port of its own (as a peer left to Zenoh's defaults it would
+    listen on a random one, around the engines' access control)."""
+    endpoints = [f"tcp/127.0.0.1:{free_port()}" for _ in range(2)]
+    worker = ServerProcess(
+        ["--role", "model", "--connect", endpoints[0], "--connect", endpoints[1], "--status-every", "1"], echo=False
+    )
+    engines: list[ServerProcess] = []
+    try:
+        assert listening_tcp_ports(worker.proc.pid) == set()
+        for endpoint in endpoints:
+            engines.append(_serve("--role", "sim", endpoint=endpoint)[0])
+        model_up = protocol.FLAGS["model_available"]
+        for k, endpoint in enumerate(endpoints):
+            with TraineeClient(endpoint, f"shared-worker-{k}") as c:
+                a, d, q = _entry(c)
+                hold_until(c, a + d * 0.5e-3, q, lambda m: m["flags"] & model_up, 60.0, f"engine {k}'s model")
+                assert c.health(1.0)["model"]["workers"], "the worker is in this engine's pool"
+        assert listening_tcp_ports(worker.proc.pid) == set()
+    finally:
+        assert worker.stop() == 0, worker.lines[-20:]
+        for engine in engines:
+            assert engine.stop() == 0

@@ -402,6 +402,7 @@ def make_certs(lab: Lab, days: int = 825) -> None:
     if not lab.ca_certificate.is_file():
         run("req", "-x509", "-newkey", "rsa:3072", "-nodes", "-keyout", str(ca_key), "-out", str(lab.ca_certificate),
             "-days", str(days), "-subj", "/CN=DHG lab CA")  # fmt: skip
+        os.chmod(ca_key, 0o600)  # also where openssl rewrote a key file that was there, keeping its mode
         os.chmod(lab.ca_certificate, 0o644)  # a certificate is public: every member gets a copy
     host = _host(lab.endpoint)
     alt = {
@@ -422,6 +423,7 @@ def make_certs(lab: Lab, days: int = 825) -> None:
         "-subj",
         f"/CN={host}",
     )
+    os.chmod(lab.private_key, 0o600)
     ext = (
         f"subjectAltName={','.join(sorted(alt))}\nbasicConstraints=CA:FALSE\n"
         "keyUsage=digitalSignature,keyEncipherment\n"

@@ -208,6 +208,22 @@ def _without_access_control(config_json: str) -> str:
     return json.dumps(conf)
 
 
+def _listening_nowhere(config_json: str) -> str:
+    """A model worker that connects to its engines: a peer (it keeps every engine it is given,
+    reached or retried in the background, where a client keeps one and fails if its engine is not
+    up yet) that opens no port. Left to Zenoh's default, a peer listens on a random TCP port of
+    every interface, in the clear and around the router's TLS, passwords and access control, even
+    with a lab's file (whose client files name no listen endpoint); and it learns other peers from
+    the router's gossip and connects to them. Listen endpoints that a config file names are kept."""
+    conf = json.loads(config_json)
+    listen = conf.setdefault("listen", {})
+    if not isinstance(listen.get("endpoints"), list):  # unset: Zenoh's per-mode default
+        listen["endpoints"] = []
+    scouting = conf.setdefault("scouting", {})
+    scouting["gossip"] = {**(scouting.get("gossip") or {}), "enabled": False}
+    return json.dumps(conf)
+
+
 def _friendly(exc: Exception, endpoints: Sequence[str]) -> TransportError:
     text = str(exc)
     if "Address already in use" in text:
@@ -254,17 +270,11 @@ def start(options: ServeOptions, volume: Any = None, path: Any = None, model: An
         else:
             connect = list(options.connect) or ([] if options.listen else [DEFAULT_ENDPOINT])
             run.endpoints = list(options.listen) or connect
-            # A worker that connects to the engine is a client: it opens no port of its own. As a
-            # peer, Zenoh would listen on a random port of every interface, in the clear and
-            # without the router's access control, even with a lab's TLS file (whose client
-            # files name no listen endpoint). A peer only where it is told to listen.
             py_conf = zenoh_config_json5(
-                options.listen,
-                connect,
-                options.zenoh_config,
-                mode="peer" if options.listen else "client",
-                max_message_bytes=SERVER_MAX_MESSAGE_BYTES,
+                options.listen, connect, options.zenoh_config, mode="peer", max_message_bytes=SERVER_MAX_MESSAGE_BYTES
             )
+            if not options.listen:
+                py_conf = _listening_nowhere(py_conf)
         try:
             run.zenoh = open_zenoh(py_conf)
         except TransportError as exc:
