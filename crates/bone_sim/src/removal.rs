@@ -11,6 +11,7 @@ use nalgebra::{Point3, Vector3};
 use crate::error::{finite, non_negative, positive, SimError, SimResult};
 use crate::volume::bricks::{MaterialOverlay, BRICK_EDGE};
 use crate::volume::drilled::DrilledVolume;
+use crate::volume::rounding;
 use crate::volume::FULL_MATERIAL;
 
 /// Largest burr radius accepted (m); surgical burrs and drills are a few millimetres.
@@ -204,7 +205,7 @@ impl DrilledVolume {
                             });
                             let rate =
                                 if cleared { 1.0 } else { f64::from(table.erosion_ref_per_s(label, hu)) * scale };
-                            let dec = ((rate * full).ceil() as u64).min(u64::from(*slot)) as u16;
+                            let dec = (rounding::ceil(rate * full) as u64).min(u64::from(*slot)) as u16;
                             *slot -= dec;
                             report.voxels_eroded += 1;
                             if *slot == 0 {
@@ -248,8 +249,8 @@ impl DrilledVolume {
 /// Integer index range `[ceil(c − r), floor(c + r)]` clamped to `0..n`, or `None` if empty.
 #[inline]
 fn span(c: f64, r: f64, n: usize) -> Option<(usize, usize)> {
-    let lo = (c - r).ceil().max(0.0);
-    let hi = (c + r).floor().min(n as f64 - 1.0);
+    let lo = rounding::ceil(c - r).max(0.0);
+    let hi = rounding::floor(c + r).min(n as f64 - 1.0);
     if hi < lo {
         None
     } else {

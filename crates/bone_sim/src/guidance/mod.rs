@@ -46,6 +46,7 @@ pub use params::GuidanceParams;
 
 use crate::error::{SimError, SimResult};
 use crate::path::PlannedPath;
+use crate::volume::rounding;
 
 /// Largest accepted guidance gain: the project's bound, not from a source. The paper's cue is
 /// gain × (expert − trainee) force, and every share is clamped to the device's limits whatever the
@@ -411,7 +412,7 @@ impl Guide {
         let k = if profile.is_empty() {
             p.corridor_stiffness_n_per_m
         } else {
-            let bin = (rel.dot(&d) / p.corridor_profile_bin_m).floor().max(0.0) as usize;
+            let bin = rounding::floor(rel.dot(&d) / p.corridor_profile_bin_m).max(0.0) as usize;
             profile[bin.min(profile.len() - 1)]
         };
         let beyond = out * (dist - p.corridor_deadband_m);

@@ -10,6 +10,7 @@ use crate::contact::CAP_COS;
 use crate::record::TICK_S;
 use crate::removal::{Burr, Cut};
 use crate::volume::layer::Layer;
+use crate::volume::rounding;
 
 impl DrillingSession {
     /// One tick of the proxy, removal, thermal and breakthrough models; returns the force the
@@ -211,7 +212,7 @@ impl DrillingSession {
         let h = self.bone.volume().grid().spacing_m();
         let max_step = 0.25 * h[0].min(h[1]).min(h[2]);
         let reach = len.min(self.config.max_proxy_speed_m_s * dt);
-        let steps = (reach / max_step).ceil().clamp(1.0, 16.0);
+        let steps = rounding::ceil(reach / max_step).clamp(1.0, 16.0);
         let step = delta * (reach / len / steps);
         let mut p = from;
         let mut inside = self.probe.contact(&self.bone, &p, ignore).points;

@@ -149,7 +149,7 @@ impl Grid {
         let c = self.world_to_index(p_world_m);
         let mut out = [0usize; 3];
         for axis in 0..3 {
-            let r = c[axis].round();
+            let r = super::rounding::round(c[axis]);
             if r.is_nan() || r < 0.0 || r >= self.dims[axis] as f64 {
                 return None;
             }

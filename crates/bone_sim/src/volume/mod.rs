@@ -8,6 +8,7 @@ pub mod drilled;
 pub mod grid;
 pub mod layer;
 pub mod material;
+pub mod rounding;
 pub mod sample;
 
 use grid::Grid;
@@ -118,7 +119,7 @@ impl Volume {
     #[must_use]
     pub fn nearest_index(&self, c: &nalgebra::Vector3<f64>) -> Option<usize> {
         let dims = self.grid.dims();
-        let (i, j, k) = (c.x.round(), c.y.round(), c.z.round());
+        let (i, j, k) = (rounding::round(c.x), rounding::round(c.y), rounding::round(c.z));
         let inside = i >= 0.0 && j >= 0.0 && k >= 0.0 && i < dims[0] as f64 && j < dims[1] as f64 && k < dims[2] as f64;
         inside.then(|| self.grid.linear(i as usize, j as usize, k as usize))
     }

@@ -7,6 +7,7 @@ use nalgebra::Point3;
 use super::grid::FAR_INDEX;
 use super::layer::Layer;
 use super::material::HU_MIN;
+use super::rounding;
 use super::Volume;
 use crate::error::{SimError, SimResult};
 
@@ -84,7 +85,7 @@ impl Volume {
                     return outside; // also NaN: before the integer casts below
                 }
                 let dims = grid.dims();
-                let base = [c.x.floor(), c.y.floor(), c.z.floor()];
+                let base = [rounding::floor(c.x), rounding::floor(c.y), rounding::floor(c.z)];
                 let frac = [c.x - base[0], c.y - base[1], c.z - base[2]];
                 let mut acc = 0.0;
                 for corner in 0..8usize {
