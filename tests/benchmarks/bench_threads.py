@@ -12,13 +12,18 @@ US microseconds in each pose's callback (``echo --work-us``) as ``echo-work``: t
 server that computes something per pose, so a tick's own cost and the engine's cost around it
 part. ``--echo-router`` adds the echo in Zenoh's router mode, the engine's, as ``echo-router``.
 
+``--perf`` also samples the server with ``perf record`` over the same middle of the run and
+splits its CPU by what runs (the engine's own code and libm; Zenoh and tokio; the server's glue
+around them; the kernel's scheduling; the rest of the kernel; libc), in cores: where a server's CPU
+beyond the echo's goes, without call graphs (the build has no frame pointers).
+
 With ``--role all`` the column ``model`` is the model service's worker thread (its forward passes
 and its Python) with the idle main thread: both carry the process's name. The Python Zenoh
 session's threads share the engine's names and cost next to nothing.
 
     cargo build --release -p bone_sim --example load --example echo
     python tests/benchmarks/bench_threads.py --clients 1,4,16 --rounds 2 [--other /tmp/old/python] [--echo-work-us 5]
-        [--echo-router] [--role all]
+        [--echo-router] [--role all] [--perf]
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import json
 import os
 import statistics
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -54,8 +60,63 @@ def threads(pid: int) -> dict[str, tuple[str, float, int]]:
     return out
 
 
+PERF_HZ = 999
+"""perf's sampling rate (Hz) with ``--perf``."""
+
+LIBM = {"ceil", "floor", "round", "trunc", "pow", "exp", "log", "sqrt", "fmod"}
+"""Math functions that the extension links in itself (a tick's: the engine's)."""
+
+# What a sample's symbol belongs to, first match wins (``--perf``): the kernel's entries are those
+# where a switched-in thread's samples land (the switch itself and the wake-up before it).
+PARTS = (
+    ("scheduling", lambda dso, sym: dso == "[kernel.kallsyms]" and (
+        sym.startswith(("finish_task_switch", "_raw_spin_unlock_irq", "schedule", "__schedule", "try_to_wake_up"))
+        or "futex" in sym)),
+    ("kernel", lambda dso, sym: dso == "[kernel.kallsyms]"),
+    ("engine", lambda dso, sym: dso.startswith("libm") or sym in LIBM or (
+        sym.startswith("bone_sim::") and not sym.startswith("bone_sim::transport"))),
+    ("glue", lambda dso, sym: sym.startswith("bone_sim::transport") or "bone_sim" in sym),
+    ("zenoh", lambda dso, sym: any(w in sym for w in ("zenoh", "tokio", "event_listener", "flume", "future"))),
+    ("libc", lambda dso, sym: dso.startswith("libc")),
+)  # fmt: skip
+
+
+def perf_parts(pid: int, seconds: float) -> dict[str, float]:
+    """Samples process ``pid`` with ``perf record`` for ``seconds``; its CPU (cores) by part."""
+    with tempfile.TemporaryDirectory() as tmp:
+        data = f"{tmp}/perf.data"
+        try:
+            subprocess.run(
+                ["perf", "record", "-F", str(PERF_HZ), "-p", str(pid), "-o", data, "--", "sleep", f"{seconds:g}"],
+                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=True,
+            )  # fmt: skip
+        except FileNotFoundError:
+            raise SystemExit("--perf needs perf (Debian: linux-perf)") from None
+        except subprocess.CalledProcessError as exc:
+            raise SystemExit(f"perf record failed (kernel.perf_event_paranoid?): {exc.stderr.strip()}") from None
+        report = subprocess.run(
+            ["perf", "report", "-i", data, "--no-children", "--sort", "dso,sym", "-n", "-q", "--stdio"],
+            capture_output=True, text=True, check=True,
+        ).stdout  # fmt: skip
+    parts = dict.fromkeys([name for name, _ in PARTS] + ["other"], 0.0)
+    for line in report.splitlines():
+        cols = line.split(None, 4)  # percent, samples, dso, [k] or [.], symbol
+        if len(cols) < 5 or not cols[1].isdigit():
+            continue
+        dso, sym = cols[2], cols[4].strip()
+        part = next((name for name, match in PARTS if match(dso, sym)), "other")
+        parts[part] += int(cols[1]) / (PERF_HZ * seconds)
+    return {k: round(v, 4) for k, v in parts.items()}
+
+
 def one(
-    variant: str, n: int, seconds: float, other: str | None, work_us: float = 0.0, role: str = "sim"
+    variant: str,
+    n: int,
+    seconds: float,
+    other: str | None,
+    work_us: float = 0.0,
+    role: str = "sim",
+    perf: bool = False,
 ) -> dict[str, Any]:
     """One run: a fresh server of ``variant`` and ``n`` load-tool clients (``echo-work``: the echo
     spinning ``work_us`` in each pose's callback; a ``dhg-serve`` variant in ``role``)."""
@@ -87,7 +148,9 @@ def one(
         # The middle of the run: after the clients' 2 s warm-up, before their end.
         time.sleep(2.0 + 0.2 * seconds)
         a, t0 = threads(pid), time.monotonic()
-        time.sleep(0.6 * seconds)
+        parts = perf_parts(pid, 0.6 * seconds) if perf else None
+        if not perf:
+            time.sleep(0.6 * seconds)
         b, dt = threads(pid), time.monotonic() - t0
         out = json.loads(load.communicate(timeout=seconds + 60)[0])
     finally:
@@ -113,6 +176,7 @@ def one(
         "p50_ms": out["pose_to_force_ms"]["p50"],
         "forces_per_pose": out["forces_per_pose"],
         "threads": {k: {"cores": round(v[0], 4), "wakeups_per_s": round(v[1])} for k, v in per.items()},
+        **({"perf_cores": parts} if parts is not None else {}),
     }
 
 
@@ -142,6 +206,12 @@ def main() -> None:
         help="dhg-serve's role in the dhg and other variants: sim, the engine alone (default); all, with the "
         "model service in its process (model on CPU)",
     )
+    p.add_argument(
+        "--perf",
+        action="store_true",
+        help="also sample each server with perf record over the same window and split its CPU by part "
+        "(engine, zenoh, glue, scheduling, kernel, libc, other)",
+    )
     p.add_argument("--out", help="also append the JSON lines to this file")
     args = p.parse_args()
     variants = [
@@ -155,7 +225,7 @@ def main() -> None:
     for _ in range(args.rounds):
         for n in (int(c) for c in args.clients.split(",")):
             for v in variants:
-                r = one(v, n, args.seconds, args.other, args.echo_work_us or 0.0, args.role)
+                r = one(v, n, args.seconds, args.other, args.echo_work_us or 0.0, args.role, args.perf)
                 print(json.dumps(r), flush=True)
                 runs.append(r)
                 if args.out:
@@ -180,6 +250,16 @@ def main() -> None:
                 wakes = statistics.median(sum(t["wakeups_per_s"] for t in ts) for ts in picked)
                 cells.append(f"{cores:.3f} ({wakes:.0f})" if any(picked) else "—")
             print(f"| {n} | {v} | {cpu:.3f} | {cpu / echo:.2f} | " + " | ".join(cells) + " |")
+    if args.perf:
+        parts = [name for name, _ in PARTS] + ["other"]
+        print("\nperf, medians (cores)\n")
+        print("| clients | variant | " + " | ".join(parts) + " |")
+        print("|---:|---|" + "---:|" * len(parts))
+        for n in sorted({r["clients"] for r in runs}):
+            for v in variants:
+                rs = [r["perf_cores"] for r in runs if r["clients"] == n and r["variant"] == v]
+                cells = [f"{statistics.median(r[k] for r in rs):.3f}" for k in parts]
+                print(f"| {n} | {v} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":
