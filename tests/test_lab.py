@@ -222,7 +222,7 @@ def test_secure_mode_lets_each_identity_do_its_job_and_nothing_else(lab, tmp_pat
             agree = "note: the engine's corridor follows this model's expert profiles"
             _wait(lambda: agree in worker.lines, 30.0, "the worker's corridor check")
             # It listens on no port of its own: none in the clear, past the router's TLS,
-            # passwords and access control (it connects to the server as a client).
+            # passwords and access control (a peer with no listen endpoint).
             assert listening_tcp_ports(worker.proc.pid) == set()
             # Station 2 heard its own forces only: none of station 1's forgeries.
             assert len(seen_by_2) > 1000 and not any(abs(f[2] - 0.123) < 1e-6 for f in seen_by_2)
