@@ -81,23 +81,26 @@ PARTS = (
 )  # fmt: skip
 
 
-def perf_parts(pid: int, seconds: float) -> dict[str, float]:
-    """Samples process ``pid`` with ``perf record`` for ``seconds``; its CPU (cores) by part."""
-    with tempfile.TemporaryDirectory() as tmp:
-        data = f"{tmp}/perf.data"
-        try:
-            subprocess.run(
-                ["perf", "record", "-F", str(PERF_HZ), "-p", str(pid), "-o", data, "--", "sleep", f"{seconds:g}"],
-                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=True,
-            )  # fmt: skip
-        except FileNotFoundError:
-            raise SystemExit("--perf needs perf (Debian: linux-perf)") from None
-        except subprocess.CalledProcessError as exc:
-            raise SystemExit(f"perf record failed (kernel.perf_event_paranoid?): {exc.stderr.strip()}") from None
-        report = subprocess.run(
-            ["perf", "report", "-i", data, "--no-children", "--sort", "dso,sym", "-n", "-q", "--stdio"],
-            capture_output=True, text=True, check=True,
-        ).stdout  # fmt: skip
+def perf_start(pid: int, seconds: float, data: str) -> subprocess.Popen[str]:
+    """Starts ``perf record`` of process ``pid`` for ``seconds``, into ``data``."""
+    try:
+        return subprocess.Popen(
+            ["perf", "record", "-F", str(PERF_HZ), "-p", str(pid), "-o", data, "--", "sleep", f"{seconds:g}"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+    except FileNotFoundError:
+        raise SystemExit("--perf needs perf (Debian: linux-perf)") from None
+
+
+def perf_parts(record: subprocess.Popen[str], data: str, seconds: float) -> dict[str, float]:
+    """Waits for ``record`` (:func:`perf_start`); the sampled CPU (cores) by part."""
+    _, err = record.communicate(timeout=seconds + 60)
+    if record.returncode != 0:
+        raise SystemExit(f"perf record failed (kernel.perf_event_paranoid?): {err.strip()}")
+    report = subprocess.run(
+        ["perf", "report", "-i", data, "--no-children", "--sort", "dso,sym", "-n", "-q", "--stdio"],
+        capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
     parts = dict.fromkeys([name for name, _ in PARTS] + ["other"], 0.0)
     for line in report.splitlines():
         cols = line.split(None, 4)  # percent, samples, dso, [k] or [.], symbol
@@ -137,6 +140,7 @@ def one(
         args = ["--listen", endpoint, "--role", role, *model, "--max-sessions", str(max(n, 16))]
         server = serve_from(str(other) if variant == "other" else None, args)
         pid = server.proc.pid
+    perf_dir = tempfile.TemporaryDirectory() if perf else None
     try:
         # Python's threads carry the process's name: with the model service, its worker's.
         own = Path(f"/proc/{pid}/comm").read_text().strip() if role == "all" else None
@@ -147,11 +151,12 @@ def one(
         )  # fmt: skip
         # The middle of the run: after the clients' 2 s warm-up, before their end.
         time.sleep(2.0 + 0.2 * seconds)
+        # perf samples the same window as the threads' counters, alongside.
+        record = perf_start(pid, 0.6 * seconds, f"{perf_dir.name}/perf.data") if perf_dir else None
         a, t0 = threads(pid), time.monotonic()
-        parts = perf_parts(pid, 0.6 * seconds) if perf else None
-        if not perf:
-            time.sleep(0.6 * seconds)
+        time.sleep(0.6 * seconds)
         b, dt = threads(pid), time.monotonic() - t0
+        parts = perf_parts(record, f"{perf_dir.name}/perf.data", 0.6 * seconds) if perf_dir and record else None
         out = json.loads(load.communicate(timeout=seconds + 60)[0])
     finally:
         if variant.startswith("echo"):
@@ -159,6 +164,8 @@ def one(
             server.wait(timeout=30)
         else:
             server.stop()
+        if perf_dir is not None:
+            perf_dir.cleanup()
     per: dict[str, list[float]] = {}
     for tid, (name, cpu, sw) in b.items():
         if name == own and not variant.startswith("echo"):
