@@ -163,7 +163,8 @@ def test_a_pose_ticks_its_session_on_the_thread_that_received_it_unless_told_not
             # Every pose ticked where it arrived or was left to the tick thread, with its reason
             # (`poses` counts a pose before its tick is tried: wait for the last ones; the window
             # spans the server's whole life, as `poses` does).
-            assert set(h["poses_to_tick_thread"]) == {"early", "claimed", "behind"}, h
+            assert set(h["poses_to_tick_thread"]) == {"early", "claimed"}, h
+            assert 0 <= h["ticks_on_pose_thread_behind"] <= h["ticks_on_pose_thread"], h
 
             def accounted() -> bool:
                 a = srv.health(window_s=3600.0)
@@ -172,7 +173,8 @@ def test_a_pose_ticks_its_session_on_the_thread_that_received_it_unless_told_not
             wait_until(accounted, 10.0, "every pose ticked on its thread or counted as left to the tick thread")
         else:
             assert h["ticks_on_pose_thread"] == 0, "a pose ticked its session although told not to"
-            assert h["poses_to_tick_thread"] == {"early": 0, "claimed": 0, "behind": 0}, h
+            assert h["poses_to_tick_thread"] == {"early": 0, "claimed": 0}, h
+            assert h["ticks_on_pose_thread_behind"] == 0, h
     finally:
         srv.stop()
 

@@ -339,7 +339,7 @@ fn replay_on_pose_thread(arrivals_us: &[u64]) -> (u64, f64, Vec<f64>, u64, u64) 
                 waiting = None;
                 waits.push(0.0);
             }
-            PoseTick::NotDue | PoseTick::Held | PoseTick::Claimed | PoseTick::Behind => {
+            PoseTick::NotDue | PoseTick::Held | PoseTick::Claimed => {
                 waiting = Some((arrival, k as u32 + 1));
                 let (n, next) = core.tick_due(arrival); // woken
                 wakes += 1;
@@ -629,36 +629,54 @@ fn a_due_pose_ticks_on_its_own_thread_and_an_early_one_waits_for_the_tick_thread
     let (mut core, mut link, surface, t0) = started();
     drain(&mut link);
     send(&mut link, 0, 1, 1, surface - 1e-3);
-    // The force of the first tick (the tick thread's, order 1) has not left: this one would
-    // overtake it.
-    assert!(matches!(link.ticker.tick(0, 1, t0 + MS, 0, true), PoseTick::Behind));
+    // The force of the first tick (the tick thread's, order 1) has not left: a force put here
+    // would overtake it. The pose ticks here all the same, and its force queues behind the
+    // waiting one, for the comm side to put (not `published`).
     let PoseTick::Ticked { force: Output::Force { msg, published, order, .. }, state: false } =
-        link.ticker.tick(0, 1, t0 + MS, 1, true)
+        link.ticker.tick(0, 1, t0 + MS, 0, true)
+    else {
+        panic!("a due pose behind a waiting force did not tick its slot")
+    };
+    assert_eq!((msg.pose_seq, published, order), (1, false, 2), "the force of that pose, for the comm side");
+    let queued: Vec<(u32, bool)> = drain(&mut link)
+        .into_iter()
+        .filter_map(|o| match o {
+            Output::Force { msg, published, .. } => Some((msg.pose_seq, published)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(queued, [(1, false)], "queued for the comm side, after the waiting force");
+    assert_eq!(link.stats.pose_ticks_behind.load(Ordering::Relaxed), 1, "counted as ticked behind");
+    assert_eq!(core.tick_due(t0 + MS + us(10)).0, 0, "the tick thread ticked the pose again");
+    // A period later, with every force out: the pose's force is the caller's to put.
+    send(&mut link, 0, 1, 2, surface - 1e-3);
+    let PoseTick::Ticked { force: Output::Force { msg, published, order, .. }, state: false } =
+        link.ticker.tick(0, 1, t0 + 2 * MS, 2, true)
     else {
         panic!("a pose a period after the last tick did not tick its slot")
     };
-    assert_eq!((msg.pose_seq, published, order), (1, true, 2), "the force of that pose, for the caller to put");
+    assert_eq!((msg.pose_seq, published, order), (2, true, 3), "the force of that pose, for the caller to put");
     let queued = forces(&drain(&mut link));
-    assert_eq!(queued.iter().map(|f| f.pose_seq).collect::<Vec<_>>(), [1], "queued too, for the recorders");
-    assert_eq!(core.tick_due(t0 + MS + us(10)).0, 0, "the tick thread ticked the pose again");
+    assert_eq!(queued.iter().map(|f| f.pose_seq).collect::<Vec<_>>(), [2], "queued too, for the recorders");
     // 0.2 periods later: early (the budget lets a pose tick from 0.7 periods); the tick thread
     // ticks it when it may.
-    send(&mut link, 0, 1, 2, surface - 1e-3);
-    assert!(matches!(link.ticker.tick(0, 1, t0 + MS + us(200), 2, true), PoseTick::NotDue));
-    let (n, next) = core.tick_due(t0 + MS + us(200));
+    send(&mut link, 0, 1, 3, surface - 1e-3);
+    assert!(matches!(link.ticker.tick(0, 1, t0 + 2 * MS + us(200), 3, true), PoseTick::NotDue));
+    let (n, next) = core.tick_due(t0 + 2 * MS + us(200));
     assert_eq!(n, 0);
-    assert!(near(next, t0 + MS + us(700)), "the early pose ticks 0.3 periods early, not before");
+    assert!(near(next, t0 + 2 * MS + us(700)), "the early pose ticks 0.3 periods early, not before");
     assert_eq!(core.tick_due(next).0, 1);
-    assert_eq!(forces(&drain(&mut link)).last().unwrap().pose_seq, 2);
+    assert_eq!(forces(&drain(&mut link)).last().unwrap().pose_seq, 3);
     // A pose written for another generation (a new session whose activation the tick thread has
     // not applied yet) is left to the tick thread.
-    send(&mut link, 0, 2, 3, surface - 1e-3);
-    assert!(matches!(link.ticker.tick(0, 2, t0 + 3 * MS, u64::MAX, true), PoseTick::NotDue));
-    assert_eq!(link.stats.pose_thread_ticks.load(Ordering::Relaxed), 1);
+    send(&mut link, 0, 2, 4, surface - 1e-3);
+    assert!(matches!(link.ticker.tick(0, 2, t0 + 4 * MS, u64::MAX, true), PoseTick::NotDue));
+    assert_eq!(link.stats.pose_thread_ticks.load(Ordering::Relaxed), 2);
+    assert_eq!(link.stats.pose_ticks_behind.load(Ordering::Relaxed), 1);
     // Each pose left to the tick thread is counted once, under its reason (health's
-    // `poses_to_tick_thread`: early, claimed, behind).
+    // `poses_to_tick_thread`: early, claimed).
     let left = link.stats.poses_left.each_ref().map(|n| n.load(Ordering::Relaxed));
-    assert_eq!(left, [2, 0, 1], "[not due, claimed, behind]");
+    assert_eq!(left, [2, 0], "[not due, claimed]");
 }
 
 #[test]

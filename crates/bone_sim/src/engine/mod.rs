@@ -122,8 +122,8 @@ pub enum PoseTick {
     Ticked {
         /// A copy of the force queued (an [`Output::Force`]): for the caller to put when it is
         /// marked `published`. When ticks without a pose ran before it (its client was later
-        /// than the grace) it is not: their forces and this one leave from the comm side, in
-        /// order.
+        /// than the grace), or the slot's previous force still waited for the comm side, it is
+        /// not: the waiting forces and this one leave from the comm side, in order.
         force: Output,
         /// Whether this tick also queued the 10 Hz state (the comm side publishes it).
         state: bool,
@@ -136,9 +136,6 @@ pub enum PoseTick {
     Held,
     /// Another thread held the slot (the tick thread, ticking it or applying a command).
     Claimed,
-    /// The slot's newest force has not left yet (it waits for the comm side): the tick thread
-    /// ticks this pose, so that forces leave in order.
-    Behind,
 }
 
 /// A handle that ticks a slot on the calling thread when a pose makes it due (see the module
@@ -155,8 +152,11 @@ impl PoseTicker {
     /// Ticks `slot` now if the pose just handed over (written for `generation`) makes it due:
     /// the same schedule as the tick thread's, judged at `now`. `out_up_to` is the `order` of the
     /// slot's newest force that has left (or been let go); if the slot has made a newer one, that
-    /// force still waits for the comm side, and a force made here would overtake it: the pose is
-    /// left to the tick thread ([`PoseTick::Behind`]), whose force follows the waiting one.
+    /// force still waits for the comm side, and a force put here would overtake it: the tick
+    /// runs here all the same, but its force is queued for the comm side, behind the waiting one
+    /// (not `published`, as after ticks without a pose), and counted in `pose_ticks_behind`.
+    /// (Until 2026-12-08 such a pose was left to the tick thread, which woke to tick it and then
+    /// woke the comm side: two hand-offs where one is needed.)
     ///
     /// The tick's outputs are queued before the slot is let go, so a slot's outputs queue in the
     /// order its ticks ran, wherever they ran (the recorders' batches read a tick that goes back as
@@ -165,11 +165,7 @@ impl PoseTicker {
     #[must_use]
     pub fn tick(&self, slot: u16, generation: u32, now: Instant, out_up_to: u64, publish_here: bool) -> PoseTick {
         let left = |why: PoseTick| {
-            let i = match why {
-                PoseTick::Claimed => 1,
-                PoseTick::Behind => 2,
-                _ => 0,
-            };
+            let i = usize::from(matches!(why, PoseTick::Claimed));
             self.stats.poses_left[i].fetch_add(1, Ordering::Relaxed);
             why
         };
@@ -178,9 +174,8 @@ impl PoseTicker {
         if !st.slot.active || st.slot.generation != generation {
             return left(PoseTick::NotDue);
         }
-        if st.slot.order() > out_up_to {
-            return left(PoseTick::Behind);
-        }
+        // The slot's newest force still waits for the comm side: this one must follow it out.
+        let behind = st.slot.order() > out_up_to;
         let (mut force, mut state) = (None, false);
         let (outputs, stats) = (&*self.outputs, &*self.stats);
         // Ticks without a pose that fell due before this pose came run first, their forces left
@@ -189,7 +184,7 @@ impl PoseTicker {
             state |= matches!(out, Output::State { .. });
             TickCore::emit(outputs, stats, out);
         });
-        let publish_here = publish_here && held == 0;
+        let publish_here = publish_here && held == 0 && !behind;
         let (ticked, _) = st.pose_tick(slot, now, stats, |out| {
             let out = match out {
                 Output::Force { slot, generation, msg, pose, received, order, .. } => {
@@ -212,6 +207,9 @@ impl PoseTicker {
         match force {
             Some(force) if ticked => {
                 self.stats.pose_thread_ticks.fetch_add(1, Ordering::Relaxed);
+                if behind {
+                    self.stats.pose_ticks_behind.fetch_add(1, Ordering::Relaxed);
+                }
                 PoseTick::Ticked { force, state }
             }
             _ if held > 0 => left(PoseTick::Held),

@@ -112,9 +112,11 @@ pub struct TickStats {
     /// Of them, those run on the thread that received their pose (`engine::PoseTicker`).
     pub pose_thread_ticks: AtomicU64,
     /// Poses their own thread left to the tick thread, by why: [not due (early, or the session's
-    /// commands not applied yet), claimed (the tick thread held the slot), behind (the slot's
-    /// newest force had not left yet)] (`engine::PoseTick`).
-    pub poses_left: [AtomicU64; 3],
+    /// commands not applied yet), claimed (the tick thread held the slot)] (`engine::PoseTick`).
+    pub poses_left: [AtomicU64; 2],
+    /// Of `pose_thread_ticks`, those that ran while the slot's previous force still waited for
+    /// the comm side: their force was queued behind it, to leave from there.
+    pub pose_ticks_behind: AtomicU64,
     /// Times the sleeping tick thread woke (a slot's deadline, a pose or command that woke it, a
     /// retry; not counted when it spins).
     pub wakes: AtomicU64,
@@ -152,7 +154,8 @@ impl Default for TickStats {
         Self {
             ticks: AtomicU64::new(0),
             pose_thread_ticks: AtomicU64::new(0),
-            poses_left: [AtomicU64::new(0), AtomicU64::new(0), AtomicU64::new(0)],
+            poses_left: [AtomicU64::new(0), AtomicU64::new(0)],
+            pose_ticks_behind: AtomicU64::new(0),
             wakes: AtomicU64::new(0),
             missed: AtomicU64::new(0),
             lateness: Histogram::new(10_000),

@@ -101,7 +101,7 @@ fn on_pose(shared: &Shared, id: &str, sample: &Sample, received: std::time::Inst
             PoseTick::Ticked { force: out, state } => return tick_here(shared, force.as_deref(), &out, state),
             // Ticks without a pose ran here, queued for the comm thread; the pose waits.
             PoseTick::Held => wake_comm(shared),
-            PoseTick::NotDue | PoseTick::Claimed | PoseTick::Behind => {}
+            PoseTick::NotDue | PoseTick::Claimed => {}
         }
     }
     shared.ticker.wake_tick_thread(); // the slot may tick now rather than at its next deadline
@@ -514,11 +514,8 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
         window_s: window,
         ticks: d.ticks,
         ticks_on_pose_thread: d.pose_thread_ticks,
-        poses_to_tick_thread: PosesToTickThread {
-            early: d.poses_left[0],
-            claimed: d.poses_left[1],
-            behind: d.poses_left[2],
-        },
+        ticks_on_pose_thread_behind: d.pose_ticks_behind,
+        poses_to_tick_thread: PosesToTickThread { early: d.poses_left[0], claimed: d.poses_left[1] },
         tick_thread_wakes: d.wakes,
         missed_ticks: d.missed,
         missed_ticks_total: now.missed,

@@ -133,9 +133,6 @@ pub struct PosesToTickThread {
     pub early: u64,
     /// The tick thread held the session (ticking it, or applying a command).
     pub claimed: u64,
-    /// The session's newest force had not left yet (the comm thread puts it): this pose's force
-    /// follows it, so that forces leave in order.
-    pub behind: u64,
 }
 
 /// `get <p>/server/health?window=N`: the server's health, tick figures over the last N seconds.
@@ -153,8 +150,12 @@ pub struct HealthReply {
     pub window_s: f64,
     /// Session ticks in the window, summed over sessions.
     pub ticks: u64,
-    /// Of them, those a pose ran on the thread that received it, whose force left from there.
+    /// Of them, those a pose ran on the thread that received it, whose force left from there
+    /// (but see the next).
     pub ticks_on_pose_thread: u64,
+    /// Of those, the ones that ran while the session's previous force still waited for the comm
+    /// thread: their force followed it out from there, so that forces leave in order.
+    pub ticks_on_pose_thread_behind: u64,
     /// Poses in the window that their own thread left to the tick thread, and why.
     pub poses_to_tick_thread: PosesToTickThread,
     /// Times the sleeping tick thread woke in the window: at a session's deadline (often to find
