@@ -1,7 +1,7 @@
-"""The fault matrix: hostile peers, frozen subscribers, floods, oversized payloads, a model worker
-killed or stopped, a server killed while recording, each against a live ``dhg-serve`` on loopback.
-For every fault it prints what was expected, what happened, the measured loss and recovery, and
-PASS or FAIL; it exits 1 if any fault failed.
+"""The fault matrix: hostile peers, frozen subscribers, floods of puts and of queries, oversized
+payloads, a model worker killed or stopped, a server killed while recording, each against a live
+``dhg-serve`` on loopback. For every fault it prints what was expected, what happened, the
+measured loss and recovery, and PASS or FAIL; it exits 1 if any fault failed.
 
     python tests/benchmarks/fault_matrix.py [--only NAME,NAME] [--json FILE]
 
@@ -189,6 +189,74 @@ def frozen_subscriber(endpoint: str) -> Outcome:
         "the trainee's forces flow on (largest gap well under 0.5 s)",
         f"largest gap between forces {gap * 1e3:.1f} ms over {len([a for a in arrivals if a >= t0])} forces",
         gap < 0.5,
+    )
+
+
+QUERY_FLOOD = """
+import json, sys, threading, time, zenoh
+conf = {"mode": "client", "connect": {"endpoints": ["%s"]}, "scouting": {"multicast": {"enabled": False}}}
+z = zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
+keys, seconds = %r, %r
+answered, refused = [0] * len(keys), [0] * len(keys)
+print("ready", flush=True)
+end = time.monotonic() + seconds
+def loop(i):
+    while time.monotonic() < end:
+        try:
+            for r in z.get(keys[i], timeout=5.0):
+                if r.ok:
+                    answered[i] += 1
+                else:
+                    refused[i] += 1
+        except Exception:
+            refused[i] += 1
+threads = [threading.Thread(target=loop, args=(i,)) for i in range(len(keys))]
+[t.start() for t in threads]
+[t.join() for t in threads]
+print(json.dumps({"answered": answered, "refused": refused}), flush=True)
+z.close()
+"""
+
+
+def query_flood(endpoint: str) -> Outcome:
+    """Another client floods the queries that do work on the server (its health, the victim's
+    metrics, bricks and X-rays), back to back, from four threads, while the victim drills."""
+    seconds = 6.0
+    keys = [
+        "dhg/server/health",
+        "dhg/session/victim-q/metrics",
+        "dhg/session/victim-q/bone",
+        "dhg/session/victim-q/xray/*",
+    ]
+    arrivals: list[float] = []
+    with TraineeClient(endpoint, "victim-q", on_force=lambda m: arrivals.append(time.monotonic())) as c:
+        # Without the flood first: the guidance latency to compare with.
+        stream(c, 3.0, depth_m=0.005)
+        quiet = np.array(list(c.guidance_latencies_s)[-20:]) * 1e3
+        flood = subprocess.Popen(
+            [sys.executable, "-c", QUERY_FLOOD % (endpoint, keys, seconds + 1.0)], stdout=subprocess.PIPE, text=True
+        )
+        assert flood.stdout is not None
+        flood.stdout.readline()
+        t0, g0 = time.monotonic(), len(c.guidance)
+        stream(c, seconds, depth_m=0.02)
+        t1, g = time.monotonic(), len(c.guidance) - g0
+        latencies = np.array(list(c.guidance_latencies_s)[-40:]) * 1e3
+        out, _ = flood.communicate(timeout=60)
+    counts = json.loads(out.strip().splitlines()[-1])
+    gap = gaps([a for a in arrivals if a <= t1], t0)
+    rate = g / (t1 - t0)
+    per_s = [round(n / (seconds + 1.0)) for n in counts["answered"]]
+    return Outcome(
+        "another client floods queries (health, the victim's metrics, bricks and X-rays, 4 threads back to back) "
+        f"while a trainee drills {seconds:g} s",
+        "the trainee's forces flow on (gap < 0.1 s) and its guidance keeps 10 Hz (at least 9 a second); the "
+        "queries are answered",
+        f"largest force gap {gap * 1e3:.1f} ms; guidance {rate:.1f} a second, latency p50 "
+        f"{np.median(latencies):.1f} ms, max {latencies.max():.1f} ms (without the flood {np.median(quiet):.1f}, "
+        f"{quiet.max():.1f} ms); answered a second (health, metrics, "
+        f"bone, xray) {per_s}, refused {counts['refused']}",
+        gap < 0.1 and rate >= 9.0 and all(n > 0 for n in counts["answered"]),
     )
 
 
@@ -413,6 +481,7 @@ def main() -> int:
         "forged-forces": lambda: forged_forces(endpoint),
         "fake-ids": lambda: fake_ids_and_impossible_states(endpoint, root),
         "frozen-subscriber": lambda: frozen_subscriber(endpoint),
+        "query-flood": lambda: query_flood(endpoint),
         "rogue-worker": lambda: rogue_worker(endpoint),
         "oversized": lambda: oversized(endpoint, server),
         "squatter": squatter,
