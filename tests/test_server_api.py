@@ -164,7 +164,7 @@ def test_a_pose_ticks_its_session_on_the_thread_that_received_it_unless_told_not
             # (`poses` counts a pose before its tick is tried: wait for the last ones; the window
             # spans the server's whole life, as `poses` does).
             assert set(h["poses_to_tick_thread"]) == {"early", "claimed"}, h
-            assert 0 <= h["ticks_on_pose_thread_behind"] <= h["ticks_on_pose_thread"], h
+            assert h["ticks_on_pose_thread_behind"] <= h["ticks_on_pose_thread"], h
 
             def accounted() -> bool:
                 a = srv.health(window_s=3600.0)

@@ -627,11 +627,11 @@ fn a_deferred_pose_superseded_while_the_thread_is_late_still_takes_its_tick() {
 #[test]
 fn a_due_pose_ticks_on_its_own_thread_and_an_early_one_waits_for_the_tick_thread() {
     let (mut core, mut link, surface, t0) = started();
-    drain(&mut link);
     send(&mut link, 0, 1, 1, surface - 1e-3);
-    // The force of the first tick (the tick thread's, order 1) has not left: a force put here
-    // would overtake it. The pose ticks here all the same, and its force queues behind the
-    // waiting one, for the comm side to put (not `published`).
+    // The force of the first tick (the tick thread's, order 1, without a pose) has not left: it
+    // is still in the queue, and a force put here would overtake it. The pose ticks here all the
+    // same, and its force queues behind the waiting one, for the comm side to put (not
+    // `published`).
     let PoseTick::Ticked { force: Output::Force { msg, published, order, .. }, state: false } =
         link.ticker.tick(0, 1, t0 + MS, 0, true)
     else {
@@ -645,7 +645,7 @@ fn a_due_pose_ticks_on_its_own_thread_and_an_early_one_waits_for_the_tick_thread
             _ => None,
         })
         .collect();
-    assert_eq!(queued, [(1, false)], "queued for the comm side, after the waiting force");
+    assert_eq!(queued, [(0, false), (1, false)], "queued for the comm side, after the waiting force");
     assert_eq!(link.stats.pose_ticks_behind.load(Ordering::Relaxed), 1, "counted as ticked behind");
     assert_eq!(core.tick_due(t0 + MS + us(10)).0, 0, "the tick thread ticked the pose again");
     // A period later, with every force out: the pose's force is the caller's to put.

@@ -111,8 +111,8 @@ fn on_pose(shared: &Shared, id: &str, sample: &Sample, received: std::time::Inst
 /// once the comm thread has declared the session's publisher, and the comm thread only records it;
 /// the comm thread is woken only for what it must publish (the first forces, the 10 Hz state).
 fn tick_here(shared: &Shared, publisher: Option<&ForcePublisher>, force: &Output, state: bool) {
-    // Not `published` when ticks without a pose ran before it: those forces leave first, from the
-    // comm thread, and this one after them.
+    // Not `published` when ticks without a pose ran before it, or the session's previous force had
+    // not left yet: those forces leave first, from the comm thread, and this one after them.
     let here = matches!(force, Output::Force { published: true, .. });
     if let (Output::Force { slot, msg, received, order, .. }, Some(p), true) = (force, publisher, here) {
         put_force(shared, p, *slot, msg, *received, *order);

@@ -280,8 +280,9 @@ pub struct Shared {
     /// that an older force, still queued for the comm thread, never follows a newer one out.
     pub(crate) put_begun: Box<[AtomicU64]>,
     /// Per slot: the order of the newest force whose put has ended (or that was let go). A pose's
-    /// thread ticks its slot only when every force the slot made is out: its own put then cannot
-    /// overtake one still under way on the comm thread.
+    /// thread puts its own force only when every force the slot made before is out, so that its
+    /// put cannot overtake one still waiting for, or under way on, the comm thread; otherwise its
+    /// force queues behind them for the comm thread to put.
     pub(crate) put_done: Box<[AtomicU64]>,
     pub(crate) config: ServerConfig,
     /// How the tick and comm threads wait (for the health report).
