@@ -473,12 +473,6 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
     sorted[((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1]
 }
 
-fn sorted_ids(by_id: &std::collections::HashMap<String, u16>) -> Vec<&String> {
-    let mut ids: Vec<&String> = by_id.keys().collect();
-    ids.sort();
-    ids
-}
-
 /// The health report; tick quantiles cover the last `window_s` seconds (whole seconds).
 pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
     let now = super::history::sample(shared);
@@ -495,22 +489,32 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
         }
     };
     let d = now.since(base.as_ref());
-    let model = lock(&shared.model);
-    let mut lat: Vec<f64> = model.latencies_s.iter().copied().collect();
+    // Each lock only for a copy of what the reply needs: the model's replies take the model's
+    // stats and the registry for each guidance message, and a client asking for health as fast as
+    // it can must not hold them while the reply is built (a sort of up to 2,000 latencies, the
+    // quantiles, the ids).
+    let (mut lat, available, model_id) = {
+        let model = lock(&shared.model);
+        let lat: Vec<f64> = model.latencies_s.iter().copied().collect();
+        (lat, model.last_reply.is_some_and(|t| t.elapsed().as_secs_f64() < 1.0), model.model_id.clone())
+    };
     lat.sort_by(f64::total_cmp);
-    let available = model.last_reply.is_some_and(|t| t.elapsed().as_secs_f64() < 1.0);
     let c = &shared.counters;
     let n = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
     let (workers, workers_refused) = {
         let pool = lock(&shared.pool);
         (pool.report(Instant::now()), pool.refused)
     };
-    let reg = lock(&shared.registry);
+    let (sessions, mut session_ids, max_sessions) = {
+        let reg = lock(&shared.registry);
+        (reg.by_id.len(), reg.by_id.keys().cloned().collect::<Vec<String>>(), reg.slots.len())
+    };
+    session_ids.sort();
     HealthReply {
         uptime_s: shared.started.elapsed().as_secs_f64(),
-        sessions: reg.by_id.len(),
-        session_ids: sorted_ids(&reg.by_id).into_iter().cloned().collect(),
-        max_sessions: reg.slots.len(),
+        sessions,
+        session_ids,
+        max_sessions,
         window_s: window,
         ticks: d.ticks,
         ticks_on_pose_thread: d.pose_thread_ticks,
@@ -553,7 +557,7 @@ pub(crate) fn health(shared: &Shared, window_s: f64) -> HealthReply {
         },
         model: ModelHealth {
             available,
-            id: model.model_id.clone(),
+            id: model_id,
             queries: n(&c.model_queries),
             bursts: n(&c.model_bursts),
             replies: n(&c.model_replies),
