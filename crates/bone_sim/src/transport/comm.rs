@@ -75,6 +75,24 @@ impl ForcesFirst {
     }
 }
 
+/// Gives every waiting force to `handle`, those that arrive meanwhile too ([`ForcesFirst`] of
+/// `ctx`, which `queue` picks out of it).
+fn put_waiting_forces<C>(ctx: &mut C, queue: fn(&mut C) -> &mut ForcesFirst, handle: fn(&mut C, Output)) {
+    while let Some(force) = queue(ctx).next_force() {
+        handle(ctx, force);
+    }
+}
+
+/// The comm thread's loop over the waiting outputs: every force first, then the oldest other
+/// output, and again, until none waits ([`ForcesFirst`]).
+fn drain_forces_first<C>(ctx: &mut C, queue: fn(&mut C) -> &mut ForcesFirst, handle: fn(&mut C, Output)) {
+    loop {
+        put_waiting_forces(ctx, queue, handle);
+        let Some(out) = queue(ctx).next_other() else { return };
+        handle(ctx, out);
+    }
+}
+
 impl Comm {
     /// The outlet of the session in `slot` as of `generation`, declared on its first output;
     /// `None` if the slot has moved on, holds no session, or Zenoh refused a publisher.
@@ -173,18 +191,12 @@ impl Comm {
 
     /// Puts every waiting force ([`ForcesFirst`]).
     fn put_waiting_forces(&mut self) {
-        while let Some(force) = self.queue.next_force() {
-            self.handle(force);
-        }
+        put_waiting_forces(self, |c| &mut c.queue, Self::handle);
     }
 
     /// Handles every waiting output, forces first ([`ForcesFirst`]).
     fn drain_forces_first(&mut self) {
-        loop {
-            self.put_waiting_forces();
-            let Some(out) = self.queue.next_other() else { return };
-            self.handle(out);
-        }
+        drain_forces_first(self, |c| &mut c.queue, Self::handle);
     }
 
     /// Once a second: the health history, idle sessions, and (when the number of sessions has
@@ -317,46 +329,52 @@ mod tests {
         }
     }
 
-    /// The comm thread's loop (`Comm::drain_forces_first`) over `queue`, running `slow` while the
-    /// first slow output (`S0`) is handled; the order the outputs were handled in.
-    fn drain(queue: &mut ForcesFirst, mut slow: impl FnMut(&mut ForcesFirst, &mut Vec<String>)) -> Vec<String> {
-        let mut order = Vec::new();
-        loop {
-            while let Some(f) = queue.next_force() {
-                order.push(name(&f));
-            }
-            let Some(out) = queue.next_other() else { return order };
-            if matches!(out, Output::Snapshot { slot: 0, .. }) {
-                slow(queue, &mut order);
-            }
-            order.push(name(&out));
+    /// What the comm thread's loop is given in the test: the queue, the order outputs were
+    /// handled in, and what handling the first slow output (`S0`) does meanwhile.
+    struct Probe {
+        queue: ForcesFirst,
+        order: Vec<String>,
+        slow: fn(&mut Probe),
+    }
+
+    #[allow(clippy::large_types_passed_by_value)] // the signature of `Comm::handle`
+    fn handle(p: &mut Probe, out: Output) {
+        if matches!(out, Output::Snapshot { slot: 0, .. }) {
+            (p.slow)(p);
         }
+        p.order.push(name(&out));
+    }
+
+    /// The comm thread's loop (`drain_forces_first`, as `Comm` runs it) over the probe's queue;
+    /// the order the outputs were handled in.
+    fn drain(p: &mut Probe) -> Vec<String> {
+        p.order.clear();
+        drain_forces_first(p, |p| &mut p.queue, handle);
+        std::mem::take(&mut p.order)
     }
 
     #[test]
     fn forces_go_out_before_other_outputs_even_those_that_arrive_meanwhile() {
         let outputs = Arc::new(OutputQueue::new(16));
-        let mut queue = ForcesFirst { outputs: outputs.clone(), later: VecDeque::new() };
         let fill = || {
             for out in [other(0), force(1), other(2), force(3)] {
                 outputs.push(out).unwrap();
             }
         };
+        let queue = ForcesFirst { outputs: outputs.clone(), later: VecDeque::new() };
         // A force that comes while a slow output is handled leaves after it, before the next.
+        let mut p = Probe { queue, order: Vec::new(), slow: |p| p.queue.outputs.push(force(4)).unwrap() };
         fill();
-        let order = drain(&mut queue, |_, _| outputs.push(force(4)).unwrap());
-        assert_eq!(order, ["F1", "F3", "S0", "F4", "S2"]);
-        // A slow output waiting for the registry puts the forces that come meanwhile; another
-        // output that came too waits behind the older ones.
+        assert_eq!(drain(&mut p), ["F1", "F3", "S0", "F4", "S2"]);
+        // A slow output waiting for the registry puts the forces that come meanwhile
+        // (`Comm::with_registry`); another output that came too waits behind the older ones.
+        p.slow = |p| {
+            p.queue.outputs.push(force(4)).unwrap();
+            p.queue.outputs.push(other(5)).unwrap();
+            put_waiting_forces(p, |p| &mut p.queue, handle);
+        };
         fill();
-        let order = drain(&mut queue, |q, order| {
-            outputs.push(force(4)).unwrap();
-            outputs.push(other(5)).unwrap();
-            while let Some(f) = q.next_force() {
-                order.push(name(&f));
-            }
-        });
-        assert_eq!(order, ["F1", "F3", "F4", "S0", "S2", "S5"]);
-        assert!(queue.is_empty());
+        assert_eq!(drain(&mut p), ["F1", "F3", "F4", "S0", "S2", "S5"]);
+        assert!(p.queue.is_empty());
     }
 }
