@@ -574,13 +574,7 @@ fn a_pose_after_ticks_without_a_pose_leaves_its_force_to_the_comm_side() {
         panic!("the late pose did not tick on its own thread")
     };
     assert_eq!((msg.pose_seq, published), (2, false));
-    let queued: Vec<(u32, bool)> = drain(&mut link)
-        .into_iter()
-        .filter_map(|o| match o {
-            Output::Force { msg, published, .. } => Some((msg.pose_seq, published)),
-            _ => None,
-        })
-        .collect();
+    let queued = forces_published(&drain(&mut link));
     assert_eq!(queued, [(1, false), (2, false)], "the tick holding pose 1, then pose 2's, both for the comm side");
     assert_eq!(core.tick_due(t0 + us(3310)).0, 0);
     // A never-posed slot's first pose 0.2 periods after a tick without a pose it ran: too early
@@ -638,13 +632,7 @@ fn a_due_pose_ticks_on_its_own_thread_and_an_early_one_waits_for_the_tick_thread
         panic!("a due pose behind a waiting force did not tick its slot")
     };
     assert_eq!((msg.pose_seq, published, order), (1, false, 2), "the force of that pose, for the comm side");
-    let queued: Vec<(u32, bool)> = drain(&mut link)
-        .into_iter()
-        .filter_map(|o| match o {
-            Output::Force { msg, published, .. } => Some((msg.pose_seq, published)),
-            _ => None,
-        })
-        .collect();
+    let queued = forces_published(&drain(&mut link));
     assert_eq!(queued, [(0, false), (1, false)], "queued for the comm side, after the waiting force");
     assert_eq!(link.stats.pose_ticks_behind.load(Ordering::Relaxed), 1, "counted as ticked behind");
     assert_eq!(core.tick_due(t0 + MS + us(10)).0, 0, "the tick thread ticked the pose again");

@@ -78,3 +78,12 @@ pub fn press(core: &mut TickCore, link: &mut EngineLink, surface: f64, depth: f6
 pub fn forces(out: &[Output]) -> Vec<bone_sim::protocol::ForceMsg> {
     out.iter().filter_map(|o| if let Output::Force { msg, .. } = o { Some(*msg) } else { None }).collect()
 }
+
+/// The forces `out` holds, each as (the pose it used, whether the thread that ticked it puts it).
+pub fn forces_published(out: &[Output]) -> Vec<(u32, bool)> {
+    out.iter()
+        .filter_map(
+            |o| if let Output::Force { msg, published, .. } = o { Some((msg.pose_seq, *published)) } else { None },
+        )
+        .collect()
+}
